@@ -1,0 +1,63 @@
+"""Pieces every environment kind shares: spaces, action validation, renderer set-up."""
+
+from __future__ import annotations
+
+import numpy as np
+from gymnasium import spaces
+
+from reach_envs.rendering import SceneRenderer
+from reach_envs.scenes import Scene
+from reach_envs.systems.base import ControlAffineSystem
+
+
+def observation_space(system: ControlAffineSystem) -> spaces.Box:
+    """float32 states: headings in [-pi, pi], positions unbounded (cars may leave the domain)."""
+    low = np.array([-np.pi if p else -np.inf for p in system.periodic], dtype=np.float32)
+    return spaces.Box(low=low, high=-low, dtype=np.float32)
+
+
+def action_space(dim: int) -> spaces.Box:
+    """Turn rates normalised to [-1, 1]."""
+    return spaces.Box(low=-1.0, high=1.0, shape=(dim,), dtype=np.float32)
+
+
+def check_action(action: object, shape: tuple[int, ...]) -> np.ndarray:
+    """``action`` as float64 of the given shape; wrong shapes and NaN/inf raise ``ValueError``.
+
+    Out-of-range values are *not* an error: callers clip them to [-1, 1] (documented behaviour,
+    as for any Box action space whose samples an agent may overshoot).
+    """
+    try:
+        a = np.asarray(action, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"action must be numeric with shape {shape}, got {action!r}") from err
+    if a.shape != shape:
+        raise ValueError(f"action must have shape {shape}, got shape {a.shape}: {action!r}")
+    if not np.isfinite(a).all():
+        raise ValueError(f"action contains a non-finite value (NaN or inf): {action!r}")
+    return a
+
+
+def check_state(state: object, system: ControlAffineSystem) -> np.ndarray:
+    """A user-given initial state as float64 ``(n,)``; wrong shapes and NaN/inf raise ``ValueError``."""
+    x = np.asarray(state, dtype=np.float64)
+    if x.shape != (system.state_dim,):
+        raise ValueError(f"state for {system.name} must have shape ({system.state_dim},), got {x.shape}")
+    if not np.isfinite(x).all():
+        raise ValueError(f"state contains a non-finite value (NaN or inf): {x.tolist()}")
+    return x
+
+
+def make_renderer(scene: Scene, size: int = 400) -> SceneRenderer:
+    """A renderer framing the scene's arena (or the system's position domain)."""
+    system = scene.system
+    extent = scene.arena if scene.arena is not None else 1.15 * getattr(system, "half_width", 1.0)
+    return SceneRenderer(
+        roles=system.car_roles,
+        names=system.car_names,
+        collision_radius=system.collision_radius,
+        half_extent=extent,
+        title=f"{scene.name} ({system.name})",
+        size=size,
+    )
+

@@ -1,0 +1,133 @@
+"""Gymnasium environment for any scene: ``Air3D-v0``, ``MultiVehicle6D-v0``, ``MultiVehicle9D-v0``.
+
+Actions are the controlled cars' turn rates normalised to [-1, 1] (values outside are clipped to the
+box; NaN, inf and wrong shapes raise ``ValueError``). The disturbance comes from the scene.
+Observations are float32 states with headings wrapped to [-pi, pi). An episode *terminates* on
+collision (``l(x) <= 0``, if the scene says so) or on leaving the arena, and is *truncated* at the
+horizon. The reward is -1 on a step that ends in collision and 0 otherwise: the env is a safety
+testbed, and reward shaping belongs in a wrapper.
+
+``info`` holds ``margin`` (``l(x)``), ``collision``, ``out_of_arena``, ``control`` and
+``disturbance`` (inputs actually applied, physical units, after clipping) and ``time`` (seconds).
+
+A single step runs on Python floats (see :mod:`reach_envs.systems.backend`): at one state, array
+libraries' per-call overhead would cost more than the arithmetic.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from reach_envs.common import action_space, check_action, check_state, make_renderer, observation_space
+from reach_envs.scenes import Scene, make_scene
+from reach_envs.simulator import SceneSimulator
+from reach_envs.systems.backend import FLOAT
+
+
+class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
+    """A single environment of a :class:`~reach_envs.scenes.Scene`.
+
+    Args:
+        scene: a :class:`Scene` or a named scene (``"air3d"``, ``"head-on"``, ...).
+        render_mode: ``None`` or ``"rgb_array"``.
+        **overrides: scene fields to change, e.g. ``dt=0.01, integrator="euler", disturbance="random"``.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 25}
+
+    def __init__(self, scene: str | Scene = "air3d", render_mode: str | None = None, **overrides: Any) -> None:
+        self.scene = make_scene(scene, **overrides)
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata, "render_fps": max(1, round(1.0 / self.scene.dt))}
+        system = self.system = self.scene.system
+        self.sim = SceneSimulator(self.scene, FLOAT)
+        self.observation_space = observation_space(system)
+        self.action_space = action_space(system.control_dim)
+        self._action_shape = (system.control_dim,)
+        self._u_centre = system.control_bounds.center
+        self._u_half = system.control_bounds.half_width
+        self._sampler = self.scene.sampler()
+        self._record_trails = self.scene.trails and render_mode is not None
+        self._renderer = None
+        self._state: list[float] = []
+        self._time = 0.0
+        self._steps = 0
+        self._trails: list[list[tuple[float, float]]] = []
+        self._crashed = False
+
+    # ------------------------------------------------------------------ gymnasium API
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        """Start an episode; ``options={"state": x}`` starts from a given state instead of sampling."""
+        super().reset(seed=seed)
+        if options and options.get("state") is not None:
+            x = check_state(options["state"], self.system)
+        else:
+            x = check_state(self._sampler.sample(self.system, self.np_random), self.system)
+        self._state = self.system.wrap_columns(x.tolist(), FLOAT)
+        self._time = 0.0
+        self._steps = 0
+        self._crashed = False
+        if self._record_trails:
+            self._trails = [[(float(px), float(py))] for px, py, _ in self.system.car_poses(self._state, FLOAT)]
+        margin = self.sim.margin(self._state)
+        info = {"margin": margin, "collision": margin <= 0.0, "time": 0.0}
+        return np.array(self._state, dtype=np.float32), info
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        a = check_action(action, self._action_shape).tolist()
+        u = [c + h * (-1.0 if v < -1.0 else (1.0 if v > 1.0 else v)) for v, c, h in zip(a, self._u_centre, self._u_half)]
+        sim = self.sim
+        x = self._state
+        d = sim.disturbance(x, self.np_random)
+        x = self._state = sim.advance(x, u, d, self.np_random)
+        self._steps += 1
+        self._time = self._steps * self.scene.dt
+        margin = sim.margin(x)
+        collision = margin <= 0.0
+        out = sim.out_of_arena(x)
+        terminated = bool((collision and self.scene.terminate_on_collision) or out)
+        truncated = not terminated and self._steps >= self.scene.max_steps
+        self._crashed = collision
+        if self._record_trails:
+            for trail, (px, py, _) in zip(self._trails, self.system.car_poses(x, FLOAT)):
+                trail.append((px, py))
+        info = {
+            "margin": margin,
+            "collision": collision,
+            "out_of_arena": bool(out),
+            "control": np.array(u),
+            "disturbance": np.array(d),
+            "time": self._time,
+        }
+        return np.array(x, dtype=np.float32), (-1.0 if collision else 0.0), terminated, truncated, info
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode is None:
+            gym.logger.warn("render() called with render_mode=None; pass render_mode='rgb_array' to gym.make")
+            return None
+        if self._renderer is None:
+            self._renderer = make_renderer(self.scene)
+        poses = self.system.car_poses(self._state, FLOAT)
+        crashed = [self._crashed and role == "control" for role in self.system.car_roles]
+        return self._renderer.render(poses, self._time, self._trails if self._record_trails else None, crashed)
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    # ------------------------------------------------------------------ extras
+    @property
+    def state(self) -> np.ndarray:
+        """The current state in float64 (observations are its float32 copy)."""
+        return np.array(self._state)
+
+    @property
+    def time(self) -> float:
+        """Elapsed time in the episode (seconds)."""
+        return self._time

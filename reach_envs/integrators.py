@@ -1,0 +1,47 @@
+"""Fixed-step integrators on columns, shared by every backend (floats, NumPy, torch).
+
+Inputs are held constant over a step (zero-order hold), as a digital controller applies them.
+Periodic dimensions are wrapped after the step, not inside it, so RK4 stages see continuous angles.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+from reach_envs.systems.backend import Backend, Column
+from reach_envs.systems.base import ControlAffineSystem
+
+INTEGRATORS = ("rk4", "euler")
+
+Stepper = Callable[[Sequence[Column], Sequence[Column], Sequence[Column]], list[Column]]
+
+
+def make_stepper(system: ControlAffineSystem, dt: float, integrator: str, xp: Backend) -> Stepper:
+    """A function ``(x, u, d) -> x_next`` advancing ``dt`` seconds and wrapping headings.
+
+    ``x``, ``u`` and ``d`` are column sequences of the backend ``xp``.
+    """
+    if integrator not in INTEGRATORS:
+        raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
+    xdot = system.xdot_columns
+    wrap = system.wrap_columns
+    if integrator == "euler":
+
+        def euler(x: Sequence[Column], u: Sequence[Column], d: Sequence[Column]) -> list[Column]:
+            k = xdot(x, u, d, xp)
+            return wrap([a + dt * b for a, b in zip(x, k)], xp)
+
+        return euler
+
+    half, sixth = 0.5 * dt, dt / 6.0
+
+    def rk4(x: Sequence[Column], u: Sequence[Column], d: Sequence[Column]) -> list[Column]:
+        k1 = xdot(x, u, d, xp)
+        k2 = xdot([a + half * b for a, b in zip(x, k1)], u, d, xp)
+        k3 = xdot([a + half * b for a, b in zip(x, k2)], u, d, xp)
+        k4 = xdot([a + dt * b for a, b in zip(x, k3)], u, d, xp)
+        return wrap(
+            [a + sixth * (b1 + 2.0 * b2 + 2.0 * b3 + b4) for a, b1, b2, b3, b4 in zip(x, k1, k2, k3, k4)], xp
+        )
+
+    return rk4

@@ -1,0 +1,130 @@
+"""Who drives the disturbance in a scene: scripted, random, or any callable policy of the state.
+
+Built-in policies work on state columns with a backend, so one implementation serves the single
+environment (Python floats) and the vector environment (NumPy batches). Policies return
+disturbances in physical units; the simulator clips them to the system's disturbance box.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol
+
+import numpy as np
+
+from reach_envs.systems.backend import FLOAT, Backend, Column
+from reach_envs.systems.base import ControlAffineSystem
+
+
+class DisturbancePolicy(Protocol):
+    """``columns(x, xp, rng) -> d``: one column per disturbance input, physical units."""
+
+    def columns(self, x: Sequence[Column], xp: Backend, rng: np.random.Generator) -> list[Column]: ...
+
+
+def _require_vehicles(system: ControlAffineSystem, what: str) -> None:
+    if not hasattr(system, "car_poses"):
+        raise ValueError(f"{what} needs a vehicle system with car_poses(); {system.name} has none")
+
+
+class PursuitPolicy:
+    """Each disturbance car turns toward the nearest control car: ``d = clip(gain * heading error)``.
+
+    The heading error is the wrapped angle between the car's heading and the bearing to its target,
+    so the pursuer turns at full rate when far off course and smoothly when nearly aligned.
+    """
+
+    def __init__(self, system: ControlAffineSystem, gain: float = 4.0) -> None:
+        _require_vehicles(system, "PursuitPolicy")
+        if not (math.isfinite(gain) and gain > 0):
+            raise ValueError(f"PursuitPolicy: gain must be positive and finite, got {gain!r}")
+        self.system = system
+        self.gain = float(gain)
+        roles = system.car_roles
+        self._controls = [i for i, r in enumerate(roles) if r == "control"]
+        self._pursuers = [i for i, r in enumerate(roles) if r == "disturbance"]
+        self._limits = [system.car_max_turn_rates[i] for i in self._pursuers]
+
+    def columns(self, x: Sequence[Column], xp: Backend, rng: np.random.Generator) -> list[Column]:
+        poses = self.system.car_poses(x, xp)
+        out: list[Column] = []
+        for k, limit in zip(self._pursuers, self._limits):
+            px, py, th = poses[k]
+            best_dx = best_dy = best_r2 = None
+            for c in self._controls:
+                cx, cy, _ = poses[c]
+                dx, dy = cx - px, cy - py
+                r2 = dx * dx + dy * dy
+                if best_r2 is None:
+                    best_dx, best_dy, best_r2 = dx, dy, r2
+                elif xp is FLOAT:
+                    if r2 < best_r2:
+                        best_dx, best_dy, best_r2 = dx, dy, r2
+                else:
+                    closer = r2 < best_r2
+                    best_dx = np.where(closer, dx, best_dx)
+                    best_dy = np.where(closer, dy, best_dy)
+                    best_r2 = np.minimum(r2, best_r2)
+            error = xp.wrap_angle(xp.atan2(best_dy, best_dx) - th)
+            out.append(xp.clip(self.gain * error, -limit, limit))
+        return out
+
+
+class RandomDisturbance:
+    """Disturbance drawn uniformly from its box at every step (uses the environment's generator)."""
+
+    def __init__(self, system: ControlAffineSystem) -> None:
+        self.low = np.array(system.disturbance_bounds.low)
+        self.high = np.array(system.disturbance_bounds.high)
+
+    def columns(self, x: Sequence[Column], xp: Backend, rng: np.random.Generator) -> list[Column]:
+        if xp is FLOAT:
+            return rng.uniform(self.low, self.high).tolist()
+        batch = np.shape(x[0])
+        d = rng.uniform(self.low, self.high, size=batch + self.low.shape)
+        return [d[..., k] for k in range(self.low.shape[0])]
+
+
+class CallableDisturbance:
+    """Adapts a user function ``state -> disturbance`` (physical units) to the policy protocol.
+
+    In a single environment the function receives the state as a float64 array ``(n,)`` and returns
+    ``(m_d,)``; in a vector environment it receives ``(num_envs, n)`` and returns ``(num_envs, m_d)``.
+    Non-finite or wrongly shaped results raise ``ValueError``.
+    """
+
+    def __init__(self, system: ControlAffineSystem, fn: Callable[[np.ndarray], Any]) -> None:
+        self.fn = fn
+        self.dim = system.disturbance_dim
+
+    def columns(self, x: Sequence[Column], xp: Backend, rng: np.random.Generator) -> list[Column]:
+        state = np.array(x, dtype=np.float64) if xp is FLOAT else np.stack(x, axis=-1)
+        d = np.asarray(self.fn(state), dtype=np.float64)
+        expected = state.shape[:-1] + (self.dim,)
+        if d.shape != expected:
+            raise ValueError(f"disturbance policy returned shape {d.shape}, expected {expected}")
+        if not np.isfinite(d).all():
+            raise ValueError(f"disturbance policy returned a non-finite value: {d}")
+        return d.tolist() if xp is FLOAT else [d[..., k] for k in range(self.dim)]
+
+
+#: Names accepted by ``Scene(disturbance=...)``; ``None`` means no disturbance policy at all.
+DISTURBANCE_KINDS = ("pursue", "random")
+
+
+def make_disturbance_policy(system: ControlAffineSystem, spec: Any) -> DisturbancePolicy | None:
+    """Resolve a scene's ``disturbance`` field into a policy (``None`` for no disturbance)."""
+    if spec is None or spec == "none":
+        return None
+    if system.disturbance_dim == 0:
+        raise ValueError(f"disturbance={spec!r} given, but system {system.name} has no disturbance input")
+    if spec == "pursue":
+        return PursuitPolicy(system)
+    if spec == "random":
+        return RandomDisturbance(system)
+    if hasattr(spec, "columns"):
+        return spec
+    if callable(spec):
+        return CallableDisturbance(system, spec)
+    raise ValueError(f"disturbance must be None, one of {DISTURBANCE_KINDS} or a callable, got {spec!r}")

@@ -1,0 +1,260 @@
+"""Declarative scenes: what one simulation contains, and nothing more.
+
+A :class:`Scene` names a system (or a list of cars from which a :class:`MultiVehicle` system is
+built), how initial states are drawn, who drives the disturbance, and which effects are on:
+process noise, collision termination, arena bounds and trails. Environments build their step from
+the active effects only: no disturbance policy is evaluated without a disturbance, no random number
+is drawn without noise or a random policy, no trail is recorded unless asked for and rendered.
+
+Named scenes (:data:`SCENES`, :func:`make_scene`): ``air3d``, ``pursuit-evasion-6d``,
+``three-car-9d``, ``head-on``, ``crossing`` and ``three-car-merge``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from reach_envs.integrators import INTEGRATORS
+from reach_envs.policies import DISTURBANCE_KINDS, make_disturbance_policy
+from reach_envs.systems import Air3D, Car, ControlAffineSystem, MultiVehicle, MultiVehicle6D, MultiVehicle9D
+
+
+# ---------------------------------------------------------------------- initial states
+@dataclass(frozen=True)
+class UniformSafe:
+    """States uniform over the system's domain, redrawn while ``l(x) <= margin`` (in collision)."""
+
+    margin: float = 0.0
+    max_tries: int = 10_000
+
+    def sample(self, system: ControlAffineSystem, rng: np.random.Generator) -> np.ndarray:
+        for _ in range(self.max_tries):
+            x = system.sample_states_numpy(rng)
+            if system.failure_margin_float(x.tolist()) > self.margin:
+                return x
+        raise RuntimeError(
+            f"UniformSafe: no state with l(x) > {self.margin} in {self.max_tries} draws from the {system.name} domain"
+        )
+
+
+@dataclass(frozen=True)
+class FixedState:
+    """A fixed state plus optional uniform jitter ``[-jitter, jitter]`` per dimension."""
+
+    state: tuple[float, ...]
+    jitter: float | tuple[float, ...] = 0.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "state", tuple(float(v) for v in self.state))
+        if not all(math.isfinite(v) for v in self.state):
+            raise ValueError(f"FixedState: state must be finite, got {self.state}")
+        jitter = np.broadcast_to(np.asarray(self.jitter, dtype=np.float64), (len(self.state),))
+        if not (np.isfinite(jitter).all() and (jitter >= 0).all()):
+            raise ValueError(f"FixedState: jitter must be finite and >= 0, got {self.jitter}")
+
+    def sample(self, system: ControlAffineSystem, rng: np.random.Generator) -> np.ndarray:
+        if len(self.state) != system.state_dim:
+            raise ValueError(f"FixedState: state has {len(self.state)} entries, {system.name} needs {system.state_dim}")
+        x = np.array(self.state)
+        if np.any(np.asarray(self.jitter) > 0):
+            j = np.broadcast_to(np.asarray(self.jitter, dtype=np.float64), x.shape)
+            x = x + rng.uniform(-j, j)
+        return x
+
+
+class CallableSampler:
+    """Adapts ``fn(rng) -> state`` to the sampler protocol."""
+
+    def __init__(self, fn: Callable[[np.random.Generator], Any]) -> None:
+        self.fn = fn
+
+    def sample(self, system: ControlAffineSystem, rng: np.random.Generator) -> np.ndarray:
+        return np.asarray(self.fn(rng), dtype=np.float64)
+
+
+# ---------------------------------------------------------------------- the scene
+def _positive(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        raise ValueError(f"Scene: {name} must be a positive finite number, got {value!r}")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class Scene:
+    """One simulation's contents; invalid fields fail here, naming the field.
+
+    Attributes:
+        system: the dynamics (any :class:`ControlAffineSystem`).
+        name: label used in renders and reprs.
+        initial_state: sampler with ``sample(system, rng)``, a fixed state, or ``fn(rng) -> state``.
+        disturbance: ``None`` (no policy; the disturbance sits at its box centre), ``"pursue"``,
+            ``"random"``, or a callable ``state -> disturbance`` in physical units.
+        process_noise: ``None`` or the standard deviation per sqrt(second) of Brownian noise added
+            to each state dimension (scalar or one per dimension).
+        terminate_on_collision: end the episode when ``l(x) <= 0``.
+        arena: ``None`` or a half-width; a car leaving ``[-arena, arena]^2`` ends the episode.
+        trails: record car trails for rendering (only when a render mode is set).
+        horizon: episode length in seconds (default: the system's horizon).
+        dt: step length in seconds.
+        integrator: ``"rk4"`` or ``"euler"``.
+    """
+
+    system: ControlAffineSystem
+    name: str = "custom"
+    initial_state: Any = field(default_factory=UniformSafe)
+    disturbance: Any = None
+    process_noise: float | tuple[float, ...] | None = None
+    terminate_on_collision: bool = True
+    arena: float | None = None
+    trails: bool = False
+    horizon: float | None = None
+    dt: float = 0.02
+    integrator: str = "rk4"
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.system, ControlAffineSystem):
+            raise ValueError(f"Scene: system must be a ControlAffineSystem, got {type(self.system).__name__}")
+        _positive("dt", self.dt)
+        if self.horizon is not None:
+            _positive("horizon", self.horizon)
+        if self.dt > self.episode_horizon:
+            raise ValueError(f"Scene: dt ({self.dt}) must not exceed the horizon ({self.episode_horizon})")
+        if self.integrator not in INTEGRATORS:
+            raise ValueError(f"Scene: integrator must be one of {INTEGRATORS}, got {self.integrator!r}")
+        if self.arena is not None:
+            _positive("arena", self.arena)
+            if not hasattr(self.system, "car_poses"):
+                raise ValueError(f"Scene: arena needs a vehicle system, {self.system.name} has no cars")
+        if self.process_noise is not None:
+            noise = np.asarray(self.process_noise, dtype=np.float64)
+            if noise.ndim > 1 or (noise.ndim == 1 and noise.shape[0] != self.system.state_dim):
+                raise ValueError(
+                    f"Scene: process_noise must be a scalar or have {self.system.state_dim} entries, got {self.process_noise!r}"
+                )
+            if not (np.isfinite(noise).all() and (noise >= 0).all()):
+                raise ValueError(f"Scene: process_noise must be finite and >= 0, got {self.process_noise!r}")
+        if isinstance(self.disturbance, str) and self.disturbance not in (*DISTURBANCE_KINDS, "none"):
+            raise ValueError(f"Scene: disturbance must be None, one of {DISTURBANCE_KINDS} or a callable, got {self.disturbance!r}")
+        try:
+            make_disturbance_policy(self.system, self.disturbance)
+        except ValueError as err:
+            raise ValueError(f"Scene: {err}") from None
+        if not (hasattr(self.initial_state, "sample") or callable(self.initial_state)):
+            try:
+                object.__setattr__(self, "initial_state", FixedState(tuple(np.asarray(self.initial_state, dtype=np.float64))))
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"Scene: initial_state must be a sampler, a state or a callable: {err}") from None
+        if isinstance(self.initial_state, FixedState) and len(self.initial_state.state) != self.system.state_dim:
+            raise ValueError(
+                f"Scene: initial_state has {len(self.initial_state.state)} entries, "
+                f"{self.system.name} has {self.system.state_dim} state dimensions"
+            )
+
+    @classmethod
+    def from_cars(cls, cars: Sequence[Car | dict], collision_radius: float = 0.25, **kwargs: Any) -> Scene:
+        """A scene of Dubins cars (speeds, turn bounds and roles) in a :class:`MultiVehicle` system."""
+        if not cars:
+            raise ValueError("Scene: cars must not be empty")
+        horizon = kwargs.get("horizon") or 1.0
+        system = MultiVehicle(cars, collision_radius=collision_radius, horizon=horizon)
+        return cls(system=system, **kwargs)
+
+    def replace(self, **changes: Any) -> Scene:
+        """A copy with some fields changed (validated again)."""
+        unknown = set(changes) - {f.name for f in dataclasses.fields(self)}
+        if unknown:
+            raise ValueError(f"Scene: unknown field(s) {sorted(unknown)}; fields are {[f.name for f in dataclasses.fields(self)]}")
+        return dataclasses.replace(self, **changes)
+
+    @property
+    def episode_horizon(self) -> float:
+        return self.horizon if self.horizon is not None else self.system.horizon
+
+    @property
+    def max_steps(self) -> int:
+        """Steps per episode: ``ceil(horizon / dt)``, robust to round-off (1.1 / 0.02 gives 55)."""
+        return max(1, math.ceil(self.episode_horizon / self.dt - 1e-9))
+
+    def sampler(self) -> Any:
+        return self.initial_state if hasattr(self.initial_state, "sample") else CallableSampler(self.initial_state)
+
+
+# ---------------------------------------------------------------------- named scenes
+def _cars(n: int, speed: float = 0.6, max_turn_rate: float = 1.1) -> list[Car]:
+    return [Car(speed, max_turn_rate, "control", f"car{i + 1}") for i in range(n)]
+
+
+def _poses_state(poses: Sequence[tuple[float, float, float]]) -> tuple[float, ...]:
+    """Car poses (x, y, heading) to the MultiVehicle state order (positions, then headings)."""
+    return tuple(v for x, y, _ in poses for v in (x, y)) + tuple(th for _, _, th in poses)
+
+
+def _jitter(n: int, position: float = 0.05, heading: float = 0.1) -> tuple[float, ...]:
+    return (position,) * (2 * n) + (heading,) * n
+
+
+def _scene_air3d() -> Scene:
+    return Scene(system=Air3D(), name="air3d", disturbance="pursue")
+
+
+def _scene_pursuit_evasion_6d() -> Scene:
+    return Scene(system=MultiVehicle6D(), name="pursuit-evasion-6d", disturbance="pursue")
+
+
+def _scene_three_car_9d() -> Scene:
+    return Scene(system=MultiVehicle9D(), name="three-car-9d")
+
+
+def _scene_head_on() -> Scene:
+    state = _poses_state([(-0.8, 0.0, 0.0), (0.8, 0.0, math.pi)])
+    return Scene.from_cars(
+        _cars(2), name="head-on", initial_state=FixedState(state, _jitter(2)), horizon=2.0, arena=1.5, trails=True
+    )
+
+
+def _scene_crossing() -> Scene:
+    state = _poses_state([(-0.8, 0.0, 0.0), (0.0, -0.8, math.pi / 2)])
+    return Scene.from_cars(
+        _cars(2), name="crossing", initial_state=FixedState(state, _jitter(2)), horizon=2.0, arena=1.5, trails=True
+    )
+
+
+def _scene_three_car_merge() -> Scene:
+    angles = [math.pi / 2, math.pi / 2 + 2 * math.pi / 3, math.pi / 2 + 4 * math.pi / 3]
+    poses = [(0.8 * math.cos(a), 0.8 * math.sin(a), math.remainder(a + math.pi, 2 * math.pi)) for a in angles]
+    return Scene.from_cars(
+        _cars(3),
+        name="three-car-merge",
+        initial_state=FixedState(_poses_state(poses), _jitter(3)),
+        horizon=2.0,
+        arena=1.5,
+        trails=True,
+    )
+
+
+#: Named scenes: name -> factory.
+SCENES: dict[str, Callable[[], Scene]] = {
+    "air3d": _scene_air3d,
+    "pursuit-evasion-6d": _scene_pursuit_evasion_6d,
+    "three-car-9d": _scene_three_car_9d,
+    "head-on": _scene_head_on,
+    "crossing": _scene_crossing,
+    "three-car-merge": _scene_three_car_merge,
+}
+
+
+def make_scene(scene: str | Scene, **overrides: Any) -> Scene:
+    """A named scene (or a given one) with some fields overridden, e.g. ``make_scene("air3d", dt=0.01)``."""
+    if isinstance(scene, str):
+        if scene not in SCENES:
+            raise ValueError(f"unknown scene {scene!r}; named scenes: {sorted(SCENES)}")
+        scene = SCENES[scene]()
+    elif not isinstance(scene, Scene):
+        raise ValueError(f"scene must be a Scene or a scene name, got {type(scene).__name__}")
+    return scene.replace(**overrides) if overrides else scene

@@ -1,0 +1,348 @@
+"""The one place where a dynamical system is defined, and everything derived from it.
+
+A concrete system declares only physics (see :class:`ControlAffineSystem`): its state layout, the
+control-affine dynamics ``x' = f(x) + G_u(x) u + G_d(x) d`` with box-bounded inputs, which player
+maximises the value, the failure margin ``l(x)`` and a default horizon. Everything the rest of the
+library needs is derived here, once, generically:
+
+* the Hamiltonian ``H(x, p) = opt_u opt_d p . (f + G_u u + G_d d)``,
+* the optimal control and disturbance (extreme points of the input boxes),
+* the per-dimension bound on ``|dH/dp_i|`` used as Lax-Friedrichs dissipation by the grid solver,
+* batched dynamics, failure margin and heading wrapping.
+
+Physics methods work on *columns* with a backend (:mod:`reach_envs.systems.backend`), so the same
+lines run on Python floats (single environment), NumPy (vector environments) and torch (solver,
+training, safety; any dtype and device, differentiable). Public batched methods take torch
+tensors shaped ``(..., n)``.
+
+Conventions (see REFERENCE.md, section 1): ``t`` is time-to-go, the backward reachable tube is
+``{x : V(x, t) <= 0}``, ``l(x) < 0`` inside the failure set, the control keeps the system safe by
+maximising ``p . f`` and the disturbance attacks by minimising it.
+
+**Tie-break.** Where a switching function ``s = G^T p`` is exactly zero, every input of the box is
+optimal for the Hamiltonian; the library then returns the *centre* of the box (0 for a symmetric
+turn-rate box). This is what ``sign(0) == 0`` gives in ``u* = c + h sign(s)``, it matches DeepReach's
+``torch.sign`` convention, and it introduces no bias toward either side.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+import torch
+
+from reach_envs.systems.backend import FLOAT, NUMPY, TORCH, Backend, Column
+
+Objective = Literal["max", "min"]
+#: Sparse input matrix: {(state index, input index): entry}; absent entries are zero.
+InputMatrix = Mapping[tuple[int, int], Column]
+
+
+@dataclass(frozen=True)
+class Box:
+    """A box ``[low, high]`` of inputs, one interval per input dimension."""
+
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        if len(self.low) != len(self.high):
+            raise ValueError(f"Box bounds differ in length: low={self.low}, high={self.high}")
+        for lo, hi in zip(self.low, self.high):
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+                raise ValueError(f"Box bound must be finite with low <= high, got [{lo}, {hi}]")
+
+    @classmethod
+    def symmetric(cls, bounds: Sequence[float]) -> Box:
+        """The box ``[-b, b]`` per dimension."""
+        return cls(tuple(-float(b) for b in bounds), tuple(float(b) for b in bounds))
+
+    @property
+    def dim(self) -> int:
+        return len(self.low)
+
+    @property
+    def center(self) -> tuple[float, ...]:
+        return tuple(0.5 * (lo + hi) for lo, hi in zip(self.low, self.high))
+
+    @property
+    def half_width(self) -> tuple[float, ...]:
+        return tuple(0.5 * (hi - lo) for lo, hi in zip(self.low, self.high))
+
+
+NO_INPUT = Box((), ())
+
+
+@dataclass(frozen=True)
+class DeepReachNormalisation:
+    """How DeepReach maps states and values to network inputs and outputs (checkpoint import only).
+
+    Network input is ``(t, (x - state_offset) / state_scale)``; the value is
+    ``value_scale * output + value_offset``.
+    """
+
+    state_offset: tuple[float, ...]
+    state_scale: tuple[float, ...]
+    value_scale: float = 25.0
+    value_offset: float = 0.25
+
+
+class ControlAffineSystem(ABC):
+    """Base class of every dynamical system; subclasses declare physics only.
+
+    Subclasses set the class or instance attributes below and implement :meth:`drift`,
+    :meth:`control_matrix`, optionally :meth:`disturbance_matrix`, and :meth:`failure_margin_columns`.
+    """
+
+    #: registry name, used in configs and checkpoints
+    name: ClassVar[str]
+    state_names: tuple[str, ...]
+    #: (low, high) per state dimension; periodic dimensions span one period [-pi, pi)
+    domain: tuple[tuple[float, float], ...]
+    periodic: tuple[bool, ...]
+    control_bounds: Box
+    disturbance_bounds: Box = NO_INPUT
+    control_objective: Objective = "max"
+    disturbance_objective: Objective = "min"
+    horizon: float
+    deepreach: DeepReachNormalisation
+
+    # ------------------------------------------------------------------ physics (subclasses)
+    @abstractmethod
+    def drift(self, x: Sequence[Column], xp: Backend) -> list[Column]:
+        """``f(x)`` as a new list with one column per state dimension (callers may modify it)."""
+
+    @abstractmethod
+    def control_matrix(self, x: Sequence[Column], xp: Backend) -> InputMatrix:
+        """Nonzero entries of ``G_u(x)``."""
+
+    def disturbance_matrix(self, x: Sequence[Column], xp: Backend) -> InputMatrix:
+        """Nonzero entries of ``G_d(x)``; none by default (no disturbance)."""
+        return {}
+
+    @abstractmethod
+    def failure_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
+        """``l(x)``: negative inside the failure set, zero on its boundary."""
+
+    def parameters(self) -> dict[str, Any]:
+        """Constructor arguments that rebuild this system (JSON-serialisable)."""
+        return {}
+
+    # ------------------------------------------------------------------ description
+    @property
+    def state_dim(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def control_dim(self) -> int:
+        return self.control_bounds.dim
+
+    @property
+    def disturbance_dim(self) -> int:
+        return self.disturbance_bounds.dim
+
+    @property
+    def periodic_dims(self) -> tuple[int, ...]:
+        return tuple(i for i, p in enumerate(self.periodic) if p)
+
+    def config(self) -> dict[str, Any]:
+        """``{"name": ..., "parameters": {...}}``: enough to rebuild the system and compare two."""
+        return {"name": self.name, "parameters": self.parameters()}
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, ControlAffineSystem) and self.config() == other.config()
+
+    def __hash__(self) -> int:
+        return hash(json.dumps(self.config(), sort_keys=True))
+
+    def __repr__(self) -> str:
+        params = ", ".join(f"{k}={v!r}" for k, v in self.parameters().items())
+        return f"{type(self).__name__}({params})"
+
+    def validate(self) -> None:
+        """Check that the declared attributes are consistent (called by subclasses' constructors)."""
+        n = len(self.state_names)
+        if len(self.domain) != n or len(self.periodic) != n:
+            raise ValueError(
+                f"{self.name}: state_names ({n}), domain ({len(self.domain)}) and periodic "
+                f"({len(self.periodic)}) must have the same length"
+            )
+        for name, (lo, hi) in zip(self.state_names, self.domain):
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise ValueError(f"{self.name}: domain of {name} must be finite with low < high, got [{lo}, {hi}]")
+        for side, objective in (("control", self.control_objective), ("disturbance", self.disturbance_objective)):
+            if objective not in ("max", "min"):
+                raise ValueError(f"{self.name}: {side}_objective must be 'max' or 'min', got {objective!r}")
+        if not (self.horizon > 0 and math.isfinite(self.horizon)):
+            raise ValueError(f"{self.name}: horizon must be positive and finite, got {self.horizon}")
+
+    # ------------------------------------------------------------------ derived, on columns
+    def xdot_columns(
+        self, x: Sequence[Column], u: Sequence[Column], d: Sequence[Column], xp: Backend
+    ) -> list[Column]:
+        """``f(x) + G_u(x) u + G_d(x) d`` on columns."""
+        # Hot path of every simulation step: kept free of avoidable calls and copies.
+        out = self.drift(x, xp)
+        for (i, j), g in self.control_matrix(x, xp).items():
+            out[i] = out[i] + g * u[j]
+        if d:
+            for (i, k), g in self.disturbance_matrix(x, xp).items():
+                out[i] = out[i] + g * d[k]
+        return out
+
+    @staticmethod
+    def _switching(matrix: InputMatrix, p: Sequence[Column], dim: int) -> list[Column]:
+        """``G^T p``: one switching function per input dimension."""
+        s: list[Column] = [0.0] * dim
+        for (i, j), g in matrix.items():
+            s[j] = s[j] + g * p[i]
+        return s
+
+    def _optimal(self, s: Sequence[Column], box: Box, objective: Objective, xp: Backend) -> list[Column]:
+        sigma = 1.0 if objective == "max" else -1.0
+        return [c + sigma * h * xp.sign(sj) for sj, c, h in zip(s, box.center, box.half_width)]
+
+    def optimal_inputs_columns(
+        self, x: Sequence[Column], p: Sequence[Column], xp: Backend
+    ) -> tuple[list[Column], list[Column]]:
+        """Optimal control and disturbance for costate ``p`` (tie-break: box centre)."""
+        su = self._switching(self.control_matrix(x, xp), p, self.control_dim)
+        u = self._optimal(su, self.control_bounds, self.control_objective, xp)
+        d: list[Column] = []
+        if self.disturbance_dim:
+            sd = self._switching(self.disturbance_matrix(x, xp), p, self.disturbance_dim)
+            d = self._optimal(sd, self.disturbance_bounds, self.disturbance_objective, xp)
+        return u, d
+
+    def hamiltonian_columns(self, x: Sequence[Column], p: Sequence[Column], xp: Backend) -> Column:
+        """``H(x, p) = opt_u opt_d p . xdot`` in closed form for box inputs."""
+        h: Column = 0.0
+        for pi, fi in zip(p, self.drift(x, xp)):
+            h = h + pi * fi
+        sides = [(self.control_matrix(x, xp), self.control_bounds, self.control_objective)]
+        if self.disturbance_dim:
+            sides.append((self.disturbance_matrix(x, xp), self.disturbance_bounds, self.disturbance_objective))
+        for matrix, box, objective in sides:
+            sigma = 1.0 if objective == "max" else -1.0
+            for sj, c, hw in zip(self._switching(matrix, p, box.dim), box.center, box.half_width):
+                h = h + sj * c + sigma * hw * xp.abs(sj)
+        return h
+
+    def dissipation_columns(self, x: Sequence[Column], xp: Backend) -> list[Column]:
+        """``max over the input boxes of |xdot_i|`` per state dimension: bounds ``|dH/dp_i|``."""
+        centre_u = self.control_bounds.center
+        centre_d = self.disturbance_bounds.center
+        out = list(self.xdot_columns(x, centre_u, centre_d, xp))
+        out = [xp.abs(v) if not isinstance(v, (int, float)) else abs(v) for v in out]
+        sides = [(self.control_matrix(x, xp), self.control_bounds)]
+        if self.disturbance_dim:
+            sides.append((self.disturbance_matrix(x, xp), self.disturbance_bounds))
+        for matrix, box in sides:
+            hw = box.half_width
+            for (i, j), g in matrix.items():
+                out[i] = out[i] + (xp.abs(g) if not isinstance(g, (int, float)) else abs(g)) * hw[j]
+        return out
+
+    def wrap_columns(self, x: Sequence[Column], xp: Backend) -> list[Column]:
+        """Periodic dimensions wrapped into ``[-pi, pi)``; others unchanged."""
+        return [xp.wrap_angle(c) if p else c for c, p in zip(x, self.periodic)]
+
+    # ------------------------------------------------------------------ derived, batched torch
+    def _check(self, name: str, t: torch.Tensor, dim: int) -> None:
+        if not isinstance(t, torch.Tensor):
+            raise TypeError(f"{self.name}: {name} must be a torch.Tensor, got {type(t).__name__}")
+        if t.ndim == 0 or t.shape[-1] != dim:
+            raise ValueError(f"{self.name}: {name} must have shape (..., {dim}), got {tuple(t.shape)}")
+
+    def _inputs_or_centre(self, v: torch.Tensor | None, box: Box, x: torch.Tensor, name: str) -> Sequence[Column]:
+        if v is None:
+            return box.center
+        self._check(name, v, box.dim)
+        return TORCH.unbind(v)
+
+    def dynamics(self, x: torch.Tensor, u: torch.Tensor | None = None, d: torch.Tensor | None = None) -> torch.Tensor:
+        """``x'`` for states ``(..., n)``, controls ``(..., m_u)`` and disturbances ``(..., m_d)``.
+
+        A missing input means the centre of its box (zero turn rate for the built-in systems).
+        """
+        self._check("x", x, self.state_dim)
+        cols = TORCH.unbind(x)
+        uc = self._inputs_or_centre(u, self.control_bounds, x, "u")
+        dc = self._inputs_or_centre(d, self.disturbance_bounds, x, "d")
+        return TORCH.stack(self.xdot_columns(cols, uc, dc, TORCH), like=cols[0])
+
+    def hamiltonian(self, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+        """``H(x, p)`` for states and costates ``(..., n)``; returns ``(...)``."""
+        self._check("x", x, self.state_dim)
+        self._check("p", p, self.state_dim)
+        h = self.hamiltonian_columns(TORCH.unbind(x), TORCH.unbind(p), TORCH)
+        return h if isinstance(h, torch.Tensor) else torch.full(x.shape[:-1], float(h), dtype=x.dtype, device=x.device)
+
+    def optimal_control(self, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+        """``u*(x, p)``, shape ``(..., m_u)``: the box corner along ``G_u^T p`` (centre on ties)."""
+        self._check("x", x, self.state_dim)
+        self._check("p", p, self.state_dim)
+        u, _ = self.optimal_inputs_columns(TORCH.unbind(x), TORCH.unbind(p), TORCH)
+        return TORCH.stack(u, like=x[..., 0])
+
+    def optimal_disturbance(self, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+        """``d*(x, p)``, shape ``(..., m_d)`` (``m_d`` may be 0)."""
+        self._check("x", x, self.state_dim)
+        self._check("p", p, self.state_dim)
+        if not self.disturbance_dim:
+            return x.new_zeros(x.shape[:-1] + (0,))
+        _, d = self.optimal_inputs_columns(TORCH.unbind(x), TORCH.unbind(p), TORCH)
+        return TORCH.stack(d, like=x[..., 0])
+
+    def dissipation_bounds(self, x: torch.Tensor) -> torch.Tensor:
+        """Per-dimension bound on ``|dH/dp_i|`` at each state, shape ``(..., n)``."""
+        self._check("x", x, self.state_dim)
+        return TORCH.stack(self.dissipation_columns(TORCH.unbind(x), TORCH), like=x[..., 0])
+
+    def failure_margin(self, x: torch.Tensor) -> torch.Tensor:
+        """``l(x)`` for states ``(..., n)``; returns ``(...)``."""
+        self._check("x", x, self.state_dim)
+        return self.failure_margin_columns(TORCH.unbind(x), TORCH)
+
+    def wrap(self, x: torch.Tensor) -> torch.Tensor:
+        """States with periodic dimensions wrapped into ``[-pi, pi)``."""
+        self._check("x", x, self.state_dim)
+        cols = TORCH.unbind(x)
+        return TORCH.stack(self.wrap_columns(cols, TORCH), like=cols[0])
+
+    # ------------------------------------------------------------------ sampling helpers
+    def domain_tensor(self, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> torch.Tensor:
+        """The domain as a ``(n, 2)`` tensor of (low, high)."""
+        return torch.tensor(self.domain, dtype=dtype, device=device)
+
+    def sample_states(
+        self,
+        n: int,
+        generator: torch.Generator | None = None,
+        dtype: torch.dtype = torch.float32,
+        device: torch.device | str = "cpu",
+    ) -> torch.Tensor:
+        """``n`` states drawn uniformly from the domain (batched; no loop over samples)."""
+        box = self.domain_tensor(dtype, device)
+        r = torch.rand((n, self.state_dim), generator=generator, dtype=dtype, device=device)
+        return box[:, 0] + r * (box[:, 1] - box[:, 0])
+
+    def sample_states_numpy(self, rng: np.random.Generator, n: int | None = None) -> np.ndarray:
+        """States drawn uniformly from the domain with a NumPy generator (float64)."""
+        lo, hi = np.array(self.domain, dtype=np.float64).T
+        size = (self.state_dim,) if n is None else (n, self.state_dim)
+        return rng.uniform(lo, hi, size=size)
+
+    def failure_margin_numpy(self, x: np.ndarray) -> np.ndarray:
+        """``l(x)`` on NumPy states ``(..., n)``."""
+        return np.asarray(self.failure_margin_columns(NUMPY.unbind(x), NUMPY))
+
+    def failure_margin_float(self, x: Sequence[float]) -> float:
+        """``l(x)`` for one state given as a sequence of floats."""
+        return float(self.failure_margin_columns(x, FLOAT))

@@ -1,0 +1,223 @@
+"""A family of N Dubins cars, each either a control (keeps safe) or a disturbance (attacks).
+
+Car ``i`` has state ``(x_i, y_i, th_i)`` and moves as ``x_i' = v_i cos th_i``, ``y_i' = v_i sin th_i``,
+``th_i' = w_i`` with ``|w_i| <= w_max_i``. The state is ordered as DeepReach orders it: all positions
+first, then all headings, ``(x_1, y_1, ..., x_N, y_N, th_1, ..., th_N)``. Control inputs are the turn
+rates of the control cars in car order; disturbance inputs those of the disturbance cars.
+
+The failure set is any pair of cars closer than ``collision_radius`` where at least one car is a
+control car (collisions among disturbance cars are not the controller's failure):
+``l(x) = min over such pairs of ||p_i - p_j|| - R``.
+
+Named instances: :class:`MultiVehicle6D` (the Air3D game in absolute coordinates) and
+:class:`MultiVehicle9D` (DeepReach's three cooperating cars).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from reach_envs.systems.backend import Backend, Column
+from reach_envs.systems.base import Box, ControlAffineSystem, DeepReachNormalisation, InputMatrix
+
+ROLES = ("control", "disturbance")
+
+
+@dataclass(frozen=True)
+class Car:
+    """One Dubins car: constant speed, bounded turn rate, and who drives its turn rate."""
+
+    speed: float
+    max_turn_rate: float
+    role: str = "control"
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        for field in ("speed", "max_turn_rate"):
+            value = getattr(self, field)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+                raise ValueError(f"Car {self.name or '?'}: {field} must be a positive finite number, got {value!r}")
+        if self.role not in ROLES:
+            raise ValueError(f"Car {self.name or '?'}: role must be one of {ROLES}, got {self.role!r}")
+
+
+class MultiVehicle(ControlAffineSystem):
+    """N Dubins cars with roles; see the module docstring for state order and failure set."""
+
+    name = "multivehicle"
+
+    def __init__(
+        self,
+        cars: Sequence[Car],
+        collision_radius: float = 0.25,
+        horizon: float = 1.0,
+        half_width: float = 1.0,
+    ) -> None:
+        cars = tuple(Car(**c) if isinstance(c, dict) else c for c in cars)
+        if len(cars) < 2:
+            raise ValueError(f"MultiVehicle: cars needs at least 2 cars, got {len(cars)}")
+        for c in cars:
+            if not isinstance(c, Car):
+                raise TypeError(f"MultiVehicle: cars must hold Car objects, got {type(c).__name__}")
+        if not any(c.role == "control" for c in cars):
+            raise ValueError("MultiVehicle: cars needs at least one car with role 'control'")
+        for field, value in (("collision_radius", collision_radius), ("half_width", half_width)):
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"MultiVehicle: {field} must be a positive finite number, got {value!r}")
+        self.cars = tuple(c if c.name else Car(c.speed, c.max_turn_rate, c.role, f"car{i + 1}") for i, c in enumerate(cars))
+        names = [c.name for c in self.cars]
+        if len(set(names)) != len(names):
+            raise ValueError(f"MultiVehicle: car names must be unique, got {names}")
+        self.collision_radius = float(collision_radius)
+        self.horizon = float(horizon)
+        self.half_width = float(half_width)
+        n = len(self.cars)
+        self.state_names = tuple(f"{axis}{i + 1}" for i in range(n) for axis in ("x", "y")) + tuple(
+            f"th{i + 1}" for i in range(n)
+        )
+        self.domain = ((-half_width, half_width),) * (2 * n) + ((-math.pi, math.pi),) * n
+        self.periodic = (False,) * (2 * n) + (True,) * n
+        self.control_cars = tuple(i for i, c in enumerate(self.cars) if c.role == "control")
+        self.disturbance_cars = tuple(i for i, c in enumerate(self.cars) if c.role == "disturbance")
+        self.control_bounds = Box.symmetric([self.cars[i].max_turn_rate for i in self.control_cars])
+        self.disturbance_bounds = Box.symmetric([self.cars[i].max_turn_rate for i in self.disturbance_cars])
+        self.failure_pairs = tuple(
+            (i, j) for i in range(n) for j in range(i + 1, n) if "control" in (self.cars[i].role, self.cars[j].role)
+        )
+        self.deepreach = DeepReachNormalisation(
+            state_offset=(0.0,) * (3 * n), state_scale=(1.0,) * (2 * n) + (1.2 * math.pi,) * n
+        )
+        self._control_entries = tuple((2 * n + car, k) for k, car in enumerate(self.control_cars))
+        self._disturbance_entries = tuple((2 * n + car, k) for k, car in enumerate(self.disturbance_cars))
+        self.validate()
+
+    def parameters(self) -> dict[str, Any]:
+        return {
+            "cars": [asdict(c) for c in self.cars],
+            "collision_radius": self.collision_radius,
+            "horizon": self.horizon,
+            "half_width": self.half_width,
+        }
+
+    @property
+    def num_cars(self) -> int:
+        return len(self.cars)
+
+    def drift(self, x: Sequence[Column], xp: Backend) -> list[Column]:
+        n = len(self.cars)
+        out: list[Column] = []
+        for i, car in enumerate(self.cars):
+            th = x[2 * n + i]
+            out += [car.speed * xp.cos(th), car.speed * xp.sin(th)]
+        return out + [0.0] * n
+
+    def control_matrix(self, x: Sequence[Column], xp: Backend) -> InputMatrix:
+        return {entry: 1.0 for entry in self._control_entries}
+
+    def disturbance_matrix(self, x: Sequence[Column], xp: Backend) -> InputMatrix:
+        return {entry: 1.0 for entry in self._disturbance_entries}
+
+    def pair_margin(self, x: Sequence[Column], i: int, j: int, xp: Backend) -> Column:
+        """``||p_i - p_j|| - R`` for cars ``i`` and ``j``."""
+        return xp.hypot(x[2 * i] - x[2 * j], x[2 * i + 1] - x[2 * j + 1]) - self.collision_radius
+
+    def failure_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
+        margin: Column | None = None
+        for i, j in self.failure_pairs:
+            m = self.pair_margin(x, i, j, xp)
+            margin = m if margin is None else xp.minimum(margin, m)
+        return margin
+
+    # ------------------------------------------------------------------ geometry (envs, rendering)
+    def car_poses(self, x: Sequence[Column], xp: Backend) -> list[tuple[Column, Column, Column]]:
+        """(x, y, heading) of every car in the world frame."""
+        n = len(self.cars)
+        return [(x[2 * i], x[2 * i + 1], x[2 * n + i]) for i in range(n)]
+
+    @property
+    def car_names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.cars)
+
+    @property
+    def car_roles(self) -> tuple[str, ...]:
+        return tuple(c.role for c in self.cars)
+
+    @property
+    def car_max_turn_rates(self) -> tuple[float, ...]:
+        return tuple(c.max_turn_rate for c in self.cars)
+
+
+class MultiVehicle6D(MultiVehicle):
+    """Air3D's pursuit-evasion game in absolute coordinates: car 1 evades (control), car 2 pursues.
+
+    :meth:`relative_coordinates` maps a 6D state to the Air3D state (the pursuer's position and
+    heading in the evader's frame), so trajectories of both systems can be compared exactly.
+    """
+
+    name = "multivehicle6d"
+
+    def __init__(
+        self,
+        speed: float = 0.75,
+        max_turn_rate: float = 3.0,
+        collision_radius: float = 0.25,
+        horizon: float = 1.1,
+        half_width: float = 1.0,
+    ) -> None:
+        super().__init__(
+            [Car(speed, max_turn_rate, "control", "evader"), Car(speed, max_turn_rate, "disturbance", "pursuer")],
+            collision_radius=collision_radius,
+            horizon=horizon,
+            half_width=half_width,
+        )
+        self._params = {
+            "speed": float(speed),
+            "max_turn_rate": float(max_turn_rate),
+            "collision_radius": float(collision_radius),
+            "horizon": float(horizon),
+            "half_width": float(half_width),
+        }
+
+    def parameters(self) -> dict[str, Any]:
+        return dict(self._params)
+
+    def relative_coordinates(self, x: Sequence[Column], xp: Backend) -> list[Column]:
+        """Air3D state ``(x1, x2, x3)`` of 6D columns ``(xe, ye, xp, yp, the, thp)``."""
+        xe, ye, xq, yq, the, thq = x
+        dx, dy = xq - xe, yq - ye
+        c, s = xp.cos(the), xp.sin(the)
+        return [c * dx + s * dy, -s * dx + c * dy, xp.wrap_angle(thq - the)]
+
+
+class MultiVehicle9D(MultiVehicle):
+    """DeepReach's MultiVehicleCollision: three cooperating cars (all controls), v = 0.6, w_max = 1.1."""
+
+    name = "multivehicle9d"
+
+    def __init__(
+        self,
+        speed: float = 0.6,
+        max_turn_rate: float = 1.1,
+        collision_radius: float = 0.25,
+        horizon: float = 1.0,
+        half_width: float = 1.0,
+    ) -> None:
+        super().__init__(
+            [Car(speed, max_turn_rate, "control", f"car{i}") for i in (1, 2, 3)],
+            collision_radius=collision_radius,
+            horizon=horizon,
+            half_width=half_width,
+        )
+        self._params = {
+            "speed": float(speed),
+            "max_turn_rate": float(max_turn_rate),
+            "collision_radius": float(collision_radius),
+            "horizon": float(horizon),
+            "half_width": float(half_width),
+        }
+
+    def parameters(self) -> dict[str, Any]:
+        return dict(self._params)

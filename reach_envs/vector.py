@@ -1,0 +1,175 @@
+"""Native vector environment: N copies of a scene advanced as one NumPy batch.
+
+``gym.make_vec("Air3D-v0", num_envs=N, vectorization_mode="vector_entry_point")`` builds it. Each
+sub-environment ``i`` owns a generator seeded like Gymnasium's ``SyncVectorEnv`` seeds it
+(``seed + i``), so initial states, including those of automatic resets, equal those of single
+environments reset with the same seeds, and deterministic scenes match them step for step. Scenes
+with per-step randomness (process noise, a random disturbance) draw those numbers for the whole batch
+from one vector-level generator: the same distribution, not the same draws.
+
+Autoreset follows Gymnasium's default ``NEXT_STEP`` mode: the step after an episode ends resets that
+sub-environment, returns its first observation with reward 0, and ignores its action.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from gymnasium.utils import seeding
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from reach_envs.common import action_space, check_action, check_state, make_renderer, observation_space
+from reach_envs.scenes import Scene, make_scene
+from reach_envs.simulator import SceneSimulator
+from reach_envs.systems.backend import NUMPY
+
+
+class ReachVectorEnv(VectorEnv):
+    """``num_envs`` environments of one scene stepped as a batch (see the module docstring)."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 25, "autoreset_mode": AutoresetMode.NEXT_STEP}
+
+    def __init__(
+        self, num_envs: int = 1, scene: str | Scene = "air3d", render_mode: str | None = None, **overrides: Any
+    ) -> None:
+        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        self.scene = make_scene(scene, **overrides)
+        self.num_envs = num_envs
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata, "render_fps": max(1, round(1.0 / self.scene.dt))}
+        system = self.system = self.scene.system
+        self.sim = SceneSimulator(self.scene, NUMPY)
+        self.single_observation_space = observation_space(system)
+        self.single_action_space = action_space(system.control_dim)
+        self.observation_space = batch_space(self.single_observation_space, num_envs)
+        self.action_space = batch_space(self.single_action_space, num_envs)
+        self._action_shape = (num_envs, system.control_dim)
+        self._u_centre = system.control_bounds.center
+        self._u_half = system.control_bounds.half_width
+        self._sampler = self.scene.sampler()
+        self._rngs = [seeding.np_random(None)[0] for _ in range(num_envs)]
+        self._step_rng = seeding.np_random(None)[0]
+        n = system.state_dim
+        self._state = [np.zeros(num_envs) for _ in range(n)]
+        self._steps = np.zeros(num_envs, dtype=np.int64)
+        self._autoreset = np.zeros(num_envs, dtype=bool)
+        self._crashed = np.zeros(num_envs, dtype=bool)
+        self._renderer = None
+
+    # ------------------------------------------------------------------ helpers
+    def _sample_into(self, indices: np.ndarray, states: np.ndarray | None = None) -> None:
+        """Draw fresh initial states for the given sub-environments (a loop over resets only)."""
+        x = np.stack(self._state, axis=-1)
+        for k, i in enumerate(indices):
+            if states is not None:
+                xi = check_state(states[k], self.system)
+            else:
+                xi = check_state(self._sampler.sample(self.system, self._rngs[i]), self.system)
+            x[i] = xi
+        self._state = self.system.wrap_columns(NUMPY.unbind(x), NUMPY)
+        self._steps[indices] = 0
+        self._crashed[indices] = False
+
+    def _observation(self) -> np.ndarray:
+        return np.stack(self._state, axis=-1).astype(np.float32)
+
+    # ------------------------------------------------------------------ gymnasium API
+    def reset(
+        self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict]:
+        """Reset sub-environments; ``options`` may hold ``reset_mask`` (bool ``(N,)``) and ``state`` (``(N, n)``)."""
+        n = self.num_envs
+        if seed is None:
+            seeds: list[int | None] = [None] * n
+        elif isinstance(seed, int):
+            seeds = [seed + i for i in range(n)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != n:
+                raise ValueError(f"seed list must have num_envs={n} entries, got {len(seeds)}")
+        mask = np.ones(n, dtype=bool)
+        if options and options.get("reset_mask") is not None:
+            mask = np.asarray(options["reset_mask"], dtype=bool)
+            if mask.shape != (n,):
+                raise ValueError(f"reset_mask must have shape ({n},), got {mask.shape}")
+        indices = np.flatnonzero(mask)
+        for i in indices:
+            if seeds[i] is not None or seed is None:
+                self._rngs[i] = seeding.np_random(seeds[i])[0]
+        if seed is not None or not hasattr(self, "_seeded"):
+            first = seeds[0] if seeds and seeds[0] is not None else None
+            self._step_rng = np.random.default_rng(None if first is None else [first, 0x5EED])
+            self._seeded = True
+        states = None
+        if options and options.get("state") is not None:
+            states = np.asarray(options["state"], dtype=np.float64)
+            if states.shape != (n, self.system.state_dim):
+                raise ValueError(f"options['state'] must have shape ({n}, {self.system.state_dim}), got {states.shape}")
+            states = states[indices]
+        self._sample_into(indices, states)
+        self._autoreset[indices] = False
+        margin = self.sim.margin(self._state)
+        info = {"margin": margin, "collision": margin <= 0.0, "time": np.zeros(n)}
+        return self._observation(), info
+
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
+        a = np.clip(check_action(actions, self._action_shape), -1.0, 1.0)
+        u = [c + h * a[:, j] for j, (c, h) in enumerate(zip(self._u_centre, self._u_half))]
+        sim = self.sim
+        d = sim.disturbance(self._state, self._step_rng)
+        self._state = sim.advance(self._state, u, d, self._step_rng)
+        self._steps += 1
+        resetting = np.flatnonzero(self._autoreset)
+        if resetting.size:
+            self._sample_into(resetting)
+        margin = sim.margin(self._state)
+        collision = margin <= 0.0
+        out = np.broadcast_to(sim.out_of_arena(self._state), (self.num_envs,))
+        terminated = out | (collision & self.scene.terminate_on_collision)
+        truncated = ~terminated & (self._steps >= self.scene.max_steps)
+        reward = np.where(collision, -1.0, 0.0)
+        if resetting.size:
+            terminated[resetting] = False
+            truncated[resetting] = False
+            reward[resetting] = 0.0
+        self._crashed = collision
+        self._autoreset = terminated | truncated
+        d_arr = np.stack([np.broadcast_to(v, (self.num_envs,)) for v in d], axis=-1) if d else np.zeros((self.num_envs, 0))
+        info = {
+            "margin": margin,
+            "collision": collision,
+            "out_of_arena": out.copy(),
+            "control": np.stack(u, axis=-1),
+            "disturbance": d_arr,
+            "time": self._steps * self.scene.dt,
+        }
+        return self._observation(), reward, terminated, truncated, info
+
+    def render(self) -> tuple[np.ndarray, ...] | None:
+        """One frame per sub-environment (``render_mode="rgb_array"``)."""
+        if self.render_mode is None:
+            return None
+        if self._renderer is None:
+            self._renderer = make_renderer(self.scene)
+        x = np.stack(self._state, axis=-1)
+        frames = []
+        for i in range(self.num_envs):
+            poses = self.system.car_poses(list(x[i]), NUMPY)
+            crashed = [bool(self._crashed[i]) and r == "control" for r in self.system.car_roles]
+            frames.append(self._renderer.render(poses, float(self._steps[i] * self.scene.dt), None, crashed))
+        return tuple(frames)
+
+    def close_extras(self, **kwargs: Any) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    @property
+    def state(self) -> np.ndarray:
+        """Current states ``(num_envs, n)`` in float64."""
+        return np.stack(self._state, axis=-1)
