@@ -187,7 +187,7 @@ class Scene:
 
 # ---------------------------------------------------------------------- named scenes
 def _cars(n: int, speed: float = 0.6, max_turn_rate: float = 1.1) -> list[Car]:
-    return [Car(speed, max_turn_rate, "control", f"car{i + 1}") for i in range(n)]
+    return [Car(speed, max_turn_rate, "control", f"car_{i + 1}") for i in range(n)]
 
 
 def _poses_state(poses: Sequence[tuple[float, float, float]]) -> tuple[float, ...]:

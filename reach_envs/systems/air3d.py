@@ -91,7 +91,7 @@ class Air3D(ControlAffineSystem):
         zero = 0.0 * x[0]
         return [(zero, zero, zero), (x[0], x[1], x[2])]
 
-    car_names = ("evader", "pursuer")
+    car_names = ("evader_1", "pursuer_1")
     car_roles = ("control", "disturbance")
 
     @property

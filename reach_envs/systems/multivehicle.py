@@ -67,7 +67,7 @@ class MultiVehicle(ControlAffineSystem):
         for field, value in (("collision_radius", collision_radius), ("half_width", half_width)):
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"MultiVehicle: {field} must be a positive finite number, got {value!r}")
-        self.cars = tuple(c if c.name else Car(c.speed, c.max_turn_rate, c.role, f"car{i + 1}") for i, c in enumerate(cars))
+        self.cars = tuple(c if c.name else Car(c.speed, c.max_turn_rate, c.role, f"car_{i + 1}") for i, c in enumerate(cars))
         names = [c.name for c in self.cars]
         if len(set(names)) != len(names):
             raise ValueError(f"MultiVehicle: car names must be unique, got {names}")
@@ -168,7 +168,7 @@ class MultiVehicle6D(MultiVehicle):
         half_width: float = 1.0,
     ) -> None:
         super().__init__(
-            [Car(speed, max_turn_rate, "control", "evader"), Car(speed, max_turn_rate, "disturbance", "pursuer")],
+            [Car(speed, max_turn_rate, "control", "evader_1"), Car(speed, max_turn_rate, "disturbance", "pursuer_1")],
             collision_radius=collision_radius,
             horizon=horizon,
             half_width=half_width,
@@ -206,7 +206,7 @@ class MultiVehicle9D(MultiVehicle):
         half_width: float = 1.0,
     ) -> None:
         super().__init__(
-            [Car(speed, max_turn_rate, "control", f"car{i}") for i in (1, 2, 3)],
+            [Car(speed, max_turn_rate, "control", f"car_{i}") for i in (1, 2, 3)],
             collision_radius=collision_radius,
             horizon=horizon,
             half_width=half_width,
