@@ -52,6 +52,9 @@ class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
         self._u_centre = system.control_bounds.center
         self._u_half = system.control_bounds.half_width
         self._sampler = self.scene.sampler()
+        self._dt = self.scene.dt
+        self._max_steps = self.scene.max_steps
+        self._terminate_on_collision = self.scene.terminate_on_collision
         self._record_trails = self.scene.trails and render_mode is not None
         self._renderer = None
         self._state: list[float] = []
@@ -80,18 +83,20 @@ class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         a = check_action(action, self._action_shape).tolist()
-        u = [c + h * (-1.0 if v < -1.0 else (1.0 if v > 1.0 else v)) for v, c, h in zip(a, self._u_centre, self._u_half)]
+        u = [
+            c + h * (-1.0 if v < -1.0 else (1.0 if v > 1.0 else v)) for v, c, h in zip(a, self._u_centre, self._u_half)
+        ]
         sim = self.sim
         x = self._state
         d = sim.disturbance(x, self.np_random)
         x = self._state = sim.advance(x, u, d, self.np_random)
         self._steps += 1
-        self._time = self._steps * self.scene.dt
+        self._time = self._steps * self._dt
         margin = sim.margin(x)
         collision = margin <= 0.0
         out = sim.out_of_arena(x)
-        terminated = bool((collision and self.scene.terminate_on_collision) or out)
-        truncated = not terminated and self._steps >= self.scene.max_steps
+        terminated = bool((collision and self._terminate_on_collision) or out)
+        truncated = not terminated and self._steps >= self._max_steps
         self._crashed = collision
         if self._record_trails:
             for trail, (px, py, _) in zip(self._trails, self.system.car_poses(x, FLOAT)):

@@ -40,8 +40,6 @@ def make_stepper(system: ControlAffineSystem, dt: float, integrator: str, xp: Ba
         k2 = xdot([a + half * b for a, b in zip(x, k1)], u, d, xp)
         k3 = xdot([a + half * b for a, b in zip(x, k2)], u, d, xp)
         k4 = xdot([a + dt * b for a, b in zip(x, k3)], u, d, xp)
-        return wrap(
-            [a + sixth * (b1 + 2.0 * b2 + 2.0 * b3 + b4) for a, b1, b2, b3, b4 in zip(x, k1, k2, k3, k4)], xp
-        )
+        return wrap([a + sixth * (b1 + 2.0 * b2 + 2.0 * b3 + b4) for a, b1, b2, b3, b4 in zip(x, k1, k2, k3, k4)], xp)
 
     return rk4

@@ -55,11 +55,11 @@ class MultiVehicleParallelEnv(ParallelEnv):
         self._steps = 0
         self._trails: list[list[tuple[float, float]]] = []
 
-    @functools.lru_cache(maxsize=None)  # noqa: B019 - PettingZoo's convention: one space object per agent
+    @functools.cache  # noqa: B019 - PettingZoo's convention: one space object per agent
     def observation_space(self, agent: str) -> spaces.Box:
         return self._obs_space
 
-    @functools.lru_cache(maxsize=None)  # noqa: B019
+    @functools.cache  # noqa: B019
     def action_space(self, agent: str) -> spaces.Box:
         return self._act_space
 
@@ -101,7 +101,9 @@ class MultiVehicleParallelEnv(ParallelEnv):
         missing = [a for a in self.agents if a not in actions]
         unknown = [a for a in actions if a not in self.agents]
         if missing or unknown:
-            raise ValueError(f"actions must have one entry per live agent {self.agents}; missing {missing}, unknown {unknown}")
+            raise ValueError(
+                f"actions must have one entry per live agent {self.agents}; missing {missing}, unknown {unknown}"
+            )
         u = [0.0] * self.system.control_dim
         for agent in self.agents:
             v = float(check_action(actions[agent], (1,))[0])
@@ -169,6 +171,8 @@ class MultiVehicleParallelEnv(ParallelEnv):
         return self._obs_space
 
 
-def parallel_env(scene: str | Scene = "three-car-9d", render_mode: str | None = None, **overrides: Any) -> MultiVehicleParallelEnv:
+def parallel_env(
+    scene: str | Scene = "three-car-9d", render_mode: str | None = None, **overrides: Any
+) -> MultiVehicleParallelEnv:
     """PettingZoo-style constructor: ``reach_envs.parallel.parallel_env("head-on")``."""
     return MultiVehicleParallelEnv(scene, render_mode=render_mode, **overrides)

@@ -77,10 +77,11 @@ class RandomDisturbance:
     def __init__(self, system: ControlAffineSystem) -> None:
         self.low = np.array(system.disturbance_bounds.low)
         self.high = np.array(system.disturbance_bounds.high)
+        self._bounds = list(zip(system.disturbance_bounds.low, system.disturbance_bounds.high))
 
     def columns(self, x: Sequence[Column], xp: Backend, rng: np.random.Generator) -> list[Column]:
-        if xp is FLOAT:
-            return rng.uniform(self.low, self.high).tolist()
+        if xp is FLOAT:  # one scalar draw per input: cheaper than an array call at batch size 1
+            return [lo + (hi - lo) * rng.random() for lo, hi in self._bounds]
         batch = np.shape(x[0])
         d = rng.uniform(self.low, self.high, size=batch + self.low.shape)
         return [d[..., k] for k in range(self.low.shape[0])]
@@ -101,7 +102,7 @@ class CallableDisturbance:
     def columns(self, x: Sequence[Column], xp: Backend, rng: np.random.Generator) -> list[Column]:
         state = np.array(x, dtype=np.float64) if xp is FLOAT else np.stack(x, axis=-1)
         d = np.asarray(self.fn(state), dtype=np.float64)
-        expected = state.shape[:-1] + (self.dim,)
+        expected = (*state.shape[:-1], self.dim)
         if d.shape != expected:
             raise ValueError(f"disturbance policy returned shape {d.shape}, expected {expected}")
         if not np.isfinite(d).all():

@@ -54,12 +54,16 @@ class SceneRenderer:
         self.trails = []
         for role, name in zip(self.roles, names):
             colour = ROLE_COLOURS[role]
-            glyph = Polygon(np.zeros((3, 2)), closed=True, facecolor=colour, edgecolor="black", linewidth=0.5, label=name)
+            glyph = Polygon(
+                np.zeros((3, 2)), closed=True, facecolor=colour, edgecolor="black", linewidth=0.5, label=name
+            )
             ax.add_patch(glyph)
             self.glyphs.append(glyph)
             circle = None
             if role == "control":
-                circle = Circle((0.0, 0.0), collision_radius, fill=False, linestyle="--", edgecolor=colour, linewidth=0.8)
+                circle = Circle(
+                    (0.0, 0.0), collision_radius, fill=False, linestyle="--", edgecolor=colour, linewidth=0.8
+                )
                 ax.add_patch(circle)
             self.circles.append(circle)
             (trail,) = ax.plot([], [], color=colour, linewidth=1.0, alpha=0.6)

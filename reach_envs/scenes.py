@@ -135,19 +135,24 @@ class Scene:
             noise = np.asarray(self.process_noise, dtype=np.float64)
             if noise.ndim > 1 or (noise.ndim == 1 and noise.shape[0] != self.system.state_dim):
                 raise ValueError(
-                    f"Scene: process_noise must be a scalar or have {self.system.state_dim} entries, got {self.process_noise!r}"
+                    f"Scene: process_noise must be a scalar or have {self.system.state_dim} entries, "
+                    f"got {self.process_noise!r}"
                 )
             if not (np.isfinite(noise).all() and (noise >= 0).all()):
                 raise ValueError(f"Scene: process_noise must be finite and >= 0, got {self.process_noise!r}")
         if isinstance(self.disturbance, str) and self.disturbance not in (*DISTURBANCE_KINDS, "none"):
-            raise ValueError(f"Scene: disturbance must be None, one of {DISTURBANCE_KINDS} or a callable, got {self.disturbance!r}")
+            raise ValueError(
+                f"Scene: disturbance must be None, one of {DISTURBANCE_KINDS} or a callable, got {self.disturbance!r}"
+            )
         try:
             make_disturbance_policy(self.system, self.disturbance)
         except ValueError as err:
             raise ValueError(f"Scene: {err}") from None
         if not (hasattr(self.initial_state, "sample") or callable(self.initial_state)):
             try:
-                object.__setattr__(self, "initial_state", FixedState(tuple(np.asarray(self.initial_state, dtype=np.float64))))
+                object.__setattr__(
+                    self, "initial_state", FixedState(tuple(np.asarray(self.initial_state, dtype=np.float64)))
+                )
             except (TypeError, ValueError) as err:
                 raise ValueError(f"Scene: initial_state must be a sampler, a state or a callable: {err}") from None
         if isinstance(self.initial_state, FixedState) and len(self.initial_state.state) != self.system.state_dim:
@@ -169,7 +174,9 @@ class Scene:
         """A copy with some fields changed (validated again)."""
         unknown = set(changes) - {f.name for f in dataclasses.fields(self)}
         if unknown:
-            raise ValueError(f"Scene: unknown field(s) {sorted(unknown)}; fields are {[f.name for f in dataclasses.fields(self)]}")
+            raise ValueError(
+                f"Scene: unknown field(s) {sorted(unknown)}; fields are {[f.name for f in dataclasses.fields(self)]}"
+            )
         return dataclasses.replace(self, **changes)
 
     @property

@@ -61,10 +61,7 @@ class SceneSimulator:
             self.calls["process_noise"] += 1
             shape = np.shape(x[0])
             z = rng.standard_normal(size=shape + self._noise.shape) * self._noise
-            if self.xp is FLOAT:
-                x = [a + b for a, b in zip(x, z.tolist())]
-            else:
-                x = [a + z[..., i] for i, a in enumerate(x)]
+            x = [a + b for a, b in zip(x, z.tolist())] if self.xp is FLOAT else [a + z[..., i] for i, a in enumerate(x)]
             x = self.system.wrap_columns(x, self.xp)
         return x
 
@@ -80,8 +77,5 @@ class SceneSimulator:
         a = self._arena
         out: Column = False
         for px, py, _ in self.system.car_poses(x, self.xp):
-            if self.xp is FLOAT:
-                out = out or abs(px) > a or abs(py) > a
-            else:
-                out = out | (np.abs(px) > a) | (np.abs(py) > a)
+            out = out or abs(px) > a or abs(py) > a if self.xp is FLOAT else out | (np.abs(px) > a) | (np.abs(py) > a)
         return out

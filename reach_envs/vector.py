@@ -139,7 +139,9 @@ class ReachVectorEnv(VectorEnv):
             reward[resetting] = 0.0
         self._crashed = collision
         self._autoreset = terminated | truncated
-        d_arr = np.stack([np.broadcast_to(v, (self.num_envs,)) for v in d], axis=-1) if d else np.zeros((self.num_envs, 0))
+        d_arr = (
+            np.stack([np.broadcast_to(v, (self.num_envs,)) for v in d], axis=-1) if d else np.zeros((self.num_envs, 0))
+        )
         info = {
             "margin": margin,
             "collision": collision,

@@ -165,7 +165,9 @@ def test_6d_projected_to_relative_coordinates_matches_air3d():
 def test_failure_margin_values_and_signs():
     air = Air3D()
     x = torch.tensor([[0.25, 0.0, 1.0], [0.0, 0.0, 0.0], [0.3, 0.4, -3.0], [0.1, 0.1, 2.0]], dtype=torch.float64)
-    torch.testing.assert_close(air.failure_margin(x), torch.tensor([0.0, -0.25, 0.25, math.hypot(0.1, 0.1) - 0.25], dtype=torch.float64))
+    torch.testing.assert_close(
+        air.failure_margin(x), torch.tensor([0.0, -0.25, 0.25, math.hypot(0.1, 0.1) - 0.25], dtype=torch.float64)
+    )
     nine = MultiVehicle9D()
     # pairs: (1,2) at 0.3 apart, (1,3) and (2,3) far
     x9 = torch.tensor([[0.0, 0.0, 0.3, 0.0, 1.0, 1.0, 0.0, 1.0, 2.0]], dtype=torch.float64)
@@ -183,9 +185,9 @@ def test_failure_margin_values_and_signs():
 def test_failure_margin_gradient_is_finite_when_cars_coincide():
     nine = MultiVehicle9D()
     x = torch.tensor([[0.2, 0.2, 0.2, 0.2, -0.5, 0.5, 0.0, 1.0, 2.0]], dtype=torch.float32, requires_grad=True)
-    l = nine.failure_margin(x)
-    (g,) = torch.autograd.grad(l.sum(), x)
-    assert l.item() == pytest.approx(-0.25)
+    margin = nine.failure_margin(x)
+    (g,) = torch.autograd.grad(margin.sum(), x)
+    assert margin.item() == pytest.approx(-0.25)
     assert torch.isfinite(g).all()
     air = Air3D()
     x = torch.zeros(1, 3, requires_grad=True)
@@ -213,7 +215,9 @@ def test_dtype_and_device_are_preserved(system, dtype, device):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_wrap_is_half_open_interval(dtype):
-    values = torch.tensor([math.pi, -math.pi, 3 * math.pi, -3 * math.pi, 1e3, -1e3, 0.0, 2 * math.pi - 1e-7], dtype=dtype)
+    values = torch.tensor(
+        [math.pi, -math.pi, 3 * math.pi, -3 * math.pi, 1e3, -1e3, 0.0, 2 * math.pi - 1e-7], dtype=dtype
+    )
     w = TORCH.wrap_angle(values)
     pi = torch.tensor(math.pi, dtype=dtype)
     assert ((w >= -pi) & (w < pi)).all(), w
@@ -237,7 +241,11 @@ def test_backends_agree(state, inputs):
         u = inputs[: system.control_dim]
         d = inputs[: system.disturbance_dim]
         f_float = system.xdot_columns(list(x), u, d, FLOAT)
-        f_numpy = NUMPY.stack(system.xdot_columns(NUMPY.unbind(np.array([x])), [np.array([v]) for v in u], [np.array([v]) for v in d], NUMPY))
+        f_numpy = NUMPY.stack(
+            system.xdot_columns(
+                NUMPY.unbind(np.array([x])), [np.array([v]) for v in u], [np.array([v]) for v in d], NUMPY
+            )
+        )
         f_torch = system.dynamics(
             torch.tensor([x], dtype=torch.float64),
             torch.tensor([u], dtype=torch.float64),
@@ -245,7 +253,9 @@ def test_backends_agree(state, inputs):
         )
         np.testing.assert_allclose(f_numpy[0], f_float, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(f_torch[0].numpy(), f_float, rtol=1e-12, atol=1e-12)
-        assert system.failure_margin_float(x) == pytest.approx(system.failure_margin(torch.tensor(x, dtype=torch.float64)).item(), abs=1e-12)
+        assert system.failure_margin_float(x) == pytest.approx(
+            system.failure_margin(torch.tensor(x, dtype=torch.float64)).item(), abs=1e-12
+        )
 
 
 def test_registry_and_config_round_trip():

@@ -149,7 +149,10 @@ class ControlAffineSystem(ABC):
 
     @property
     def periodic_dims(self) -> tuple[int, ...]:
-        return tuple(i for i, p in enumerate(self.periodic) if p)
+        dims = self.__dict__.get("_periodic_dims")
+        if dims is None:
+            dims = self.__dict__["_periodic_dims"] = tuple(i for i, p in enumerate(self.periodic) if p)
+        return dims
 
     def config(self) -> dict[str, Any]:
         """``{"name": ..., "parameters": {...}}``: enough to rebuild the system and compare two."""
@@ -183,9 +186,7 @@ class ControlAffineSystem(ABC):
             raise ValueError(f"{self.name}: horizon must be positive and finite, got {self.horizon}")
 
     # ------------------------------------------------------------------ derived, on columns
-    def xdot_columns(
-        self, x: Sequence[Column], u: Sequence[Column], d: Sequence[Column], xp: Backend
-    ) -> list[Column]:
+    def xdot_columns(self, x: Sequence[Column], u: Sequence[Column], d: Sequence[Column], xp: Backend) -> list[Column]:
         """``f(x) + G_u(x) u + G_d(x) d`` on columns."""
         # Hot path of every simulation step: kept free of avoidable calls and copies.
         out = self.drift(x, xp)
@@ -251,7 +252,11 @@ class ControlAffineSystem(ABC):
 
     def wrap_columns(self, x: Sequence[Column], xp: Backend) -> list[Column]:
         """Periodic dimensions wrapped into ``[-pi, pi)``; others unchanged."""
-        return [xp.wrap_angle(c) if p else c for c, p in zip(x, self.periodic)]
+        out = list(x)
+        wrap = xp.wrap_angle
+        for i in self.periodic_dims:
+            out[i] = wrap(out[i])
+        return out
 
     # ------------------------------------------------------------------ derived, batched torch
     def _check(self, name: str, t: torch.Tensor, dim: int) -> None:
@@ -296,7 +301,7 @@ class ControlAffineSystem(ABC):
         self._check("x", x, self.state_dim)
         self._check("p", p, self.state_dim)
         if not self.disturbance_dim:
-            return x.new_zeros(x.shape[:-1] + (0,))
+            return x.new_zeros((*x.shape[:-1], 0))
         _, d = self.optimal_inputs_columns(TORCH.unbind(x), TORCH.unbind(p), TORCH)
         return TORCH.stack(d, like=x[..., 0])
 

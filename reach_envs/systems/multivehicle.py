@@ -67,7 +67,9 @@ class MultiVehicle(ControlAffineSystem):
         for field, value in (("collision_radius", collision_radius), ("half_width", half_width)):
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"MultiVehicle: {field} must be a positive finite number, got {value!r}")
-        self.cars = tuple(c if c.name else Car(c.speed, c.max_turn_rate, c.role, f"car_{i + 1}") for i, c in enumerate(cars))
+        self.cars = tuple(
+            c if c.name else Car(c.speed, c.max_turn_rate, c.role, f"car_{i + 1}") for i, c in enumerate(cars)
+        )
         names = [c.name for c in self.cars]
         if len(set(names)) != len(names):
             raise ValueError(f"MultiVehicle: car names must be unique, got {names}")
