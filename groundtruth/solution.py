@@ -1,0 +1,198 @@
+"""A grid solution of the HJI value function: interpolation, gradients, self-describing ``.npz`` files.
+
+:class:`GridSolution` implements the value-function interface (``value(x, t)``, ``gradient(x, t)``,
+batched, any device): multilinear interpolation in space (periodic-aware) and linear interpolation
+between stored times. Gradients are central differences on the grid (one-sided at non-periodic
+edges), interpolated the same way, so the optimal control from a grid solution is smooth enough for
+closed-loop use.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+
+from groundtruth.grid import Grid
+from reach_envs.systems import ControlAffineSystem, system_from_config
+
+FORMAT = "reach.groundtruth.v1"
+
+
+def _versions() -> dict[str, str]:
+    import reach_envs
+
+    return {"reach": reach_envs.__version__, "torch": torch.__version__, "numpy": np.__version__,
+            "python": platform.python_version()}
+
+
+@dataclass
+class GridSolution:
+    """Values ``(len(times), *grid.shape)`` of a system on a grid at increasing times-to-go."""
+
+    system: ControlAffineSystem
+    grid: Grid
+    times: torch.Tensor
+    values: torch.Tensor
+    metadata: dict[str, Any] = field(default_factory=dict)
+    outside: Literal["error", "clamp"] = "error"
+
+    def __post_init__(self) -> None:
+        if self.values.shape != (len(self.times), *self.grid.shape):
+            raise ValueError(f"values shape {tuple(self.values.shape)} != ({len(self.times)}, *{self.grid.shape})")
+        if not torch.isfinite(self.values).all():
+            raise ValueError("GridSolution: values contain NaN or inf")
+        self._gradients: torch.Tensor | None = None
+        self._cache: dict[tuple[str, torch.dtype, torch.device], torch.Tensor] = {}
+
+    # ------------------------------------------------------------------ slices
+    def at(self, t: float) -> torch.Tensor:
+        """The value grid at a stored time ``t`` (exact match required)."""
+        k = torch.nonzero(torch.isclose(self.times, torch.tensor(float(t), dtype=self.times.dtype), atol=1e-9))
+        if k.numel() == 0:
+            raise ValueError(f"time {t} is not stored; stored times: {self.times.tolist()}")
+        return self.values[int(k[0])]
+
+    # ------------------------------------------------------------------ interpolation
+    def _table(self, kind: str, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+        key = (kind, dtype, device)
+        if key not in self._cache:
+            src = self.values if kind == "value" else self._grid_gradients()
+            self._cache[key] = src.to(dtype=dtype, device=device)
+        return self._cache[key]
+
+    def _grid_gradients(self) -> torch.Tensor:
+        if self._gradients is None:
+            v = self.values.double()
+            grads = []
+            for i, (dx, periodic) in enumerate(zip(self.grid.spacing, self.grid.periodic)):
+                dim = i + 1
+                if periodic:
+                    g = (torch.roll(v, -1, dim) - torch.roll(v, 1, dim)) / (2 * dx)
+                else:
+                    g = torch.gradient(v, spacing=dx, dim=dim, edge_order=2)[0]
+                grads.append(g)
+            self._gradients = torch.stack(grads, dim=-1).to(self.values.dtype)
+        return self._gradients
+
+    def _interpolate(self, table: torch.Tensor, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        n = self.grid.ndim
+        if x.shape[-1] != n:
+            raise ValueError(f"states must have shape (..., {n}), got {tuple(x.shape)}")
+        if not torch.isfinite(x).all():
+            bad = x[~torch.isfinite(x).all(-1)][0].tolist()
+            raise ValueError(f"states contain NaN or inf, e.g. {bad}")
+        batch = x.shape[:-1]
+        xf = x.reshape(-1, n).to(table.dtype)
+        m = xf.shape[0]
+        tt = torch.as_tensor(t, dtype=torch.float64, device=x.device)
+        tt = torch.broadcast_to(tt, batch).reshape(-1) if tt.ndim else tt.expand(m)
+        times = self.times.to(x.device)
+        if not torch.isfinite(tt).all() or (tt < times[0] - 1e-9).any() or (tt > times[-1] + 1e-9).any():
+            raise ValueError(f"t must lie in the stored range [{times[0].item()}, {times[-1].item()}], got {t}")
+        # time bracket
+        k1 = torch.searchsorted(times, tt.clamp(times[0], times[-1]), right=False).clamp(1, max(len(times) - 1, 1))
+        if len(times) == 1:
+            k0 = k1 = torch.zeros_like(k1)
+            wt = torch.zeros(m, dtype=table.dtype, device=x.device)
+        else:
+            k0 = k1 - 1
+            wt = ((tt - times[k0]) / (times[k1] - times[k0])).clamp(0, 1).to(table.dtype)
+        # space: fractional indices per dimension
+        idx0, frac = [], []
+        for i in range(n):
+            lo, dx, size = self.grid.low[i], self.grid.spacing[i], self.grid.shape[i]
+            f = (xf[:, i] - lo) / dx
+            if self.grid.periodic[i]:
+                f = torch.remainder(f, size)
+                i0 = torch.floor(f).long().clamp(0, size - 1)
+                idx0.append((i0, (i0 + 1) % size))
+            else:
+                if self.outside == "error" and ((f < -1e-6) | (f > size - 1 + 1e-6)).any():
+                    bad = xf[(f < -1e-6) | (f > size - 1 + 1e-6)][0].tolist()
+                    raise ValueError(
+                        f"state {bad} lies outside the grid in dimension {i} ([{lo}, {self.grid.high[i]}]); "
+                        "use outside='clamp' to use the nearest edge value"
+                    )
+                f = f.clamp(0, size - 1)
+                i0 = torch.floor(f).long().clamp(0, size - 2)
+                idx0.append((i0, i0 + 1))
+            frac.append((f - i0).to(table.dtype))
+        strides = [int(np.prod(self.grid.shape[i + 1 :])) for i in range(n)]
+        flat = table.reshape(len(self.times), -1, *table.shape[1 + n :])
+        out = 0.0
+        for corner in range(2**n):
+            w = torch.ones(m, dtype=table.dtype, device=x.device)
+            lin = torch.zeros(m, dtype=torch.long, device=x.device)
+            for i in range(n):
+                bit = (corner >> (n - 1 - i)) & 1
+                w = w * (frac[i] if bit else 1 - frac[i])
+                lin = lin + idx0[i][bit] * strides[i]
+            v0, v1 = flat[k0, lin], flat[k1, lin]
+            wv = w.reshape((m,) + (1,) * (v0.ndim - 1))
+            wtt = wt.reshape((m,) + (1,) * (v0.ndim - 1))
+            out = out + wv * ((1 - wtt) * v0 + wtt * v1)
+        return out.reshape(*batch, *table.shape[1 + n :]).to(x.dtype)
+
+    def value(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        """``V(x, t)`` for states ``(..., n)``; returns ``(...)``."""
+        return self._interpolate(self._table("value", x.dtype, x.device), x, t)
+
+    def gradient(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        """``grad_x V(x, t)``, shape ``(..., n)``."""
+        return self._interpolate(self._table("gradient", x.dtype, x.device), x, t)
+
+    # ------------------------------------------------------------------ files
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write a self-describing ``.npz`` atomically (temp file in the same folder, then rename)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        meta = {"format": FORMAT, "system": self.system.config(), "versions": _versions(), **self.metadata}
+        fd, tmp = tempfile.mkstemp(suffix=".npz", dir=path.parent, prefix=f".{path.stem}-")
+        os.close(fd)
+        try:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(
+                    fh,
+                    values=self.values.numpy(),
+                    times=self.times.numpy(),
+                    grid_low=np.array(self.grid.low),
+                    grid_high=np.array(self.grid.high),
+                    grid_shape=np.array(self.grid.shape),
+                    grid_periodic=np.array(self.grid.periodic),
+                    metadata=np.array(json.dumps(meta)),
+                )
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, outside: Literal["error", "clamp"] = "error") -> GridSolution:
+        """Read a file written by :meth:`save`; corrupt or foreign files raise ``ValueError``."""
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                meta = json.loads(str(data["metadata"]))
+                grid = Grid(
+                    tuple(float(v) for v in data["grid_low"]),
+                    tuple(float(v) for v in data["grid_high"]),
+                    tuple(int(v) for v in data["grid_shape"]),
+                    tuple(bool(v) for v in data["grid_periodic"]),
+                )
+                values = torch.from_numpy(data["values"].copy())
+                times = torch.from_numpy(data["times"].copy())
+        except (OSError, KeyError, ValueError, json.JSONDecodeError) as err:
+            raise ValueError(f"{path}: not a readable reach ground-truth file ({err})") from err
+        if meta.get("format") != FORMAT:
+            raise ValueError(f"{path}: format {meta.get('format')!r}, expected {FORMAT!r}")
+        system = system_from_config(meta.pop("system"))
+        meta.pop("format", None)
+        return cls(system=system, grid=grid, times=times, values=values, metadata=meta, outside=outside)
