@@ -1,8 +1,8 @@
 """``reach``: the command line of the reach toolkit.
 
 Subcommands only parse arguments and call library functions. Present: ``envs`` (list environments
-and scenes) and ``record`` (run an episode and save a GIF). Later subcommands (groundtruth, train,
-evaluate, ...) arrive with their issues.
+and scenes), ``record`` (run an episode and save a GIF) and ``groundtruth`` (grid BRT solve). Later
+subcommands (train, evaluate, ...) arrive with their issues.
 """
 
 from __future__ import annotations
@@ -55,6 +55,50 @@ def _cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def _parse_times(text: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError as err:
+        raise ValueError(f"--times must be comma-separated numbers, got {text!r}") from err
+
+
+def _cmd_groundtruth(args: argparse.Namespace) -> int:
+    import torch
+
+    from groundtruth import solve
+    from groundtruth.plotting import plot_zero_level_slices
+    from reach_envs.systems import make_system
+
+    system = make_system(args.system)
+    horizon = args.horizon if args.horizon is not None else system.horizon
+    times = _parse_times(args.times) if args.times else [horizon]
+    if any(t > horizon + 1e-12 for t in times):
+        raise ValueError(f"--times {times} go beyond --horizon {horizon}")
+    if not times or abs(times[-1] - horizon) > 1e-12:
+        times.append(horizon)
+    grid = [int(v) for v in args.grid.split(",")] if "," in args.grid else int(args.grid)
+    dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
+    solution = solve(
+        system,
+        grid,
+        times,
+        cfl=args.cfl,
+        dissipation=args.dissipation,
+        dtype=dtype,
+        device=args.device,
+        compile=None if args.compile == "auto" else args.compile == "on",
+    )
+    path = solution.save(args.out)
+    scheme = solution.metadata["scheme"]
+    print(
+        f"wrote {path}: {system.name} on {'x'.join(map(str, solution.grid.shape))}, times {times}, "
+        f"{scheme['steps']} steps, {solution.metadata['wall_time_s']:.1f} s"
+    )
+    if args.plot:
+        print(f"wrote {plot_zero_level_slices(solution, args.plot)}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="reach", description="Neural Hamilton-Jacobi reachability toolkit.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -71,6 +115,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--every", type=int, default=1, help="keep every N-th frame")
     p.add_argument("--out", default="episode.gif", help="GIF path")
     p.set_defaults(func=_cmd_record)
+
+    p = sub.add_parser("groundtruth", help="solve a low-dimensional system's BRT on a grid (level-set method)")
+    p.add_argument("system", help="system name, e.g. air3d")
+    p.add_argument("--grid", default="101", help="nodes per dimension, e.g. 101 or 101,101,51")
+    p.add_argument("--horizon", type=float, default=None, help="final time-to-go (default: the system's)")
+    p.add_argument("--times", default="", help="comma-separated output times, e.g. 0.5,1.0,1.1")
+    p.add_argument("--cfl", type=float, default=0.75)
+    p.add_argument("--dissipation", choices=["local", "global"], default="local")
+    p.add_argument("--dtype", choices=["float32", "float64"], default="float32")
+    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--compile", choices=["auto", "on", "off"], default="auto", help="torch.compile the solver step")
+    p.add_argument("--out", required=True, help="output .npz")
+    p.add_argument("--plot", default=None, help="also draw zero-level slices to this PNG")
+    p.set_defaults(func=_cmd_groundtruth)
     return parser
 
 
