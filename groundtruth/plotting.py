@@ -62,7 +62,9 @@ def plot_zero_level_slices(
         ax.tick_params(labelsize=7)
         if k == 0:
             ax.legend(fontsize=7, loc="upper right")
-    fig.suptitle(f"{solution.system.name}: zero level of V (BRT boundary), grid {'x'.join(map(str, g.shape))}", fontsize=10)
+    fig.suptitle(
+        f"{solution.system.name}: zero level of V (BRT boundary), grid {'x'.join(map(str, g.shape))}", fontsize=10
+    )
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -29,8 +29,12 @@ FORMAT = "reach.groundtruth.v1"
 def _versions() -> dict[str, str]:
     import reach_envs
 
-    return {"reach": reach_envs.__version__, "torch": torch.__version__, "numpy": np.__version__,
-            "python": platform.python_version()}
+    return {
+        "reach": reach_envs.__version__,
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+    }
 
 
 @dataclass

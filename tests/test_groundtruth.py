@@ -1,0 +1,210 @@
+"""Ground-truth solver: accuracy against the MATLAB toolbox slice, convergence, HJ properties, files."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from groundtruth import Grid, GridSolution, solve
+from groundtruth.plotting import plot_zero_level_slices
+from reach.cli import main
+from reach_envs.systems import Air3D, MultiVehicle9D
+
+REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference" / "air3d_levelset_slice.npz"
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / (a | b).sum())
+
+
+@pytest.fixture(scope="module")
+def reference() -> dict[str, np.ndarray]:
+    if not REFERENCE.exists():
+        pytest.skip(f"reference slice not found at {REFERENCE} (../shared is absent)")
+    with np.load(REFERENCE) as data:
+        return {k: data[k] for k in data.files}
+
+
+def _slice_values(solution: GridSolution, reference: dict[str, np.ndarray], t: float = 1.0) -> np.ndarray:
+    x1, x2 = np.meshgrid(reference["x1"], reference["x2"], indexing="ij")
+    pts = np.stack([x1, x2, np.full_like(x1, float(reference["x3"]))], axis=-1)
+    return solution.value(torch.tensor(pts, dtype=torch.float64), t).numpy()
+
+
+@pytest.fixture(scope="module")
+def air3d_101() -> GridSolution:
+    # the 101^3 solve the accuracy test asks for; torch.compile keeps it to ~20-45 s on 2 cores
+    return solve(Air3D(), 101, [1.0], progress=False)
+
+
+@pytest.fixture(scope="module")
+def air3d_coarse() -> GridSolution:
+    return solve(Air3D(), 41, [0.0, 0.25, 0.5, 1.0], compile=False, progress=False)
+
+
+def test_matches_toolbox_slice_at_101(air3d_101, reference):
+    v = _slice_values(air3d_101, reference)
+    err = np.abs(v - reference["LS"]).max()
+    iou = _iou(v <= 0, reference["LS"] <= 0)
+    assert err <= 2e-3, err
+    assert iou >= 0.99, iou
+
+
+def test_grid_convergence(air3d_101, reference):
+    errors = []
+    for n in (31, 51):
+        sol = solve(Air3D(), n, [1.0], compile=False, progress=False)
+        errors.append(np.abs(_slice_values(sol, reference) - reference["LS"]).mean())
+    errors.append(np.abs(_slice_values(air3d_101, reference) - reference["LS"]).mean())
+    assert errors[0] > errors[1] > errors[2], errors
+
+
+def test_hj_properties(air3d_coarse):
+    sol = air3d_coarse
+    target = Air3D().failure_margin(sol.grid.points(torch.float32))
+    v = sol.values
+    torch.testing.assert_close(v[0], target)  # V(x, 0) = l(x)
+    assert (v <= target + 1e-6).all()  # V <= l everywhere
+    volumes = (v <= 0).float().mean(dim=(1, 2, 3))
+    assert (volumes[1:] >= volumes[:-1]).all() and volumes[-1] > volumes[0]  # the BRT grows
+    # V is non-increasing in the horizon for the exact solution. The min-with-target scheme (the
+    # default, which matches the toolbox slice to 1.6e-4) lets numerical diffusion raise V where it
+    # has kinks: measured at most 7.1e-3 at 41^3 and 6.9e-3 at 101^3 (box corners, next to the
+    # extrapolated edge), about 2e-3 inside. Bound it here; the min-over-time scheme below is exact.
+    increase = (v[1:] - v[:-1]).max().item()
+    assert increase <= 1e-2, increase
+
+
+def _asymmetry(values: torch.Tensor) -> torch.Tensor:
+    """max |V(x1, x2, x3) - V(x1, -x2, -x3)| per stored time (x3 node k mirrors to (N - k) mod N)."""
+    n = values.shape[-1]
+    mirrored = values.flip(2)[..., [(-k) % n for k in range(n)]]
+    return (values - mirrored).abs().amax(dim=(1, 2, 3))
+
+
+def test_air3d_symmetry(air3d_coarse, air3d_101):
+    # The scheme is mirror-symmetric: up to t = 0.25 the two halves agree to round-off. Later a small
+    # discretisation-level asymmetry appears where V has a ridge at x2 = x3 = 0 (measured 1.8e-3 at
+    # 41^3 and 3.0e-4 at 101^3 at t = 1.0, in float32 and float64 alike); it shrinks with the grid.
+    coarse = _asymmetry(air3d_coarse.values)
+    assert (coarse[:2] <= 1e-5).all(), coarse
+    fine = _asymmetry(air3d_101.values)
+    assert fine[0] <= 5e-4 and fine[0] < coarse[3] <= 2.5e-3, (fine, coarse)
+
+
+def test_min_over_time_tube_is_monotone_and_nested():
+    sol = solve(Air3D(), 41, [0.0, 0.25, 0.5, 1.0], compile=False, progress=False, tube="min_over_time")
+    v = sol.values
+    assert (v[1:] <= v[:-1]).all()
+    brt = v <= 0
+    assert not (brt[:-1] & ~brt[1:]).any()  # each tube contains the previous one
+
+
+def test_output_times_are_hit_exactly_and_recorded(air3d_coarse):
+    assert air3d_coarse.times.tolist() == [0.0, 0.25, 0.5, 1.0]
+    scheme = air3d_coarse.metadata["scheme"]
+    assert scheme["cfl"] == 0.75 and scheme["steps"] > 0 and "WENO5" in scheme["spatial"]
+
+
+def test_interpolation_reproduces_nodes_and_is_periodic(air3d_coarse):
+    sol = air3d_coarse
+    pts = sol.grid.points(torch.float64)
+    idx = (slice(3, 9), slice(10, 14), slice(None))
+    torch.testing.assert_close(sol.value(pts[idx], 0.5), sol.values[2][idx].double(), atol=1e-6, rtol=0)
+    x = torch.tensor([[0.3, -0.2, 1.0], [0.1, 0.5, -3.0]], dtype=torch.float64)
+    shifted = x + torch.tensor([0.0, 0.0, 2 * math.pi], dtype=torch.float64)
+    torch.testing.assert_close(sol.value(x, 0.7), sol.value(shifted, 0.7))
+    torch.testing.assert_close(sol.gradient(x, 0.7), sol.gradient(shifted, 0.7))
+    # linear in time between stored times
+    mid = sol.value(x, 0.375)
+    torch.testing.assert_close(mid, 0.5 * (sol.value(x, 0.25) + sol.value(x, 0.5)))
+
+
+def test_gradient_of_a_known_function():
+    system = Air3D()
+    grid = Grid.for_system(system, (61, 61, 60))
+    pts = grid.points(torch.float64)
+    f = torch.sin(2 * pts[..., 0]) + pts[..., 1] ** 2 + torch.cos(pts[..., 2])
+    sol = GridSolution(system, grid, torch.tensor([0.0]), f[None].float())
+    x = torch.tensor([[0.13, -0.41, 2.0], [-0.7, 0.33, -1.1]], dtype=torch.float64)
+    expected = torch.stack([2 * torch.cos(2 * x[:, 0]), 2 * x[:, 1], -torch.sin(x[:, 2])], dim=-1)
+    torch.testing.assert_close(sol.gradient(x, 0.0), expected, atol=5e-3, rtol=0)
+    assert sol.gradient(x.float(), 0.0).dtype == torch.float32
+
+
+def test_bad_queries_raise(air3d_coarse):
+    with pytest.raises(ValueError, match="outside the grid"):
+        air3d_coarse.value(torch.tensor([[1.5, 0.0, 0.0]]), 0.5)
+    clamped = GridSolution(
+        air3d_coarse.system, air3d_coarse.grid, air3d_coarse.times, air3d_coarse.values, outside="clamp"
+    )
+    assert torch.isfinite(clamped.value(torch.tensor([[1.5, 0.0, 0.0]]), 0.5)).all()
+    with pytest.raises(ValueError, match="NaN"):
+        air3d_coarse.value(torch.tensor([[0.1, float("nan"), 0.0]]), 0.5)
+    with pytest.raises(ValueError, match="stored range"):
+        air3d_coarse.value(torch.zeros(1, 3), 2.0)
+    with pytest.raises(ValueError, match="shape"):
+        air3d_coarse.value(torch.zeros(1, 2), 0.5)
+
+
+def test_save_load_round_trip_and_corrupt_files(air3d_coarse, tmp_path):
+    path = air3d_coarse.save(tmp_path / "gt.npz")
+    loaded = GridSolution.load(path)
+    assert loaded.system == air3d_coarse.system and loaded.grid == air3d_coarse.grid
+    assert torch.equal(loaded.values, air3d_coarse.values) and torch.equal(loaded.times, air3d_coarse.times)
+    assert loaded.metadata["scheme"] == air3d_coarse.metadata["scheme"] and "torch" in loaded.metadata["versions"]
+    (tmp_path / "bad.npz").write_bytes(b"not a zip file")
+    with pytest.raises(ValueError, match="not a readable"):
+        GridSolution.load(tmp_path / "bad.npz")
+
+
+def test_solver_refuses_bad_settings():
+    with pytest.raises(ValueError, match="cfl=1.5.*stable"):
+        solve(Air3D(), 21, [0.1], cfl=1.5, progress=False)
+    with pytest.raises(ValueError, match="at most 4 dimensions"):
+        solve(MultiVehicle9D(), 5, [0.1], progress=False)
+    with pytest.raises(ValueError, match="increasing"):
+        solve(Air3D(), 21, [0.5, 0.2], progress=False)
+    with pytest.raises(ValueError, match="at least 5 nodes"):
+        solve(Air3D(), 4, [0.1], progress=False)
+
+
+def test_stable_at_the_cfl_limit():
+    sol = solve(Air3D(), 31, [0.5], cfl=1.0, compile=False, progress=False)
+    assert torch.isfinite(sol.values).all()
+    assert sol.values.min() >= -0.25 - 1e-3  # never below min l: the scheme stays bounded
+
+
+def test_cli_writes_file_and_plot(tmp_path, capsys):
+    out, png = tmp_path / "gt.npz", tmp_path / "gt.png"
+    code = main(
+        [
+            "groundtruth",
+            "air3d",
+            "--grid",
+            "25",
+            "--horizon",
+            "0.3",
+            "--times",
+            "0.1,0.3",
+            "--compile",
+            "off",
+            "--out",
+            str(out),
+            "--plot",
+            str(png),
+        ]
+    )
+    assert code == 0 and out.exists() and png.stat().st_size > 10_000
+    assert GridSolution.load(out).times.tolist() == [0.1, 0.3]
+    assert main(["groundtruth", "air3d", "--grid", "25", "--horizon", "0.3", "--times", "0.5", "--out", str(out)]) == 2
+    assert "beyond" in capsys.readouterr().err
+
+
+def test_plot_helper(air3d_coarse, tmp_path):
+    path = plot_zero_level_slices(air3d_coarse, tmp_path / "s.png", slice_values=[math.pi / 2])
+    assert path.stat().st_size > 5_000
