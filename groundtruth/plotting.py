@@ -47,10 +47,10 @@ def plot_zero_level_slices(
         if g.ndim >= 3:
             axis2 = solution.grid.axis(2).numpy()
             j = int(np.argmin(np.abs(np.angle(np.exp(1j * (axis2 - s)))) if g.periodic[2] else np.abs(axis2 - s)))
-            index = index + (j,)
+            index = (*index, j)
             title = f"{names[2]} = {axis2[j]:.3f}"
         if g.ndim == 4:
-            index = index + (g.shape[3] // 2,)
+            index = (*index, g.shape[3] // 2)
         for t_i, t in enumerate(solution.times.tolist()):
             field = values[(t_i, *index)]
             ax.contour(ax0, ax1, field.T, levels=[0.0], colors=colours[t_i], linewidths=1.2)

@@ -16,6 +16,7 @@ direction).
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 import warnings
@@ -96,11 +97,12 @@ def solve(
     out_times = [float(t) for t in times]
     if not out_times or any(not math.isfinite(t) or t < 0 for t in out_times):
         raise ValueError(f"times must be finite and >= 0, got {list(times)}")
-    if any(b <= a for a, b in zip(out_times, out_times[1:])):
+    if any(b <= a for a, b in itertools.pairwise(out_times)):
         raise ValueError(f"times must be strictly increasing, got {out_times}")
     if not (math.isfinite(cfl) and 0 < cfl <= CFL_STABLE):
         raise ValueError(
-            f"cfl={cfl} is outside (0, {CFL_STABLE}]: TVD-RK3 with WENO5 is only stable up to a Courant number of about 1"
+            f"cfl={cfl} is outside (0, {CFL_STABLE}]: TVD-RK3 with WENO5 is only stable "
+            "up to a Courant number of about 1"
         )
     if tube not in ("min_with_target", "min_over_time"):
         raise ValueError(f"tube must be 'min_with_target' or 'min_over_time', got {tube!r}")

@@ -163,7 +163,7 @@ def test_save_load_round_trip_and_corrupt_files(air3d_coarse, tmp_path):
 
 
 def test_solver_refuses_bad_settings():
-    with pytest.raises(ValueError, match="cfl=1.5.*stable"):
+    with pytest.raises(ValueError, match=r"cfl=1\.5.*stable"):
         solve(Air3D(), 21, [0.1], cfl=1.5, progress=False)
     with pytest.raises(ValueError, match="at most 4 dimensions"):
         solve(MultiVehicle9D(), 5, [0.1], progress=False)
