@@ -124,6 +124,12 @@ def test_interpolation_reproduces_nodes_and_is_periodic(air3d_coarse):
     torch.testing.assert_close(mid, 0.5 * (sol.value(x, 0.25) + sol.value(x, 0.5)))
 
 
+def test_grid_solution_is_a_value_function(air3d_coarse):
+    from reach_envs.systems import ValueFunction
+
+    assert isinstance(air3d_coarse, ValueFunction)
+
+
 def test_gradient_of_a_known_function():
     system = Air3D()
     grid = Grid.for_system(system, (61, 61, 60))

@@ -11,6 +11,7 @@ from reach_envs.systems.air3d import Air3D
 from reach_envs.systems.backend import FLOAT, NUMPY, TORCH
 from reach_envs.systems.base import Box, ControlAffineSystem, DeepReachNormalisation
 from reach_envs.systems.multivehicle import Car, MultiVehicle, MultiVehicle6D, MultiVehicle9D
+from reach_envs.systems.value_function import ValueFunction
 
 #: Systems by registry name.
 SYSTEMS: dict[str, type[ControlAffineSystem]] = {
@@ -46,6 +47,7 @@ __all__ = [
     "MultiVehicle",
     "MultiVehicle6D",
     "MultiVehicle9D",
+    "ValueFunction",
     "make_system",
     "system_from_config",
 ]
