@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from groundtruth.solution import GridSolution
+from reach_envs.atomic import atomic_path
 
 
 def default_slice_values(solution: GridSolution) -> list[float]:
@@ -66,14 +66,6 @@ def plot_zero_level_slices(
         f"{solution.system.name}: zero level of V (BRT boundary), grid {'x'.join(map(str, g.shape))}", fontsize=10
     )
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".png", dir=path.parent, prefix=f".{path.stem}-")
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return Path(path)

@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import os
 import platform
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -21,6 +20,7 @@ import numpy as np
 import torch
 
 from groundtruth.grid import Grid
+from reach_envs.atomic import atomic_path
 from reach_envs.systems import ControlAffineSystem, system_from_config
 
 FORMAT = "reach.groundtruth.v1"
@@ -156,28 +156,19 @@ class GridSolution:
     # ------------------------------------------------------------------ files
     def save(self, path: str | os.PathLike) -> Path:
         """Write a self-describing ``.npz`` atomically (temp file in the same folder, then rename)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
         meta = {"format": FORMAT, "system": self.system.config(), "versions": _versions(), **self.metadata}
-        fd, tmp = tempfile.mkstemp(suffix=".npz", dir=path.parent, prefix=f".{path.stem}-")
-        os.close(fd)
-        try:
-            with open(tmp, "wb") as fh:
-                np.savez_compressed(
-                    fh,
-                    values=self.values.numpy(),
-                    times=self.times.numpy(),
-                    grid_low=np.array(self.grid.low),
-                    grid_high=np.array(self.grid.high),
-                    grid_shape=np.array(self.grid.shape),
-                    grid_periodic=np.array(self.grid.periodic),
-                    metadata=np.array(json.dumps(meta)),
-                )
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        return path
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            np.savez_compressed(
+                fh,
+                values=self.values.numpy(),
+                times=self.times.numpy(),
+                grid_low=np.array(self.grid.low),
+                grid_high=np.array(self.grid.high),
+                grid_shape=np.array(self.grid.shape),
+                grid_periodic=np.array(self.grid.periodic),
+                metadata=np.array(json.dumps(meta)),
+            )
+        return Path(path)
 
     @classmethod
     def load(cls, path: str | os.PathLike, outside: Literal["error", "clamp"] = "error") -> GridSolution:

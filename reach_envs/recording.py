@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
+
+from reach_envs.atomic import atomic_path
 
 
 def save_gif(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float = 25.0) -> Path:
@@ -23,17 +24,9 @@ def save_gif(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float =
             raise ValueError(f"save_gif: frame {k} must be uint8 (H, W, 3), got {f.dtype} {f.shape}")
     if not (fps > 0 and np.isfinite(fps)):
         raise ValueError(f"save_gif: fps must be positive, got {fps}")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".gif", dir=path.parent, prefix=f".{path.stem}-")
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         imageio.mimsave(tmp, list(frames), format="GIF", duration=1000.0 / fps, loop=0)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return Path(path)
 
 
 def record_episode(
