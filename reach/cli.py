@@ -1,8 +1,8 @@
 """``reach``: the command line of the reach toolkit.
 
 Subcommands only parse arguments and call library functions. Present: ``envs`` (list environments
-and scenes), ``record`` (run an episode and save a GIF) and ``groundtruth`` (grid BRT solve). Later
-subcommands (train, evaluate, ...) arrive with their issues.
+and scenes), ``record`` (run an episode and save a GIF), ``groundtruth`` (grid BRT solve) and
+``train`` (value networks). Later subcommands (evaluate, ...) arrive with their issues.
 """
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 
 def _cmd_envs(args: argparse.Namespace) -> int:
@@ -99,6 +100,43 @@ def _cmd_groundtruth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    from training import TrainConfig, Trainer, TrainingDiverged, parse_duration
+    from training.evaluate import ReferenceEvaluator
+
+    evaluator = None
+    if args.groundtruth:
+        from groundtruth import GridSolution
+
+        reference = GridSolution.load(args.groundtruth, outside="clamp")
+        t_eval = args.eval_time if args.eval_time is not None else float(reference.times[-1])
+        evaluator = ReferenceEvaluator(reference, t_eval)
+    budget = parse_duration(args.budget) if args.budget else None
+    if args.resume:
+        trainer = Trainer.resume(args.resume, evaluator=evaluator, steps=args.steps, budget_s=budget)
+    else:
+        if not args.out:
+            raise ValueError("give --out RUN_DIR for a new run (or --resume RUN_DIR)")
+        config = TrainConfig(
+            system=args.system, layout=args.layout, width=args.width, w0=args.w0,
+            parameterisation=args.parameterisation, sincos=args.sincos, points=args.points, lr=args.lr,
+            lr_final=args.lr_final, schedule=args.schedule, loss=args.loss, curriculum=args.curriculum,
+            pretrain=args.pretrain, steps=args.steps, budget_s=budget, target_loss=args.target_loss,
+            seed=args.seed, device=args.device, log_every=args.log_every,
+            checkpoint_every_s=args.checkpoint_every, eval_every_s=args.eval_every,
+        )
+        if (Path(args.out) / "checkpoint.pt").exists():
+            raise ValueError(f"{args.out} already holds a run; use --resume {args.out} to continue it")
+        trainer = Trainer(config, args.out, evaluator=evaluator)
+    try:
+        summary = trainer.train()
+    except TrainingDiverged as err:
+        print(f"reach train: {err}", file=sys.stderr)
+        return 3
+    print(f"{summary['run_dir']}: {summary['steps']} steps in {summary['wall_time_s']:.1f} s ({summary['stopped']})")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="reach", description="Neural Hamilton-Jacobi reachability toolkit.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -129,6 +167,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output .npz")
     p.add_argument("--plot", default=None, help="also draw zero-level slices to this PNG")
     p.set_defaults(func=_cmd_groundtruth)
+
+    p = sub.add_parser("train", help="train a value network of any activation layout")
+    p.add_argument("--system", default="air3d")
+    p.add_argument("--layout", default="ssssl", help="one letter per activated layer (s, r, t) and a final l")
+    p.add_argument("--width", type=int, default=128)
+    p.add_argument("--w0", type=float, default=30.0, help="sine frequency")
+    p.add_argument("--parameterisation", choices=["exact", "vanilla"], default="exact")
+    p.add_argument("--sincos", action="store_true", help="encode headings as (sin, cos)")
+    p.add_argument("--points", type=int, default=8192, help="points per step")
+    p.add_argument("--lr", type=float, default=1e-4)
+    p.add_argument("--lr-final", type=float, default=1e-5)
+    p.add_argument("--schedule", choices=["cosine", "constant"], default="cosine")
+    p.add_argument("--loss", choices=["l1", "l2"], default="l1")
+    p.add_argument("--curriculum", type=float, default=0.5, help="share of the run over which t grows to T")
+    p.add_argument("--pretrain", type=float, default=0.0, help="vanilla: share of the run on the boundary only")
+    p.add_argument("--steps", type=int, default=None)
+    p.add_argument("--budget", default=None, help="wall-clock budget, e.g. 90s, 10m, 1h")
+    p.add_argument("--target-loss", type=float, default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--log-every", type=int, default=25)
+    p.add_argument("--checkpoint-every", type=float, default=30.0, help="seconds between checkpoints")
+    p.add_argument("--groundtruth", default=None, help="grid solution .npz to evaluate against while training")
+    p.add_argument("--eval-time", type=float, default=None, help="time for evaluation (default: last stored)")
+    p.add_argument("--eval-every", type=float, default=60.0, help="seconds between evaluations")
+    p.add_argument("--out", default=None, help="run directory for a new run")
+    p.add_argument("--resume", default=None, metavar="RUN_DIR", help="continue the run in RUN_DIR")
+    p.set_defaults(func=_cmd_train)
     return parser
 
 

@@ -1,4 +1,27 @@
 """Training: value networks of any activation layout learned from the HJI residual.
 
-Skeletal until its issue lands; it will depend on :mod:`reach_envs.systems` only.
+``ValueNetwork(system, layout="ssrsl")`` builds a network; ``Trainer(config, run_dir).train()`` runs
+a resumable training run; ``load_network(checkpoint)`` and ``load_deepreach(path, system, layout)``
+load ours and DeepReach's; ``NeuralValueFunction`` puts a network behind the value-function interface.
 """
+
+from training.checkpoint import load_network, save_checkpoint
+from training.config import TrainConfig, parse_duration
+from training.deepreach import load_deepreach
+from training.network import ACTIVATIONS, Encoding, NeuralValueFunction, ValueNetwork, parse_layout
+from training.trainer import Trainer, TrainingDiverged
+
+__all__ = [
+    "ACTIVATIONS",
+    "Encoding",
+    "NeuralValueFunction",
+    "TrainConfig",
+    "Trainer",
+    "TrainingDiverged",
+    "ValueNetwork",
+    "load_deepreach",
+    "load_network",
+    "parse_duration",
+    "parse_layout",
+    "save_checkpoint",
+]

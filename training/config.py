@@ -1,0 +1,97 @@
+"""Training configuration: every knob of a run, stored resolved in the run directory as JSON."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import re
+from dataclasses import dataclass, field
+from typing import Any
+
+from training.network import parse_layout
+
+
+def parse_duration(text: str | float | int) -> float:
+    """Seconds from ``"90"``, ``"90s"``, ``"10m"``, ``"1.5h"`` (numbers are seconds)."""
+    if isinstance(text, (int, float)) and not isinstance(text, bool):
+        seconds = float(text)
+    else:
+        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([smh]?)\s*", str(text))
+        if not m:
+            raise ValueError(f"duration must look like 90, 90s, 10m or 1.5h, got {text!r}")
+        seconds = float(m.group(1)) * {"": 1, "s": 1, "m": 60, "h": 3600}[m.group(2)]
+    if not (math.isfinite(seconds) and seconds > 0):
+        raise ValueError(f"duration must be positive, got {text!r}")
+    return seconds
+
+
+@dataclass
+class TrainConfig:
+    """A training run. At least one stop rule (``steps``, ``budget_s`` or ``target_loss``) is needed."""
+
+    system: str = "air3d"
+    system_parameters: dict[str, Any] = field(default_factory=dict)
+    layout: str = "ssssl"
+    width: int = 128
+    w0: float = 30.0
+    parameterisation: str = "exact"
+    sincos: bool = False  # encode periodic dimensions as (sin, cos)
+    value_scale: float = 1.0
+    points: int = 8192
+    lr: float = 1e-4
+    lr_final: float = 1e-5  # cosine decay from lr to lr_final over the run
+    schedule: str = "cosine"  # or "constant"
+    loss: str = "l1"  # "l1" or "l2" on the HJI residual
+    curriculum: float = 0.5  # share of the run over which the sampled time range grows to the horizon
+    pretrain: float = 0.0  # vanilla only: share of the run spent on the boundary loss alone
+    boundary_fraction: float = 0.15  # vanilla only: share of points sampled at t = 0
+    boundary_weight: float = 1.0  # vanilla only
+    steps: int | None = None
+    budget_s: float | None = None
+    target_loss: float | None = None
+    seed: int = 0
+    device: str = "cpu"
+    log_every: int = 25
+    checkpoint_every_s: float = 30.0
+    eval_every_s: float = 60.0
+
+    def validate(self) -> TrainConfig:
+        parse_layout(self.layout)
+        if self.steps is None and self.budget_s is None and self.target_loss is None:
+            raise ValueError("give at least one stop rule: steps, budget_s or target_loss")
+        checks = {
+            "width": self.width >= 1,
+            "points": self.points >= 1,
+            "lr": self.lr > 0,
+            "lr_final": self.lr_final > 0,
+            "w0": self.w0 > 0,
+            "value_scale": self.value_scale > 0,
+            "curriculum": 0 <= self.curriculum <= 1,
+            "pretrain": 0 <= self.pretrain < 1,
+            "boundary_fraction": 0 < self.boundary_fraction < 1,
+            "steps": self.steps is None or self.steps >= 1,
+            "budget_s": self.budget_s is None or self.budget_s > 0,
+            "log_every": self.log_every >= 1,
+        }
+        for name, ok in checks.items():
+            if not ok:
+                raise ValueError(f"invalid {name}: {getattr(self, name)!r}")
+        if self.parameterisation not in ("exact", "vanilla"):
+            raise ValueError(f"parameterisation must be 'exact' or 'vanilla', got {self.parameterisation!r}")
+        if self.schedule not in ("cosine", "constant"):
+            raise ValueError(f"schedule must be 'cosine' or 'constant', got {self.schedule!r}")
+        if self.loss not in ("l1", "l2"):
+            raise ValueError(f"loss must be 'l1' or 'l2', got {self.loss!r}")
+        return self
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), indent=2, sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown config keys {sorted(unknown)}")
+        return cls(**d).validate()

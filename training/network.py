@@ -1,0 +1,266 @@
+"""Value networks of any activation layout, with input encoding and output parameterisation.
+
+A layout is a string with one letter per activated hidden layer and a final ``l`` (linear output):
+``s`` sine ``sin(w0 z)``, ``r`` ReLU, ``t`` tanh. ``"ssrsl"`` is sine, sine, ReLU, sine, linear.
+
+Initialisation per layer kind, chosen so that every pre-activation starts with a spread of order one
+whatever mixes the layout has:
+
+* sine, first layer: ``U(-1/fan_in, 1/fan_in)`` (SIREN), so ``w0 z`` spans about one period over
+  the normalised input box;
+* sine, later layers (also after a ReLU or tanh layer): ``U(-sqrt(6/fan_in)/w0, +sqrt(6/fan_in)/w0)``
+  (SIREN). It assumes inputs of second moment about 1/2, which sine outputs have and Kaiming-
+  initialised ReLU outputs roughly have too, so ``w0 z`` stays of order one after a ReLU layer;
+* ReLU: Kaiming-normal (fan_in, ReLU gain), biases zero; tanh: Xavier-uniform, biases zero;
+* the linear output after a sine layer uses the SIREN hidden rule (as DeepReach), after ReLU or tanh
+  Kaiming-normal with linear gain.
+
+Inputs ``(t, x)`` are encoded by an :class:`Encoding` (affine maps to about [-1, 1]; optionally
+``(sin, cos)`` of periodic dimensions). Outputs: ``vanilla`` ``V = value_scale o + value_offset``
+(DeepReach) or ``exact`` ``V = l(x) + (t / T) value_scale o``, which meets ``V(x, 0) = l(x)`` by
+construction.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any, Literal
+
+import torch
+from torch import nn
+
+from reach_envs.systems import ControlAffineSystem
+
+#: Activation letters and their names.
+ACTIVATIONS = {"s": "sine", "r": "relu", "t": "tanh"}
+Parameterisation = Literal["exact", "vanilla"]
+
+
+def parse_layout(layout: str) -> tuple[str, ...]:
+    """Letters of the activated layers of ``layout``; errors name the bad part."""
+    if not isinstance(layout, str) or not layout:
+        raise ValueError(f"layout must be a non-empty string such as 'ssrsl', got {layout!r}")
+    if not layout.endswith("l"):
+        raise ValueError(f"layout {layout!r} must end with 'l' (the linear output layer)")
+    body = layout[:-1]
+    if not body:
+        raise ValueError(f"layout {layout!r} needs at least one activated layer before the final 'l'")
+    for i, letter in enumerate(body):
+        if letter not in ACTIVATIONS:
+            known = ", ".join(f"{k} = {v}" for k, v in ACTIVATIONS.items())
+            raise ValueError(f"layout {layout!r}: unknown letter {letter!r} at position {i} (known: {known}, l = output)")
+    return tuple(body)
+
+
+@dataclass(frozen=True)
+class Encoding:
+    """How ``(t, x)`` becomes network input and the output becomes ``V``.
+
+    Input: ``((t - time_offset) / time_scale, (x - state_offset) / state_scale)``; periodic
+    dimensions listed in ``sincos_dims`` are replaced by ``(sin x_i, cos x_i)`` instead (a heading
+    encoding with no seam at +-pi). Output: ``value_scale * o + value_offset`` (vanilla) or
+    ``l(x) + (t / horizon) * value_scale * o`` (exact).
+    """
+
+    state_offset: tuple[float, ...]
+    state_scale: tuple[float, ...]
+    time_offset: float = 0.0
+    time_scale: float = 1.0
+    value_scale: float = 1.0
+    value_offset: float = 0.0
+    horizon: float = 1.0
+    sincos_dims: tuple[int, ...] = field(default_factory=tuple)
+
+    @classmethod
+    def for_system(cls, system: ControlAffineSystem, sincos: bool = False, value_scale: float = 1.0) -> Encoding:
+        """Domain box mapped to [-1, 1], time-to-go [0, T] to [-1, 1]."""
+        lo = [a for a, _ in system.domain]
+        hi = [b for _, b in system.domain]
+        return cls(
+            state_offset=tuple(0.5 * (a + b) for a, b in zip(lo, hi)),
+            state_scale=tuple(0.5 * (b - a) for a, b in zip(lo, hi)),
+            time_offset=0.5 * system.horizon,
+            time_scale=0.5 * system.horizon,
+            value_scale=value_scale,
+            value_offset=0.0,
+            horizon=system.horizon,
+            sincos_dims=tuple(system.periodic_dims) if sincos else (),
+        )
+
+    @classmethod
+    def deepreach(cls, system: ControlAffineSystem) -> Encoding:
+        """DeepReach's convention: raw t, headings / 1.2 pi, ``V = 25 o + 0.25`` (checkpoint import)."""
+        n = system.deepreach
+        return cls(
+            state_offset=n.state_offset,
+            state_scale=n.state_scale,
+            value_scale=n.value_scale,
+            value_offset=n.value_offset,
+            horizon=system.horizon,
+        )
+
+    def input_dim(self, state_dim: int) -> int:
+        return 1 + state_dim + len(self.sincos_dims)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Encoding:
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+
+class Sine(nn.Module):
+    def __init__(self, w0: float) -> None:
+        super().__init__()
+        self.w0 = w0
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        return torch.sin(self.w0 * z)
+
+    def extra_repr(self) -> str:
+        return f"w0={self.w0}"
+
+
+def _activation(letter: str, w0: float) -> nn.Module:
+    return {"s": lambda: Sine(w0), "r": nn.ReLU, "t": nn.Tanh}[letter]()
+
+
+@torch.no_grad()
+def _init_linear(layer: nn.Linear, kind: str, previous: str | None, w0: float) -> None:
+    """Initialise ``layer`` whose output feeds activation ``kind`` (``"l"`` for the output)."""
+    fan_in = layer.in_features
+    if kind == "s" or (kind == "l" and previous == "s"):
+        bound = 1.0 / fan_in if previous is None else math.sqrt(6.0 / fan_in) / w0
+        layer.weight.uniform_(-bound, bound)
+        return  # biases keep torch's default init, as SIREN and DeepReach do
+    if kind == "r":
+        nn.init.kaiming_normal_(layer.weight, nonlinearity="relu")
+    elif kind == "t":
+        nn.init.xavier_uniform_(layer.weight, gain=nn.init.calculate_gain("tanh"))
+    else:  # linear output after relu/tanh
+        nn.init.kaiming_normal_(layer.weight, nonlinearity="linear")
+    nn.init.zeros_(layer.bias)
+
+
+class ValueNetwork(nn.Module):
+    """``V(x, t)`` as an MLP of the given layout (see the module docstring).
+
+    Args:
+        system: the system whose value this is (gives ``l(x)``, dimensions and default encoding).
+        layout: e.g. ``"ssssl"`` (DeepReach's 4 sine layers + linear output) or ``"ssrsl"``.
+        width: neurons per hidden layer.
+        parameterisation: ``"exact"`` or ``"vanilla"``.
+        w0: sine frequency.
+        encoding: input/output encoding (default: :meth:`Encoding.for_system`).
+    """
+
+    def __init__(
+        self,
+        system: ControlAffineSystem,
+        layout: str = "ssssl",
+        width: int = 128,
+        parameterisation: Parameterisation = "exact",
+        w0: float = 30.0,
+        encoding: Encoding | None = None,
+    ) -> None:
+        super().__init__()
+        letters = parse_layout(layout)
+        if isinstance(width, bool) or not isinstance(width, int) or width < 1:
+            raise ValueError(f"width must be a positive integer, got {width!r}")
+        if parameterisation not in ("exact", "vanilla"):
+            raise ValueError(f"parameterisation must be 'exact' or 'vanilla', got {parameterisation!r}")
+        if not (math.isfinite(w0) and w0 > 0):
+            raise ValueError(f"w0 must be positive and finite, got {w0!r}")
+        self.system = system
+        self.layout = layout
+        self.width = width
+        self.parameterisation = parameterisation
+        self.w0 = float(w0)
+        self.encoding = encoding if encoding is not None else Encoding.for_system(system)
+        if len(self.encoding.state_scale) != system.state_dim:
+            raise ValueError(f"encoding has {len(self.encoding.state_scale)} state scales, {system.name} has {system.state_dim}")
+        in_dim = self.encoding.input_dim(system.state_dim)
+        self.layers = nn.ModuleList()
+        self.activations = nn.ModuleList()
+        previous = None
+        for letter in letters:
+            layer = nn.Linear(in_dim, width)
+            _init_linear(layer, letter, previous, self.w0)
+            self.layers.append(layer)
+            self.activations.append(_activation(letter, self.w0))
+            in_dim, previous = width, letter
+        self.output = nn.Linear(in_dim, 1)
+        _init_linear(self.output, "l", previous, self.w0)
+        enc = self.encoding
+        self.register_buffer("_offset", torch.tensor(enc.state_offset, dtype=torch.float32), persistent=False)
+        self.register_buffer("_scale", torch.tensor(enc.state_scale, dtype=torch.float32), persistent=False)
+
+    # ------------------------------------------------------------------ description
+    def architecture(self) -> dict[str, Any]:
+        """Everything needed to rebuild this network (stored in checkpoints)."""
+        return {
+            "system": self.system.config(),
+            "layout": self.layout,
+            "width": self.width,
+            "parameterisation": self.parameterisation,
+            "w0": self.w0,
+            "encoding": self.encoding.to_dict(),
+        }
+
+    # ------------------------------------------------------------------ forward
+    def encode(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        enc = self.encoding
+        xs = (x - self._offset.to(x.dtype)) / self._scale.to(x.dtype)
+        parts = [((t - enc.time_offset) / enc.time_scale).unsqueeze(-1), xs]
+        if enc.sincos_dims:
+            keep = [i for i in range(x.shape[-1]) if i not in enc.sincos_dims]
+            angles = x[..., list(enc.sincos_dims)]
+            parts = [parts[0], xs[..., keep], torch.sin(angles), torch.cos(angles)]
+        return torch.cat(parts, dim=-1)
+
+    def raw(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """The network output ``o`` before the output parameterisation."""
+        h = self.encode(x, t)
+        for layer, act in zip(self.layers, self.activations):
+            h = act(layer(h))
+        return self.output(h).squeeze(-1)
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """``V(x, t)`` for states ``(..., n)`` and times ``(...)``."""
+        o = self.raw(x, t)
+        enc = self.encoding
+        if self.parameterisation == "vanilla":
+            return enc.value_scale * o + enc.value_offset
+        return self.system.failure_margin(x) + (t / enc.horizon) * enc.value_scale * o
+
+
+class NeuralValueFunction:
+    """A :class:`ValueNetwork` behind the value-function interface (``value``, ``gradient``)."""
+
+    def __init__(self, network: ValueNetwork) -> None:
+        self.network = network
+        self.system = network.system
+
+    def _inputs(self, x: torch.Tensor, t: float | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        if x.shape[-1] != self.system.state_dim:
+            raise ValueError(f"states must have shape (..., {self.system.state_dim}), got {tuple(x.shape)}")
+        if not torch.isfinite(x).all():
+            raise ValueError("states contain NaN or inf")
+        p = next(self.network.parameters())
+        x = x.to(device=p.device, dtype=p.dtype)
+        tt = torch.broadcast_to(torch.as_tensor(t, dtype=p.dtype, device=p.device), x.shape[:-1])
+        return x, tt
+
+    @torch.no_grad()
+    def value(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        xi, tt = self._inputs(x, t)
+        return self.network(xi, tt).to(x.dtype)
+
+    def gradient(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        xi, tt = self._inputs(x, t)
+        with torch.enable_grad():
+            xi = xi.detach().requires_grad_(True)
+            (g,) = torch.autograd.grad(self.network(xi, tt).sum(), xi)
+        return g.to(x.dtype)

@@ -1,0 +1,240 @@
+"""The training loop: sampling, curriculum, Adam, stop rules, checkpoints, metrics, resume.
+
+A run is a directory::
+
+    RUN/config.json        resolved TrainConfig
+    RUN/checkpoint.pt      latest good state (network, optimizer, RNG, step, wall time)
+    RUN/checkpoint.json    its metadata (system, layout, width, encoding, steps, versions, ...)
+    RUN/metrics.jsonl      one JSON line per logged step (loss terms, lr, steps/s, evaluations)
+
+Checkpoint files are replaced atomically; metrics lines are appended and flushed, and on resume any
+line past the checkpoint's step (or torn by a kill) is dropped, so a killed run resumes exactly
+where its last checkpoint stood and its metrics continue without duplicates.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import torch
+from tqdm.auto import tqdm
+
+from reach_envs.atomic import atomic_path
+from reach_envs.systems import make_system
+from training.checkpoint import load_network, read_checkpoint, save_checkpoint
+from training.config import TrainConfig
+from training.loss import training_loss
+from training.network import Encoding, NeuralValueFunction, ValueNetwork
+
+
+class TrainingDiverged(RuntimeError):
+    """The loss became NaN or inf; the last good checkpoint is kept."""
+
+
+Evaluator = Callable[[NeuralValueFunction], dict[str, float]]
+
+
+def build_network(config: TrainConfig) -> ValueNetwork:
+    system = make_system(config.system, **config.system_parameters)
+    encoding = Encoding.for_system(system, sincos=config.sincos, value_scale=config.value_scale)
+    return ValueNetwork(system, config.layout, config.width, config.parameterisation, config.w0, encoding)
+
+
+def _clean_metrics(path: Path, last_step: int) -> None:
+    """Keep only whole metric lines up to ``last_step`` (drops a torn tail after a kill)."""
+    if not path.exists():
+        return
+    kept = []
+    for line in path.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            break
+        if row.get("step", math.inf) > last_step:
+            break
+        kept.append(line)
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text("".join(f"{line}\n" for line in kept))
+
+
+class Trainer:
+    """Runs one training run in ``run_dir`` (see the module docstring)."""
+
+    def __init__(self, config: TrainConfig, run_dir: str | os.PathLike, evaluator: Evaluator | None = None,
+                 progress: bool = True) -> None:
+        self.config = config.validate()
+        self.run_dir = Path(run_dir)
+        self.evaluator = evaluator
+        self.progress = progress
+        self.device = torch.device(config.device)
+        self.network = build_network(config).to(self.device)
+        self.system = self.network.system
+        self.optimizer = torch.optim.Adam(self.network.parameters(), lr=config.lr)
+        self.generator = torch.Generator(device=self.device)
+        self.generator.manual_seed(config.seed)
+        self.step = 0
+        self.wall = 0.0  # seconds of training, accumulated across resumes
+        self.loss_ema: float | None = None
+        box = self.system.domain_tensor(torch.float32, self.device)
+        self._low, self._span = box[:, 0], box[:, 1] - box[:, 0]
+
+    # ------------------------------------------------------------------ persistence
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.run_dir / "checkpoint.pt"
+
+    def _save(self) -> None:
+        extra = {
+            "optimizer": self.optimizer.state_dict(),
+            "generator": self.generator.get_state(),
+            "step": self.step,
+            "wall": self.wall,
+            "loss_ema": self.loss_ema,
+        }
+        meta = {"steps": self.step, "wall_time_s": self.wall, "seed": self.config.seed,
+                "config": json.loads(self.config.to_json())}
+        save_checkpoint(self.checkpoint_path, self.network, extra, meta)
+
+    @classmethod
+    def resume(cls, run_dir: str | os.PathLike, evaluator: Evaluator | None = None, progress: bool = True,
+               **overrides: Any) -> Trainer:
+        """Continue the run in ``run_dir``; ``overrides`` may extend stop rules (steps, budget_s, ...)."""
+        run_dir = Path(run_dir)
+        cfg_path = run_dir / "config.json"
+        if not cfg_path.exists():
+            raise ValueError(f"{run_dir}: no config.json; not a training run directory")
+        data = json.loads(cfg_path.read_text())
+        data.update({k: v for k, v in overrides.items() if v is not None})
+        trainer = cls(TrainConfig.from_dict(data), run_dir, evaluator, progress)
+        if trainer.checkpoint_path.exists():
+            payload = read_checkpoint(trainer.checkpoint_path)
+            net = load_network(trainer.checkpoint_path, system=trainer.system, layout=trainer.config.layout)
+            trainer.network.load_state_dict(net.state_dict())
+            trainer.optimizer.load_state_dict(payload["optimizer"])
+            trainer.generator.set_state(payload["generator"])
+            trainer.step, trainer.wall, trainer.loss_ema = payload["step"], payload["wall"], payload["loss_ema"]
+        _clean_metrics(run_dir / "metrics.jsonl", trainer.step)
+        return trainer
+
+    # ------------------------------------------------------------------ schedule
+    def progress_fraction(self) -> float:
+        """How far the run is, in [0, 1], by its step or time budget (whichever is further)."""
+        c = self.config
+        parts = []
+        if c.steps is not None:
+            parts.append(self.step / c.steps)
+        if c.budget_s is not None:
+            parts.append(self.wall / c.budget_s)
+        return min(1.0, max(parts)) if parts else 0.0
+
+    def learning_rate(self, frac: float) -> float:
+        c = self.config
+        if c.schedule == "constant":
+            return c.lr
+        return c.lr_final + 0.5 * (c.lr - c.lr_final) * (1 + math.cos(math.pi * frac))
+
+    def time_range(self, frac: float) -> float:
+        c = self.config
+        if c.curriculum <= 0:
+            return self.system.horizon
+        pre = c.pretrain if c.parameterisation == "vanilla" else 0.0
+        grow = (frac - pre) / c.curriculum if frac > pre else 0.0
+        return self.system.horizon * min(1.0, max(0.0, grow))
+
+    def _sample(self, tmax: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        c, g = self.config, self.generator
+        n = c.points
+        x = self._low + torch.rand((n, self.system.state_dim), generator=g, device=self.device) * self._span
+        t = torch.rand(n, generator=g, device=self.device) * tmax
+        mask = None
+        if c.parameterisation == "vanilla":
+            mask = torch.zeros(n, dtype=torch.bool, device=self.device)
+            mask[: int(c.boundary_fraction * n)] = True
+            t = torch.where(mask, torch.zeros_like(t), t)
+        return x, t, mask
+
+    # ------------------------------------------------------------------ loop
+    def _done(self) -> str | None:
+        c = self.config
+        if c.steps is not None and self.step >= c.steps:
+            return f"reached {c.steps} steps"
+        if c.budget_s is not None and self.wall >= c.budget_s:
+            return f"reached the time budget of {c.budget_s:.0f} s"
+        if c.target_loss is not None and self.loss_ema is not None and self.loss_ema <= c.target_loss:
+            return f"loss {self.loss_ema:.3g} reached the target {c.target_loss:g}"
+        return None
+
+    def train(self) -> dict[str, Any]:
+        """Train until a stop rule holds; returns a summary. Raises :class:`TrainingDiverged` on NaN."""
+        c = self.config
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        cfg_path = self.run_dir / "config.json"
+        with atomic_path(cfg_path) as tmp:
+            Path(tmp).write_text(c.to_json())
+        metrics = open(self.run_dir / "metrics.jsonl", "a")  # noqa: SIM115 - kept open for the loop
+        last_ckpt = last_eval = time.perf_counter()
+        window_start, window_steps = time.perf_counter(), 0
+        total = c.steps if c.steps is not None else None
+        bar = tqdm(total=total, initial=self.step, desc=f"{c.system} {c.layout}", disable=not self.progress,
+                   unit="step")
+        reason = self._done()
+        try:
+            while reason is None:
+                t0 = time.perf_counter()
+                frac = self.progress_fraction()
+                lr = self.learning_rate(frac)
+                for group in self.optimizer.param_groups:
+                    group["lr"] = lr
+                tmax = self.time_range(frac)
+                x, t, mask = self._sample(tmax)
+                pde = not (c.parameterisation == "vanilla" and frac < c.pretrain)
+                loss, terms = training_loss(self.network, x, t, norm=c.loss, boundary_mask=mask,
+                                            boundary_weight=c.boundary_weight, pde=pde)
+                if not math.isfinite(terms["loss"]):
+                    raise TrainingDiverged(
+                        f"loss became {terms['loss']} at step {self.step + 1}; the last good checkpoint "
+                        f"(step {self._checkpoint_step()}) is kept in {self.checkpoint_path}"
+                    )
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                self.optimizer.step()
+                self.step += 1
+                self.wall += time.perf_counter() - t0
+                window_steps += 1
+                self.loss_ema = terms["loss"] if self.loss_ema is None else 0.95 * self.loss_ema + 0.05 * terms["loss"]
+                bar.update(1)
+                now = time.perf_counter()
+                if self.step % c.log_every == 0 or self._done():
+                    rate = window_steps / max(now - window_start, 1e-9)
+                    window_start, window_steps = now, 0
+                    row = {"step": self.step, "wall": round(self.wall, 3), "lr": lr, "tmax": tmax,
+                           "steps_per_s": round(rate, 3), "points_per_s": round(rate * c.points, 1), **terms}
+                    if self.evaluator is not None and (now - last_eval >= c.eval_every_s or self._done()):
+                        row.update(self.evaluator(NeuralValueFunction(self.network)))
+                        last_eval = time.perf_counter()
+                    metrics.write(json.dumps(row) + "\n")
+                    metrics.flush()
+                    left = (c.budget_s - self.wall) if c.budget_s else None
+                    bar.set_postfix(loss=f"{terms['loss']:.3g}", steps_s=f"{rate:.1f}",
+                                    left=f"{left:.0f}s" if left is not None else "-")
+                if time.perf_counter() - last_ckpt >= c.checkpoint_every_s:
+                    self._save()
+                    last_ckpt = time.perf_counter()
+                reason = self._done()
+            self._save()
+        finally:
+            bar.close()
+            metrics.close()
+        return {"run_dir": str(self.run_dir), "steps": self.step, "wall_time_s": self.wall,
+                "loss_ema": self.loss_ema, "stopped": reason}
+
+    def _checkpoint_step(self) -> int | None:
+        if not self.checkpoint_path.exists():
+            return None
+        return json.loads(self.checkpoint_path.with_suffix(".json").read_text()).get("steps")
