@@ -137,7 +137,7 @@ def solve(
         total=out_times[-1],
         desc=f"{system.name} {'x'.join(map(str, grid.shape))}",
         unit="s",
-        disable=not progress,
+        **({} if progress else {"disable": True}),
         bar_format="{l_bar}{bar}| {n:.3f}/{total:.3f} s [{elapsed}<{remaining}]",
     ) as bar:
         for t_out in out_times:

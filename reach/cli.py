@@ -118,12 +118,27 @@ def _cmd_train(args: argparse.Namespace) -> int:
         if not args.out:
             raise ValueError("give --out RUN_DIR for a new run (or --resume RUN_DIR)")
         config = TrainConfig(
-            system=args.system, layout=args.layout, width=args.width, w0=args.w0,
-            parameterisation=args.parameterisation, sincos=args.sincos, points=args.points, lr=args.lr,
-            lr_final=args.lr_final, schedule=args.schedule, loss=args.loss, curriculum=args.curriculum,
-            pretrain=args.pretrain, steps=args.steps, budget_s=budget, target_loss=args.target_loss,
-            seed=args.seed, device=args.device, log_every=args.log_every,
-            checkpoint_every_s=args.checkpoint_every, eval_every_s=args.eval_every,
+            system=args.system,
+            layout=args.layout,
+            width=args.width,
+            w0=args.w0,
+            parameterisation=args.parameterisation,
+            sincos=args.sincos,
+            points=args.points,
+            lr=args.lr,
+            lr_final=args.lr_final,
+            schedule=args.schedule,
+            loss=args.loss,
+            curriculum=args.curriculum,
+            pretrain=args.pretrain,
+            steps=args.steps,
+            budget_s=budget,
+            target_loss=args.target_loss,
+            seed=args.seed,
+            device=args.device,
+            log_every=args.log_every,
+            checkpoint_every_s=args.checkpoint_every,
+            eval_every_s=args.eval_every,
         )
         if (Path(args.out) / "checkpoint.pt").exists():
             raise ValueError(f"{args.out} already holds a run; use --resume {args.out} to continue it")

@@ -21,12 +21,20 @@ FORMAT = "reach.checkpoint.v1"
 def versions() -> dict[str, str]:
     import reach_envs
 
-    return {"reach": reach_envs.__version__, "torch": torch.__version__, "numpy": np.__version__,
-            "python": platform.python_version()}
+    return {
+        "reach": reach_envs.__version__,
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+    }
 
 
-def save_checkpoint(path: str | os.PathLike, network: ValueNetwork, extra: dict[str, Any] | None = None,
-                    metadata: dict[str, Any] | None = None) -> None:
+def save_checkpoint(
+    path: str | os.PathLike,
+    network: ValueNetwork,
+    extra: dict[str, Any] | None = None,
+    metadata: dict[str, Any] | None = None,
+) -> None:
     """Write ``path`` (torch) and ``path.with_suffix('.json')`` (metadata), each atomically.
 
     ``extra`` holds training state (optimizer, RNG, step) for resuming; ``metadata`` is merged into
@@ -68,7 +76,11 @@ def load_network(
     if layout is not None and meta["layout"] != layout:
         raise ValueError(f"{path}: checkpoint has layout {meta['layout']!r}, not {layout!r}")
     net = ValueNetwork(
-        stored, meta["layout"], width=meta["width"], parameterisation=meta["parameterisation"], w0=meta["w0"],
+        stored,
+        meta["layout"],
+        width=meta["width"],
+        parameterisation=meta["parameterisation"],
+        w0=meta["w0"],
         encoding=Encoding.from_dict(meta["encoding"]),
     )
     state = payload["model"]
@@ -78,5 +90,7 @@ def load_network(
     try:
         net.load_state_dict(state)
     except RuntimeError as err:
-        raise ValueError(f"{path}: weights do not match layout {meta['layout']!r} width {meta['width']}: {err}") from err
+        raise ValueError(
+            f"{path}: weights do not match layout {meta['layout']!r} width {meta['width']}: {err}"
+        ) from err
     return net.to(device)

@@ -32,7 +32,9 @@ def load_deepreach(path: str | os.PathLike, system: ControlAffineSystem, layout:
     for key, value in state.items():
         m = _KEY.match(key)
         if not m:
-            raise ValueError(f"{path}: unexpected key {key!r} for a DeepReach checkpoint (expected net.net.<i>.0.weight/bias)")
+            raise ValueError(
+                f"{path}: unexpected key {key!r} for a DeepReach checkpoint (expected net.net.<i>.0.weight/bias)"
+            )
         layers.setdefault(int(m.group(1)), {})[m.group(2)] = value
     letters = parse_layout(layout)
     if len(layers) != len(letters) + 1:
@@ -41,7 +43,9 @@ def load_deepreach(path: str | os.PathLike, system: ControlAffineSystem, layout:
             f"({len(letters)} activated + output)"
         )
     width = layers[0]["weight"].shape[0]
-    net = ValueNetwork(system, layout, width=width, parameterisation="vanilla", w0=30.0, encoding=Encoding.deepreach(system))
+    net = ValueNetwork(
+        system, layout, width=width, parameterisation="vanilla", w0=30.0, encoding=Encoding.deepreach(system)
+    )
     targets = [*net.layers, net.output]
     for i, target in enumerate(targets):
         for name in ("weight", "bias"):

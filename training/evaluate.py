@@ -11,8 +11,9 @@ from typing import Any
 import torch
 
 
-def compare(candidate: Any, reference_values: torch.Tensor, states: torch.Tensor, t: float,
-            chunk: int = 65536) -> dict[str, float]:
+def compare(
+    candidate: Any, reference_values: torch.Tensor, states: torch.Tensor, t: float, chunk: int = 65536
+) -> dict[str, float]:
     """MSE of ``V`` and IoU of ``{V <= 0}`` between ``candidate`` and precomputed reference values."""
     values = torch.cat([candidate.value(s, t).detach().cpu() for s in states.split(chunk)])
     ref = reference_values.to(values.dtype)
@@ -32,8 +33,15 @@ class ReferenceEvaluator:
     or, when ``slice_states`` and ``slice_values`` are given, those (e.g. the toolbox's slice).
     """
 
-    def __init__(self, reference: Any, t: float, slice_dim: int = 2, slice_value: float = 1.5863,
-                 slice_states: torch.Tensor | None = None, slice_values: torch.Tensor | None = None) -> None:
+    def __init__(
+        self,
+        reference: Any,
+        t: float,
+        slice_dim: int = 2,
+        slice_value: float = 1.5863,
+        slice_states: torch.Tensor | None = None,
+        slice_values: torch.Tensor | None = None,
+    ) -> None:
         self.t = float(t)
         pts = reference.grid.points(torch.float32)
         self.volume_states = pts.reshape(-1, pts.shape[-1])

@@ -49,7 +49,9 @@ def parse_layout(layout: str) -> tuple[str, ...]:
     for i, letter in enumerate(body):
         if letter not in ACTIVATIONS:
             known = ", ".join(f"{k} = {v}" for k, v in ACTIVATIONS.items())
-            raise ValueError(f"layout {layout!r}: unknown letter {letter!r} at position {i} (known: {known}, l = output)")
+            raise ValueError(
+                f"layout {layout!r}: unknown letter {letter!r} at position {i} (known: {known}, l = output)"
+            )
     return tuple(body)
 
 
@@ -180,7 +182,9 @@ class ValueNetwork(nn.Module):
         self.w0 = float(w0)
         self.encoding = encoding if encoding is not None else Encoding.for_system(system)
         if len(self.encoding.state_scale) != system.state_dim:
-            raise ValueError(f"encoding has {len(self.encoding.state_scale)} state scales, {system.name} has {system.state_dim}")
+            raise ValueError(
+                f"encoding has {len(self.encoding.state_scale)} state scales, {system.name} has {system.state_dim}"
+            )
         in_dim = self.encoding.input_dim(system.state_dim)
         self.layers = nn.ModuleList()
         self.activations = nn.ModuleList()

@@ -66,8 +66,9 @@ def _clean_metrics(path: Path, last_step: int) -> None:
 class Trainer:
     """Runs one training run in ``run_dir`` (see the module docstring)."""
 
-    def __init__(self, config: TrainConfig, run_dir: str | os.PathLike, evaluator: Evaluator | None = None,
-                 progress: bool = True) -> None:
+    def __init__(
+        self, config: TrainConfig, run_dir: str | os.PathLike, evaluator: Evaluator | None = None, progress: bool = True
+    ) -> None:
         self.config = config.validate()
         self.run_dir = Path(run_dir)
         self.evaluator = evaluator
@@ -97,13 +98,18 @@ class Trainer:
             "wall": self.wall,
             "loss_ema": self.loss_ema,
         }
-        meta = {"steps": self.step, "wall_time_s": self.wall, "seed": self.config.seed,
-                "config": json.loads(self.config.to_json())}
+        meta = {
+            "steps": self.step,
+            "wall_time_s": self.wall,
+            "seed": self.config.seed,
+            "config": json.loads(self.config.to_json()),
+        }
         save_checkpoint(self.checkpoint_path, self.network, extra, meta)
 
     @classmethod
-    def resume(cls, run_dir: str | os.PathLike, evaluator: Evaluator | None = None, progress: bool = True,
-               **overrides: Any) -> Trainer:
+    def resume(
+        cls, run_dir: str | os.PathLike, evaluator: Evaluator | None = None, progress: bool = True, **overrides: Any
+    ) -> Trainer:
         """Continue the run in ``run_dir``; ``overrides`` may extend stop rules (steps, budget_s, ...)."""
         run_dir = Path(run_dir)
         cfg_path = run_dir / "config.json"
@@ -181,8 +187,14 @@ class Trainer:
         last_ckpt = last_eval = time.perf_counter()
         window_start, window_steps = time.perf_counter(), 0
         total = c.steps if c.steps is not None else None
-        bar = tqdm(total=total, initial=self.step, desc=f"{c.system} {c.layout}", disable=not self.progress,
-                   unit="step")
+        # without an explicit `disable`, tqdm honours TQDM_DISABLE=1 (CI) and hides itself off a terminal
+        bar = tqdm(
+            total=total,
+            initial=self.step,
+            desc=f"{c.system} {c.layout}",
+            unit="step",
+            **({} if self.progress else {"disable": True}),
+        )
         reason = self._done()
         try:
             while reason is None:
@@ -194,8 +206,9 @@ class Trainer:
                 tmax = self.time_range(frac)
                 x, t, mask = self._sample(tmax)
                 pde = not (c.parameterisation == "vanilla" and frac < c.pretrain)
-                loss, terms = training_loss(self.network, x, t, norm=c.loss, boundary_mask=mask,
-                                            boundary_weight=c.boundary_weight, pde=pde)
+                loss, terms = training_loss(
+                    self.network, x, t, norm=c.loss, boundary_mask=mask, boundary_weight=c.boundary_weight, pde=pde
+                )
                 if not math.isfinite(terms["loss"]):
                     raise TrainingDiverged(
                         f"loss became {terms['loss']} at step {self.step + 1}; the last good checkpoint "
@@ -213,16 +226,26 @@ class Trainer:
                 if self.step % c.log_every == 0 or self._done():
                     rate = window_steps / max(now - window_start, 1e-9)
                     window_start, window_steps = now, 0
-                    row = {"step": self.step, "wall": round(self.wall, 3), "lr": lr, "tmax": tmax,
-                           "steps_per_s": round(rate, 3), "points_per_s": round(rate * c.points, 1), **terms}
+                    row = {
+                        "step": self.step,
+                        "wall": round(self.wall, 3),
+                        "lr": lr,
+                        "tmax": tmax,
+                        "steps_per_s": round(rate, 3),
+                        "points_per_s": round(rate * c.points, 1),
+                        **terms,
+                    }
                     if self.evaluator is not None and (now - last_eval >= c.eval_every_s or self._done()):
                         row.update(self.evaluator(NeuralValueFunction(self.network)))
-                        last_eval = time.perf_counter()
+                        last_eval = window_start = time.perf_counter()  # evaluation is not training time
                     metrics.write(json.dumps(row) + "\n")
                     metrics.flush()
                     left = (c.budget_s - self.wall) if c.budget_s else None
-                    bar.set_postfix(loss=f"{terms['loss']:.3g}", steps_s=f"{rate:.1f}",
-                                    left=f"{left:.0f}s" if left is not None else "-")
+                    bar.set_postfix(
+                        loss=f"{terms['loss']:.3g}",
+                        steps_s=f"{rate:.1f}",
+                        left=f"{left:.0f}s" if left is not None else "-",
+                    )
                 if time.perf_counter() - last_ckpt >= c.checkpoint_every_s:
                     self._save()
                     last_ckpt = time.perf_counter()
@@ -231,8 +254,13 @@ class Trainer:
         finally:
             bar.close()
             metrics.close()
-        return {"run_dir": str(self.run_dir), "steps": self.step, "wall_time_s": self.wall,
-                "loss_ema": self.loss_ema, "stopped": reason}
+        return {
+            "run_dir": str(self.run_dir),
+            "steps": self.step,
+            "wall_time_s": self.wall,
+            "loss_ema": self.loss_ema,
+            "stopped": reason,
+        }
 
     def _checkpoint_step(self) -> int | None:
         if not self.checkpoint_path.exists():

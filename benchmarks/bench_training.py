@@ -1,0 +1,75 @@
+"""Training throughput: steps/s and points/s of one HJI-residual training step.
+
+Run: ``python benchmarks/bench_training.py`` (``--quick`` for a smoke run).
+
+Configurations: DeepReach's (layout ssssl = 4 sine layers of 512, 65,000 points per step) on Air3D
+and on the 9D system, and the CPU default of ``reach train`` (ssssl, width 128, 8,192 points). Each
+is timed over ``--steps`` steps after 2 warm-up steps; a step is sampling, forward, the input
+gradient (autograd, create_graph), the Hamiltonian, the residual loss, backward and an Adam update.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import tempfile
+import time
+
+import torch
+
+from training import TrainConfig, Trainer
+
+CONFIGS = [
+    ("DeepReach 4x512, 65k points", "air3d", 512, 65_000),
+    ("DeepReach 4x512, 65k points", "multivehicle9d", 512, 65_000),
+    ("reach CPU default 4x128, 8192 points", "air3d", 128, 8192),
+    ("reach CPU default 4x128, 8192 points", "multivehicle9d", 128, 8192),
+]
+
+
+def time_config(system: str, width: int, points: int, steps: int, device: str) -> float:
+    with tempfile.TemporaryDirectory() as run:
+        config = TrainConfig(
+            system=system,
+            width=width,
+            points=points,
+            steps=2 + steps,
+            device=device,
+            log_every=10**9,
+            checkpoint_every_s=1e9,
+        )
+        trainer = Trainer(config, run, progress=False)
+        trainer.config.steps = 2
+        trainer.train()  # warm-up
+        trainer.config.steps = 2 + steps
+        if device == "cuda":
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        trainer.train()
+        if device == "cuda":
+            torch.cuda.synchronize()
+        return (time.perf_counter() - t0) / steps
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args()
+    configs = CONFIGS[2:] if args.quick else CONFIGS
+    steps = 2 if args.quick else args.steps
+    print(
+        f"# Training step throughput on {args.device}: python {platform.python_version()}, torch {torch.__version__}, "
+        f"{os.cpu_count()} CPUs, {torch.get_num_threads()} threads, {steps} timed steps each\n"
+    )
+    print("| configuration | system | s/step | steps/s | points/s |")
+    print("|---|---|---:|---:|---:|")
+    for label, system, width, points in configs:
+        t = time_config(system, width, points, steps, args.device)
+        print(f"| {label} | {system} | {t:.3f} | {1 / t:.2f} | {points / t:,.0f} |")
+
+
+if __name__ == "__main__":
+    main()

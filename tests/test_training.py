@@ -1,0 +1,244 @@
+"""Training: layouts, initialisation, parameterisations, checkpoints, resume after SIGKILL, DeepReach import."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from reach.cli import main
+from reach_envs.systems import Air3D, MultiVehicle9D, ValueFunction
+from training import (
+    Encoding,
+    NeuralValueFunction,
+    TrainConfig,
+    Trainer,
+    TrainingDiverged,
+    ValueNetwork,
+    load_deepreach,
+    load_network,
+    parse_layout,
+    save_checkpoint,
+)
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "reference"
+TINY = {"width": 16, "points": 256, "log_every": 5, "checkpoint_every_s": 0.0}
+
+
+@pytest.mark.parametrize(
+    ("layout", "message"),
+    [("", "non-empty"), ("sss", "end with 'l'"), ("l", "at least one activated"), ("sxsl", "'x' at position 1")],
+)
+def test_bad_layouts_are_named(layout, message):
+    with pytest.raises(ValueError, match=message):
+        parse_layout(layout)
+    with pytest.raises(ValueError, match=message):
+        ValueNetwork(Air3D(), layout)
+
+
+def test_layout_builds_matching_layers_and_init():
+    torch.manual_seed(0)
+    net = ValueNetwork(Air3D(), "srtsl", width=256, w0=30.0)
+    kinds = [type(a).__name__ for a in net.activations]
+    assert kinds == ["Sine", "ReLU", "Tanh", "Sine"] and len(net.layers) == 4
+    first = net.layers[0].weight
+    assert first.abs().max() <= 1 / first.shape[1]  # SIREN first layer
+    relu = net.layers[1].weight
+    assert relu.std().item() == pytest.approx(math.sqrt(2 / 256), rel=0.05)  # Kaiming
+    sine_after_tanh = net.layers[3].weight
+    assert sine_after_tanh.abs().max() <= math.sqrt(6 / 256) / 30
+    assert torch.equal(net.layers[1].bias, torch.zeros(256))
+
+
+@pytest.mark.parametrize("layout", ["ssssl", "ssrsl", "rrrrl", "srsrrl"])
+def test_exact_parameterisation_meets_the_boundary_condition(layout):
+    system = MultiVehicle9D()
+    net = ValueNetwork(system, layout, width=32)
+    x = system.sample_states(64)
+    torch.testing.assert_close(net(x, torch.zeros(64)), system.failure_margin(x))
+    vanilla = ValueNetwork(system, layout, width=32, parameterisation="vanilla")
+    assert vanilla(x, torch.zeros(64)).shape == (64,)
+
+
+def test_neural_value_function_interface():
+    net = ValueNetwork(Air3D(), "ssl", width=16)
+    vf = NeuralValueFunction(net)
+    assert isinstance(vf, ValueFunction)
+    x = Air3D().sample_states(10, dtype=torch.float64)
+    assert vf.value(x, 0.5).shape == (10,) and vf.value(x, 0.5).dtype == torch.float64
+    g = vf.gradient(x, 0.5)
+    eps = 1e-3
+    e0 = torch.zeros_like(x)
+    e0[:, 0] = eps
+    fd = (vf.value(x + e0, 0.5) - vf.value(x - e0, 0.5)) / (2 * eps)
+    torch.testing.assert_close(g[:, 0], fd, atol=2e-3, rtol=1e-2)
+    with pytest.raises(ValueError, match="NaN"):
+        vf.value(torch.full((1, 3), float("nan")), 0.5)
+
+
+def test_sincos_encoding_is_periodic():
+    system = Air3D()
+    net = ValueNetwork(system, "ssl", width=16, encoding=Encoding.for_system(system, sincos=True))
+    x = torch.tensor([[0.3, -0.2, 3.0]])
+    shifted = x + torch.tensor([[0.0, 0.0, -2 * math.pi]])
+    torch.testing.assert_close(net(x, torch.tensor([0.4])), net(shifted, torch.tensor([0.4])))
+
+
+def test_checkpoint_round_trip_and_mismatches(tmp_path):
+    net = ValueNetwork(Air3D(), "srsl", width=24)
+    save_checkpoint(tmp_path / "c.pt", net, metadata={"steps": 0})
+    loaded = load_network(tmp_path / "c.pt", system=Air3D(), layout="srsl")
+    x = Air3D().sample_states(8)
+    torch.testing.assert_close(loaded(x, torch.ones(8)), net(x, torch.ones(8)))
+    meta = json.loads((tmp_path / "c.json").read_text())
+    assert meta["layout"] == "srsl" and meta["system"]["name"] == "air3d" and "torch" in meta["versions"]
+    with pytest.raises(ValueError, match="layout 'srsl', not 'ssssl'"):
+        load_network(tmp_path / "c.pt", layout="ssssl")
+    with pytest.raises(ValueError, match="multivehicle9d"):
+        load_network(tmp_path / "c.pt", system=MultiVehicle9D())
+    with pytest.raises(ValueError, match="collision_radius"):
+        load_network(tmp_path / "c.pt", system=Air3D(collision_radius=0.3))
+    with torch.no_grad():
+        net.layers[1].weight[0, 0] = float("nan")
+    save_checkpoint(tmp_path / "nan.pt", net)
+    with pytest.raises(ValueError, match="NaN"):
+        load_network(tmp_path / "nan.pt")
+    (tmp_path / "bad.pt").write_bytes(b"\x00garbage")
+    with pytest.raises(ValueError, match="corrupt"):
+        load_network(tmp_path / "bad.pt")
+
+
+def test_training_run_writes_config_checkpoint_and_metrics(tmp_path):
+    config = TrainConfig(steps=20, **TINY)
+    summary = Trainer(config, tmp_path / "run", progress=False).train()
+    assert summary["steps"] == 20 and summary["stopped"] == "reached 20 steps"
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [5, 10, 15, 20]
+    assert all(r["steps_per_s"] > 0 and math.isfinite(r["loss"]) for r in rows)
+    meta = json.loads((tmp_path / "run" / "checkpoint.json").read_text())
+    for key in (
+        "system",
+        "layout",
+        "width",
+        "parameterisation",
+        "encoding",
+        "steps",
+        "wall_time_s",
+        "seed",
+        "versions",
+    ):
+        assert key in meta
+    assert meta["steps"] == 20
+    assert TrainConfig.from_dict(json.loads((tmp_path / "run" / "config.json").read_text())) == config
+
+
+def test_resume_continues_steps_and_metrics(tmp_path):
+    Trainer(TrainConfig(steps=10, **TINY), tmp_path / "run", progress=False).train()
+    trainer = Trainer.resume(tmp_path / "run", progress=False, steps=20)
+    assert trainer.step == 10
+    trainer.train()
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [5, 10, 15, 20]
+
+
+def test_vanilla_training_with_pretraining_runs(tmp_path):
+    config = TrainConfig(parameterisation="vanilla", pretrain=0.5, steps=10, **TINY)
+    trainer = Trainer(config, tmp_path / "run", progress=False)
+    assert trainer.time_range(0.25) == 0.0 and trainer.time_range(1.0) == pytest.approx(1.1)
+    trainer.train()
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert "pde" not in rows[0] and "boundary" in rows[0] and "pde" in rows[-1]
+
+
+def test_diverging_run_stops_naming_the_step_and_keeps_the_checkpoint(tmp_path):
+    config = TrainConfig(layout="rrrl", lr=1e12, lr_final=1e12, steps=300, **TINY)
+    trainer = Trainer(config, tmp_path / "run", progress=False)
+    with pytest.raises(TrainingDiverged, match=r"at step \d+"):
+        trainer.train()
+    net = load_network(tmp_path / "run" / "checkpoint.pt")  # the last good one: finite weights
+    assert all(torch.isfinite(p).all() for p in net.parameters())
+
+
+def test_resume_survives_sigkill(tmp_path):
+    run = tmp_path / "run"
+    cmd = [
+        sys.executable,
+        "-m",
+        "reach",
+        "train",
+        "--width",
+        "16",
+        "--points",
+        "256",
+        "--steps",
+        "400",
+        "--log-every",
+        "5",
+        "--checkpoint-every",
+        "0.2",
+        "--out",
+        str(run),
+    ]
+    env = {**os.environ, "TQDM_DISABLE": "1"}
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.time() + 120
+    steps = 0
+    while time.time() < deadline and proc.poll() is None:
+        meta = run / "checkpoint.json"
+        if meta.exists():
+            try:
+                steps = json.loads(meta.read_text())["steps"]
+            except (json.JSONDecodeError, KeyError):
+                steps = 0
+            if steps >= 60:
+                break
+        time.sleep(0.05)
+    assert proc.poll() is None, "training finished before it could be killed"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    killed_at = json.loads((run / "checkpoint.json").read_text())["steps"]
+    assert 60 <= killed_at < 400
+    load_network(run / "checkpoint.pt")  # not corrupt
+    done = subprocess.run(
+        [sys.executable, "-m", "reach", "train", "--resume", str(run)], env=env, capture_output=True, text=True
+    )
+    assert done.returncode == 0, done.stderr
+    assert json.loads((run / "checkpoint.json").read_text())["steps"] == 400
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == list(range(5, 401, 5))  # continuous, no duplicates, no torn lines
+
+
+def test_cli_train_and_refuses_to_overwrite(tmp_path, capsys):
+    out = tmp_path / "run"
+    args = ["train", "--layout", "srl", "--width", "8", "--points", "64", "--steps", "6", "--out", str(out)]
+    assert main(args) == 0
+    assert main(args) == 2 and "already holds a run" in capsys.readouterr().err
+    assert main(["train", "--layout", "sxl", "--steps", "2", "--out", str(tmp_path / "x")]) == 2
+
+
+def test_deepreach_checkpoint_import_matches_the_toolbox_slice():
+    path = SHARED / "air3d_deepreach_ssssl_3x512.pth"
+    if not path.exists():
+        pytest.skip("../shared/reference is absent")
+    net = load_deepreach(path, Air3D(), "ssssl")
+    with np.load(SHARED / "air3d_levelset_slice.npz") as ref:
+        x1, x2 = np.meshgrid(ref["x1"], ref["x2"], indexing="ij")
+        x = torch.tensor(np.stack([x1, x2, np.full_like(x1, float(ref["x3"]))], -1), dtype=torch.float32)
+        ls = ref["LS"]
+    v = NeuralValueFunction(net).value(x, 1.0).numpy()
+    inside, truth = v <= 0.001, ls <= 0.001
+    iou = (inside & truth).sum() / (inside | truth).sum()
+    assert iou >= 0.95, iou
+    with pytest.raises(ValueError, match="needs 4"):
+        load_deepreach(path, Air3D(), "sssl")
+    with pytest.raises(ValueError, match="shape"):
+        load_deepreach(path, MultiVehicle9D(), "ssssl")
