@@ -101,7 +101,7 @@ def _cmd_groundtruth(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from training import TrainConfig, Trainer, TrainingDiverged, parse_duration
+    from training import TrainConfig, Trainer, TrainingDivergedError, parse_duration
     from training.evaluate import ReferenceEvaluator
 
     evaluator = None
@@ -145,7 +145,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         trainer = Trainer(config, args.out, evaluator=evaluator)
     try:
         summary = trainer.train()
-    except TrainingDiverged as err:
+    except TrainingDivergedError as err:
         print(f"reach train: {err}", file=sys.stderr)
         return 3
     print(f"{summary['run_dir']}: {summary['steps']} steps in {summary['wall_time_s']:.1f} s ({summary['stopped']})")

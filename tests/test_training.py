@@ -22,7 +22,7 @@ from training import (
     NeuralValueFunction,
     TrainConfig,
     Trainer,
-    TrainingDiverged,
+    TrainingDivergedError,
     ValueNetwork,
     load_deepreach,
     load_network,
@@ -162,7 +162,7 @@ def test_vanilla_training_with_pretraining_runs(tmp_path):
 def test_diverging_run_stops_naming_the_step_and_keeps_the_checkpoint(tmp_path):
     config = TrainConfig(layout="rrrl", lr=1e12, lr_final=1e12, steps=300, **TINY)
     trainer = Trainer(config, tmp_path / "run", progress=False)
-    with pytest.raises(TrainingDiverged, match=r"at step \d+"):
+    with pytest.raises(TrainingDivergedError, match=r"at step \d+"):
         trainer.train()
     net = load_network(tmp_path / "run" / "checkpoint.pt")  # the last good one: finite weights
     assert all(torch.isfinite(p).all() for p in net.parameters())

@@ -9,7 +9,7 @@ from training.checkpoint import load_network, save_checkpoint
 from training.config import TrainConfig, parse_duration
 from training.deepreach import load_deepreach
 from training.network import ACTIVATIONS, Encoding, NeuralValueFunction, ValueNetwork, parse_layout
-from training.trainer import Trainer, TrainingDiverged
+from training.trainer import Trainer, TrainingDivergedError
 
 __all__ = [
     "ACTIVATIONS",
@@ -17,7 +17,7 @@ __all__ = [
     "NeuralValueFunction",
     "TrainConfig",
     "Trainer",
-    "TrainingDiverged",
+    "TrainingDivergedError",
     "ValueNetwork",
     "load_deepreach",
     "load_network",

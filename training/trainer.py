@@ -33,7 +33,7 @@ from training.loss import training_loss
 from training.network import Encoding, NeuralValueFunction, ValueNetwork
 
 
-class TrainingDiverged(RuntimeError):
+class TrainingDivergedError(RuntimeError):
     """The loss became NaN or inf; the last good checkpoint is kept."""
 
 
@@ -177,7 +177,7 @@ class Trainer:
         return None
 
     def train(self) -> dict[str, Any]:
-        """Train until a stop rule holds; returns a summary. Raises :class:`TrainingDiverged` on NaN."""
+        """Train until a stop rule holds; returns a summary. Raises :class:`TrainingDivergedError` on NaN."""
         c = self.config
         self.run_dir.mkdir(parents=True, exist_ok=True)
         cfg_path = self.run_dir / "config.json"
@@ -210,7 +210,7 @@ class Trainer:
                     self.network, x, t, norm=c.loss, boundary_mask=mask, boundary_weight=c.boundary_weight, pde=pde
                 )
                 if not math.isfinite(terms["loss"]):
-                    raise TrainingDiverged(
+                    raise TrainingDivergedError(
                         f"loss became {terms['loss']} at step {self.step + 1}; the last good checkpoint "
                         f"(step {self._checkpoint_step()}) is kept in {self.checkpoint_path}"
                     )
