@@ -4,8 +4,9 @@ Run: ``python benchmarks/bench_training.py`` (``--quick`` for a smoke run).
 
 Configurations: DeepReach's (layout ssssl = 4 sine layers of 512, 65,000 points per step) on Air3D
 and on the 9D system, and the CPU default of ``reach train`` (ssssl, width 128, 8,192 points). Each
-is timed over a block of steps (5 for DeepReach's, 200 for the default) after 2 warm-up steps; a step is sampling, forward, the input
-gradient (autograd, create_graph), the Hamiltonian, the residual loss, backward and an Adam update.
+is timed over a block of steps (5 for DeepReach's, 200 for the default) after 2 warm-up steps; a
+step is sampling, forward, the input gradient (autograd, create_graph), the Hamiltonian, the
+residual loss, backward and an Adam update.
 """
 
 from __future__ import annotations
