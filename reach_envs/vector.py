@@ -53,7 +53,9 @@ class ReachVectorEnv(VectorEnv):
         self._u_half = system.control_bounds.half_width
         self._sampler = self.scene.sampler()
         self._rngs = [seeding.np_random(None)[0] for _ in range(num_envs)]
+        self._seeded = [False] * num_envs
         self._step_rng = seeding.np_random(None)[0]
+        self._step_rng_seeded = False
         n = system.state_dim
         self._state = [np.zeros(num_envs) for _ in range(n)]
         self._steps = np.zeros(num_envs, dtype=np.int64)
@@ -98,13 +100,16 @@ class ReachVectorEnv(VectorEnv):
             if mask.shape != (n,):
                 raise ValueError(f"reset_mask must have shape ({n},), got {mask.shape}")
         indices = np.flatnonzero(mask)
+        # Like a single env: a seed re-seeds; no seed keeps a generator's stream going (entropy-seeded
+        # the first time), so later resets continue reproducibly after one seeded reset.
         for i in indices:
-            if seeds[i] is not None or seed is None:
+            if seeds[i] is not None or not self._seeded[i]:
                 self._rngs[i] = seeding.np_random(seeds[i])[0]
-        if seed is not None or not hasattr(self, "_seeded"):
-            first = seeds[0] if seeds and seeds[0] is not None else None
+                self._seeded[i] = True
+        if seed is not None or not self._step_rng_seeded:
+            first = seeds[0] if seeds[0] is not None else None
             self._step_rng = np.random.default_rng(None if first is None else [first, 0x5EED])
-            self._seeded = True
+            self._step_rng_seeded = True
         states = None
         if options and options.get("state") is not None:
             states = np.asarray(options["state"], dtype=np.float64)

@@ -194,6 +194,22 @@ def test_vector_env_matches_single_envs_step_for_step(env_id):
     assert resets > 0
 
 
+def test_vector_env_unseeded_reset_continues_the_stream():
+    def initial_states():
+        venv = gym.make_vec("Air3D-v0", num_envs=3, vectorization_mode="vector_entry_point")
+        first, _ = venv.reset(seed=5)
+        second, _ = venv.reset()
+        return first, second
+
+    (a1, a2), (b1, b2) = initial_states(), initial_states()
+    np.testing.assert_array_equal(a1, b1)
+    np.testing.assert_array_equal(a2, b2)  # reproducible after one seeded reset
+    assert not np.array_equal(a1, a2)
+    single = gym.make("Air3D-v0")
+    single.reset(seed=6)
+    np.testing.assert_array_equal(single.reset()[0], a2[1])  # sub-env 1 continues like a single env
+
+
 def test_vector_env_shapes_and_bad_actions():
     venv = gym.make_vec("MultiVehicle9D-v0", num_envs=3, vectorization_mode="vector_entry_point")
     obs, info = venv.reset(seed=0)
