@@ -40,7 +40,6 @@ class SceneSimulator:
                 noise = std * math.sqrt(scene.dt)
         self._noise = noise
         self._arena = scene.arena
-        self.has_disturbance_policy = self._policy is not None
 
     # ------------------------------------------------------------------ disturbance
     def disturbance(self, x: Sequence[Column], rng: np.random.Generator) -> list[Column]:

@@ -37,7 +37,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 import torch
 
-from reach_envs.systems.backend import FLOAT, NUMPY, TORCH, Backend, Column
+from reach_envs.systems.backend import FLOAT, TORCH, Backend, Column
 
 Objective = Literal["max", "min"]
 #: Sparse input matrix: {(state index, input index): entry}; absent entries are zero.
@@ -265,7 +265,7 @@ class ControlAffineSystem(ABC):
         if t.ndim == 0 or t.shape[-1] != dim:
             raise ValueError(f"{self.name}: {name} must have shape (..., {dim}), got {tuple(t.shape)}")
 
-    def _inputs_or_centre(self, v: torch.Tensor | None, box: Box, x: torch.Tensor, name: str) -> Sequence[Column]:
+    def _inputs_or_centre(self, v: torch.Tensor | None, box: Box, name: str) -> Sequence[Column]:
         if v is None:
             return box.center
         self._check(name, v, box.dim)
@@ -278,8 +278,8 @@ class ControlAffineSystem(ABC):
         """
         self._check("x", x, self.state_dim)
         cols = TORCH.unbind(x)
-        uc = self._inputs_or_centre(u, self.control_bounds, x, "u")
-        dc = self._inputs_or_centre(d, self.disturbance_bounds, x, "d")
+        uc = self._inputs_or_centre(u, self.control_bounds, "u")
+        dc = self._inputs_or_centre(d, self.disturbance_bounds, "d")
         return TORCH.stack(self.xdot_columns(cols, uc, dc, TORCH), like=cols[0])
 
     def hamiltonian(self, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
@@ -343,10 +343,6 @@ class ControlAffineSystem(ABC):
         lo, hi = np.array(self.domain, dtype=np.float64).T
         size = (self.state_dim,) if n is None else (n, self.state_dim)
         return rng.uniform(lo, hi, size=size)
-
-    def failure_margin_numpy(self, x: np.ndarray) -> np.ndarray:
-        """``l(x)`` on NumPy states ``(..., n)``."""
-        return np.asarray(self.failure_margin_columns(NUMPY.unbind(x), NUMPY))
 
     def failure_margin_float(self, x: Sequence[float]) -> float:
         """``l(x)`` for one state given as a sequence of floats."""
