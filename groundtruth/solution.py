@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -21,20 +20,10 @@ import torch
 
 from groundtruth.grid import Grid
 from reach_envs.atomic import atomic_path
+from reach_envs.provenance import package_versions
 from reach_envs.systems import ControlAffineSystem, system_from_config
 
 FORMAT = "reach.groundtruth.v1"
-
-
-def _versions() -> dict[str, str]:
-    import reach_envs
-
-    return {
-        "reach": reach_envs.__version__,
-        "torch": torch.__version__,
-        "numpy": np.__version__,
-        "python": platform.python_version(),
-    }
 
 
 @dataclass
@@ -156,7 +145,7 @@ class GridSolution:
     # ------------------------------------------------------------------ files
     def save(self, path: str | os.PathLike) -> Path:
         """Write a self-describing ``.npz`` atomically (temp file in the same folder, then rename)."""
-        meta = {"format": FORMAT, "system": self.system.config(), "versions": _versions(), **self.metadata}
+        meta = {"format": FORMAT, "system": self.system.config(), "versions": package_versions(), **self.metadata}
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
             np.savez_compressed(
                 fh,

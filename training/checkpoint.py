@@ -4,29 +4,17 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
 from reach_envs.atomic import atomic_path
+from reach_envs.provenance import package_versions
 from reach_envs.systems import ControlAffineSystem, system_from_config
 from training.network import Encoding, ValueNetwork
 
 FORMAT = "reach.checkpoint.v1"
-
-
-def versions() -> dict[str, str]:
-    import reach_envs
-
-    return {
-        "reach": reach_envs.__version__,
-        "torch": torch.__version__,
-        "numpy": np.__version__,
-        "python": platform.python_version(),
-    }
 
 
 def save_checkpoint(
@@ -41,7 +29,7 @@ def save_checkpoint(
     the JSON beside the network's architecture and package versions.
     """
     path = Path(path)
-    meta = {"format": FORMAT, **network.architecture(), "versions": versions(), **(metadata or {})}
+    meta = {"format": FORMAT, **network.architecture(), "versions": package_versions(), **(metadata or {})}
     payload = {"format": FORMAT, "metadata": meta, "model": network.state_dict(), **(extra or {})}
     with atomic_path(path) as tmp:
         torch.save(payload, tmp)

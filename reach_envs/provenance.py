@@ -1,0 +1,20 @@
+"""What produced a file: package versions recorded in every result the library writes."""
+
+from __future__ import annotations
+
+import platform
+
+import numpy as np
+import torch
+
+
+def package_versions() -> dict[str, str]:
+    """Versions of reach, torch, numpy and Python, for file metadata."""
+    import reach_envs
+
+    return {
+        "reach": reach_envs.__version__,
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+    }
