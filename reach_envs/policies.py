@@ -58,14 +58,11 @@ class PursuitPolicy:
                 r2 = dx * dx + dy * dy
                 if best_r2 is None:
                     best_dx, best_dy, best_r2 = dx, dy, r2
-                elif xp is FLOAT:
-                    if r2 < best_r2:
-                        best_dx, best_dy, best_r2 = dx, dy, r2
                 else:
                     closer = r2 < best_r2
-                    best_dx = np.where(closer, dx, best_dx)
-                    best_dy = np.where(closer, dy, best_dy)
-                    best_r2 = np.minimum(r2, best_r2)
+                    best_dx = xp.where(closer, dx, best_dx)
+                    best_dy = xp.where(closer, dy, best_dy)
+                    best_r2 = xp.minimum(r2, best_r2)
             error = xp.wrap_angle(xp.atan2(best_dy, best_dx) - th)
             out.append(xp.clip(self.gain * error, -limit, limit))
         return out

@@ -76,5 +76,5 @@ class SceneSimulator:
         a = self._arena
         out: Column = False
         for px, py, _ in self.system.car_poses(x, self.xp):
-            out = out or abs(px) > a or abs(py) > a if self.xp is FLOAT else out | (np.abs(px) > a) | (np.abs(py) > a)
+            out = out | (self.xp.abs(px) > a) | (self.xp.abs(py) > a)  # bools and arrays alike
         return out

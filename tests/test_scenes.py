@@ -164,3 +164,18 @@ def test_uniform_safe_initial_states_are_outside_the_failure_set():
     for seed in range(50):
         _, info = env.reset(seed=seed)
         assert info["margin"] > 0
+
+
+def test_pursuit_targets_the_nearest_control_car_on_every_backend():
+    from reach_envs.systems import FLOAT, NUMPY
+
+    system = Scene.from_cars([Car(0.5, 1.0, "control"), Car(0.5, 1.0, "control"), Car(0.5, 2.0, "disturbance")]).system
+    policy = PursuitPolicy(system)
+    rng = np.random.default_rng(0)
+    states = system.sample_states_numpy(rng, 64)
+    batch = policy.columns(NUMPY.unbind(states), NUMPY, rng)[0]
+    single = [policy.columns(s.tolist(), FLOAT, rng)[0] for s in states]
+    np.testing.assert_allclose(batch, single, rtol=0, atol=1e-12)
+    # pursuer at the origin heading +x, nearest control car straight above: turn left at full rate
+    x = [0.0, 0.5, 0.0, -0.9, 0.0, 0.0, 0.0, 0.0, 0.0]
+    assert policy.columns(x, FLOAT, rng)[0] == 2.0

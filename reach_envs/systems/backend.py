@@ -60,6 +60,10 @@ class FloatBackend:
         return a if a <= b else b
 
     @staticmethod
+    def where(condition: bool, a: float, b: float) -> float:
+        return a if condition else b
+
+    @staticmethod
     def clip(a: float, lo: float, hi: float) -> float:
         return lo if a < lo else (hi if a > hi else a)
 
@@ -91,6 +95,7 @@ class NumpyBackend:
     abs = staticmethod(np.abs)
     sign = staticmethod(np.sign)
     minimum = staticmethod(np.minimum)
+    where = staticmethod(np.where)
     clip = staticmethod(np.clip)
     hypot = staticmethod(np.hypot)
 
@@ -130,6 +135,7 @@ class TorchBackend:
     atan2 = staticmethod(torch.atan2)
     abs = staticmethod(torch.abs)
     sign = staticmethod(torch.sign)
+    where = staticmethod(torch.where)
 
     @staticmethod
     def unbind(x: torch.Tensor) -> tuple[torch.Tensor, ...]:
