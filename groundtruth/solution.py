@@ -132,7 +132,7 @@ class GridSolution:
             wv = w.reshape((m,) + (1,) * (v0.ndim - 1))
             wtt = wt.reshape((m,) + (1,) * (v0.ndim - 1))
             out = out + wv * ((1 - wtt) * v0 + wtt * v1)
-        return out.reshape(*batch, *table.shape[1 + n :]).to(x.dtype)
+        return out.reshape((*batch, *table.shape[1 + n :])).to(x.dtype)
 
     def value(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
         """``V(x, t)`` for states ``(..., n)``; returns ``(...)``."""

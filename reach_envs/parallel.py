@@ -167,6 +167,22 @@ class MultiVehicleParallelEnv(ParallelEnv):
         return np.array(self._state, dtype=np.float32)
 
     @property
+    def full_state(self) -> np.ndarray:
+        """The global state in float64 (``state()`` is its float32 copy, as PettingZoo expects)."""
+        return np.array(self._state)
+
+    @property
+    def elapsed(self) -> float:
+        """Seconds since the last reset."""
+        return self._steps * self.scene.dt
+
+    def control_index(self, agent: str) -> int:
+        """The index of ``agent``'s turn rate in the system's control vector."""
+        if agent not in self._agent_input:
+            raise ValueError(f"unknown agent {agent!r}; agents are {self.possible_agents}")
+        return self._agent_input[agent]
+
+    @property
     def state_space(self) -> spaces.Box:
         return self._obs_space
 

@@ -177,6 +177,11 @@ class ReachVectorEnv(VectorEnv):
             self._renderer = None
 
     @property
+    def elapsed(self) -> np.ndarray:
+        """Seconds since each sub-environment's last reset, ``(num_envs,)``."""
+        return self._steps * self.scene.dt
+
+    @property
     def state(self) -> np.ndarray:
         """Current states ``(num_envs, n)`` in float64."""
         return np.stack(self._state, axis=-1)

@@ -16,3 +16,15 @@ DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 @pytest.fixture(params=DEVICES)
 def device(request: pytest.FixtureRequest) -> str:
     return request.param
+
+
+@pytest.fixture(scope="session")
+def air3d_grid():
+    """An Air3D grid solution (51^3, 23 times over the 1.1 s horizon), solved once per session (~8 s)."""
+    from groundtruth.solver import solve
+    from reach_envs.systems import Air3D
+
+    times = [round(1.1 * k / 22, 6) for k in range(23)]
+    sol = solve(Air3D(), 51, times, compile=False, progress=False)
+    sol.outside = "clamp"
+    return sol

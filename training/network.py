@@ -231,6 +231,59 @@ class ValueNetwork(nn.Module):
             h = act(layer(h))
         return self.output(h).squeeze(-1)
 
+    @torch.no_grad()
+    def value_and_gradient(self, x: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``V(x, t)`` and ``dV/dx`` in one pass, without building an autograd graph of the network.
+
+        The input gradient of an MLP is ``W_1^T diag(a_1') ... W_L^T diag(a_L') w_out``: the forward
+        pass keeps each activation's derivative (``w0 cos(w0 z)`` for sine, ``z > 0`` for ReLU,
+        ``1 - h^2`` for tanh) and one matrix product per layer carries the gradient back. That is the
+        same arithmetic autograd does, minus its bookkeeping and the weight-gradient graph, and the
+        rollout engine calls it once per state and step. Only ``l(x)``'s small graph (exact
+        parameterisation) uses autograd. Agrees with ``torch.autograd.grad`` of :meth:`forward` (tested).
+        """
+        enc = self.encoding
+        h = self.encode(x, t)
+        slopes = []
+        for layer, letter in zip(self.layers, self.layout[:-1]):
+            z = layer(h)
+            if letter == "s":
+                wz = self.w0 * z
+                h = torch.sin(wz)
+                slopes.append(self.w0 * torch.cos(wz))
+            elif letter == "r":
+                h = torch.relu(z)
+                slopes.append((z > 0).to(z.dtype))
+            else:
+                h = torch.tanh(z)
+                slopes.append(1.0 - h * h)
+        o = self.output(h).squeeze(-1)
+        g = self.output.weight[0].to(h.dtype).expand(h.shape)
+        for layer, slope in zip(reversed(self.layers), reversed(slopes)):
+            g = (g * slope) @ layer.weight
+        g = g[..., 1:]  # drop the time input
+        state_scale = self._scale.to(x.dtype)
+        if enc.sincos_dims:
+            n = x.shape[-1]
+            keep = [i for i in range(n) if i not in enc.sincos_dims]
+            k, m = len(keep), len(enc.sincos_dims)
+            angles = x[..., list(enc.sincos_dims)]
+            grad = torch.empty_like(x)
+            grad[..., keep] = g[..., :k] / state_scale[keep]
+            grad[..., list(enc.sincos_dims)] = g[..., k : k + m] * torch.cos(angles) - g[..., k + m :] * torch.sin(
+                angles
+            )
+        else:
+            grad = g / state_scale
+        if self.parameterisation == "vanilla":
+            return enc.value_scale * o + enc.value_offset, enc.value_scale * grad
+        factor = (t / enc.horizon) * enc.value_scale
+        with torch.enable_grad():
+            xg = x.detach().requires_grad_(True)
+            margin = self.system.failure_margin(xg)
+            (dl,) = torch.autograd.grad(margin.sum(), xg)
+        return margin.detach() + factor * o, dl + factor.unsqueeze(-1) * grad
+
     def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """``V(x, t)`` for states ``(..., n)`` and times ``(...)``."""
         o = self.raw(x, t)
@@ -263,6 +316,16 @@ class NeuralValueFunction:
         return self.network(xi, tt).to(x.dtype)
 
     def gradient(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        return self.value_and_gradient(x, t)[1]
+
+    def value_and_gradient(self, x: torch.Tensor, t: float | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(V, dV/dx)`` from one forward pass (see :meth:`ValueNetwork.value_and_gradient`)."""
+        xi, tt = self._inputs(x, t)
+        v, g = self.network.value_and_gradient(xi, tt)
+        return v.to(x.dtype), g.to(x.dtype)
+
+    def autograd_gradient(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        """``dV/dx`` by ``torch.autograd`` (the reference the fast path is tested against)."""
         xi, tt = self._inputs(x, t)
         with torch.enable_grad():
             xi = xi.detach().requires_grad_(True)

@@ -82,6 +82,10 @@ class Air3D(ControlAffineSystem):
     def disturbance_matrix(self, x: Sequence[Column], xp: Backend) -> InputMatrix:
         return {(2, 0): 1.0}
 
+    def margin_rate_bound(self) -> float:
+        """``ve + vp``: turning only rotates the relative position, so only the speeds change ``||(x1, x2)||``."""
+        return self.evader_speed + self.pursuer_speed
+
     def failure_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
         return xp.hypot(x[0], x[1]) - self.collision_radius
 

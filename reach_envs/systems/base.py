@@ -130,6 +130,15 @@ class ControlAffineSystem(ABC):
     def failure_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
         """``l(x)``: negative inside the failure set, zero on its boundary."""
 
+    def margin_rate_bound(self) -> float | None:
+        """A bound on ``|d l(x(t)) / dt|`` along every trajectory with admissible inputs, or ``None``.
+
+        Physics, declared per system where it is known (e.g. the sum of two cars' speeds bounds how
+        fast their distance changes). With it, a rollout can stop simulating a trajectory once
+        ``l(x) > bound * time_left``: the failure set is then out of reach, whatever the inputs.
+        """
+        return None
+
     def parameters(self) -> dict[str, Any]:
         """Constructor arguments that rebuild this system (JSON-serialisable)."""
         return {}

@@ -122,6 +122,10 @@ class MultiVehicle(ControlAffineSystem):
     def disturbance_matrix(self, x: Sequence[Column], xp: Backend) -> InputMatrix:
         return {entry: 1.0 for entry in self._disturbance_entries}
 
+    def margin_rate_bound(self) -> float:
+        """The largest ``v_i + v_j`` over failure pairs: how fast two cars at constant speeds can close."""
+        return max(self.cars[i].speed + self.cars[j].speed for i, j in self.failure_pairs)
+
     def pair_margin(self, x: Sequence[Column], i: int, j: int, xp: Backend) -> Column:
         """``||p_i - p_j|| - R`` for cars ``i`` and ``j``."""
         return xp.hypot(x[2 * i] - x[2 * j], x[2 * i + 1] - x[2 * j + 1]) - self.collision_radius

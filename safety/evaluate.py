@@ -1,0 +1,216 @@
+"""Batch evaluation of many value functions on the same sampled states, resumable.
+
+:func:`evaluate_many` verifies each source (run directory, checkpoint, DeepReach file, grid
+solution) with :func:`~safety.verify.verify` on states drawn once from the seed, optionally scores
+it against a grid ground truth (value MSE and BRT IoU over the volume and one slice), and after
+every source rewrites ``<out>.csv``, ``<out>.json`` and ``<out>.md`` atomically. A second call with
+the same settings skips sources already evaluated (same path, size and modification time); a source
+that fails to load or evaluate becomes a row with its error, and the others go on.
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import io
+import json
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from tqdm.auto import tqdm
+
+from groundtruth.solution import GridSolution
+from reach_envs.atomic import atomic_path
+from reach_envs.systems import ControlAffineSystem, make_system
+from safety.value_functions import load_value_function, resolve_checkpoint
+from safety.verify import VerifySettings, sample_states, verify
+from training.evaluate import ReferenceEvaluator
+
+FORMAT = "reach.evaluation.v1"
+GLOB_CHARS = set("*?[")
+
+#: (column, header, format) of the printed table
+TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
+    ("label", "model", "{}"),
+    ("layout", "layout", "{}"),
+    ("violation_rate", "violation %", "pct"),
+    ("false_safe_rate", "false safe %", "pct"),
+    ("false_unsafe_rate", "false unsafe %", "pct"),
+    ("collision_rate", "collision %", "pct"),
+    ("delta", "delta", "{:.3f}"),
+    ("eps", "eps", "{:.2e}"),
+    ("certified_volume", "certified vol.", "{:.3f}"),
+    ("iou_volume", "IoU vol.", "{:.3f}"),
+    ("mse_volume", "MSE vol.", "{:.2e}"),
+    ("iou_slice", "IoU slice", "{:.3f}"),
+    ("mse_slice", "MSE slice", "{:.2e}"),
+    ("wall_time", "time (s)", "{:.1f}"),
+)
+
+
+def expand_sources(patterns: Sequence[str]) -> list[str]:
+    """Paths from arguments; unexpanded glob patterns are expanded here. Empty results raise."""
+    if not patterns:
+        raise ValueError("no value functions given (expected run directories, checkpoints or .npz files)")
+    out: list[str] = []
+    for pattern in patterns:
+        if not os.path.exists(pattern) and GLOB_CHARS & set(pattern):
+            matches = sorted(glob.glob(pattern))
+            if not matches:
+                raise ValueError(f"pattern {pattern!r} matched no file or directory")
+            out.extend(matches)
+        else:
+            out.append(pattern)
+    return list(dict.fromkeys(os.path.normpath(p) for p in out))
+
+
+def fingerprint(path: str) -> dict[str, Any]:
+    """What identifies one version of a source: resolved file, size, modification time."""
+    try:
+        p = resolve_checkpoint(path)
+    except ValueError:
+        return {"file": str(Path(path).resolve()), "size": None, "mtime_ns": None}
+    st = p.stat()
+    return {"file": str(p.resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+def _fmt(value: Any, spec: str) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    if spec == "pct":
+        return f"{100 * value:.2f}"
+    return spec.format(value)
+
+
+def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
+    """The paper-style table; columns nobody has (e.g. ground truth for 9D) are left out."""
+    cols = [c for c in TABLE_COLUMNS if any(r.get(c[0]) is not None for r in rows)]
+    lines = ["| " + " | ".join(h for _, h, _ in cols) + " |", "|" + "---|" * len(cols)]
+    for r in rows:
+        if r.get("error"):
+            lines.append(f"| {r.get('label', r['source'])} | error: {r['error']} |" + " |" * (len(cols) - 2))
+            continue
+        lines.append("| " + " | ".join(_fmt(r.get(k), spec) for k, _, spec in cols) + " |")
+    return "\n".join(lines)
+
+
+def _write_outputs(out: Path, header: dict[str, Any], rows: list[dict[str, Any]]) -> None:
+    with atomic_path(out.with_suffix(".json")) as tmp, open(tmp, "w") as fh:
+        json.dump({**header, "results": rows}, fh, indent=2, sort_keys=True, default=str)
+    keys: list[str] = []
+    for r in rows:
+        keys.extend(k for k in r if k not in keys and not isinstance(r[k], dict))
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=keys, extrasaction="ignore")
+    writer.writeheader()
+    writer.writerows(rows)
+    with atomic_path(out.with_suffix(".csv")) as tmp:
+        Path(tmp).write_text(buf.getvalue())
+    with atomic_path(out.with_suffix(".md")) as tmp:
+        Path(tmp).write_text(markdown_table(rows) + "\n")
+
+
+def _previous(out: Path, header: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    path = out.with_suffix(".json")
+    if not path.exists():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: existing results are unreadable ({err}); move the file away to start over") from err
+    if (
+        data.get("format") != FORMAT
+        or data.get("settings") != header["settings"]
+        or data.get("system") != header["system"]
+        or data.get("ground_truth") != header["ground_truth"]
+    ):
+        raise ValueError(
+            f"{path} holds results for other settings ({data.get('settings')}, system {data.get('system')}); "
+            "use another --out or delete it"
+        )
+    return {r["source"]: r for r in data.get("results", []) if not r.get("error")}
+
+
+def evaluate_many(
+    sources: Sequence[str],
+    out: str | os.PathLike,
+    settings: VerifySettings,
+    system: ControlAffineSystem | str | None = None,
+    format: str = "auto",
+    layout: str | None = None,
+    ground_truth: str | os.PathLike | None = None,
+    gt_time: float | None = None,
+    gt_slice: float = 1.5863,
+    device: str = "cpu",
+    progress: bool = True,
+) -> list[dict[str, Any]]:
+    """Evaluate every source on the same states; returns the rows (also written to ``out``)."""
+    paths = expand_sources(sources)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if isinstance(system, str):
+        system = make_system(system)
+    if system is None:  # the first source that loads decides, so every row shares the states
+        for p in paths:
+            try:
+                system = load_value_function(p, format=format, layout=layout).value_function.system
+                break
+            except ValueError:
+                continue
+        if system is None:
+            raise ValueError(f"none of {paths} could be loaded; give --system to see each error in the table")
+    reference = None
+    if ground_truth is not None:
+        gt = GridSolution.load(ground_truth, outside="clamp")
+        if gt.system != system:
+            raise ValueError(f"ground truth {ground_truth} is for {gt.system.config()}, not {system.config()}")
+        t_ref = float(gt.times[-1]) if gt_time is None else gt_time
+        reference = ReferenceEvaluator(gt, t_ref, slice_value=gt_slice)
+    header = {
+        "format": FORMAT,
+        "system": system.config(),
+        "settings": settings.to_dict(),
+        "ground_truth": str(Path(ground_truth).resolve()) if ground_truth else None,
+    }
+    done = _previous(out, header)
+    states = sample_states(system, settings.samples, settings.seed)
+    rows: list[dict[str, Any]] = []
+    for path in tqdm(paths, desc="value functions", unit="vf", disable=not progress):
+        fp = fingerprint(path)
+        old = done.get(path)
+        if old is not None and old.get("fingerprint") == fp:
+            rows.append(old)
+            continue
+        row: dict[str, Any] = {"source": path, "fingerprint": fp, "label": Path(path).name or path}
+        try:
+            loaded = load_value_function(path, format=format, system=system, layout=layout, device=device)
+            if isinstance(loaded.value_function, GridSolution):
+                loaded.value_function.outside = "clamp"  # rollouts may leave the grid; documented
+            row.update(label=loaded.label, layout=loaded.layout, kind=loaded.kind)
+            row.update(verify(loaded.value_function, states, settings, device=device, progress=progress))
+            if reference is not None:
+                row.update(reference(loaded.value_function))
+        except (ValueError, RuntimeError) as err:
+            row["error"] = str(err).splitlines()[0][:300]
+        rows.append(row)
+        _write_outputs(out, header, rows)
+    _write_outputs(out, header, rows)
+    return rows
+
+
+def load_results(path: str | os.PathLike) -> list[dict[str, Any]]:
+    """Rows of a results ``.json`` written by :func:`evaluate_many`."""
+    p = Path(path).with_suffix(".json")
+    try:
+        data = json.loads(p.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ValueError(f"{p}: not readable evaluation results ({err})") from err
+    if data.get("format") != FORMAT:
+        raise ValueError(f"{p}: not a reach evaluation file (format {FORMAT!r} expected)")
+    return data["results"]
+
+
+__all__ = ["evaluate_many", "expand_sources", "load_results", "markdown_table"]

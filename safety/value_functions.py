@@ -1,0 +1,111 @@
+"""Loading any value function (our checkpoints, DeepReach state dicts, grid solutions) by path.
+
+Everything in :mod:`safety` takes a :class:`~reach_envs.systems.value_function.ValueFunction`;
+this module turns what users have on disk into one, and gives the one call the rollout engine and
+the filter need per step, :func:`value_and_gradient`, which uses a fused implementation where the
+value function has one (neural networks) and falls back to two calls otherwise (grid solutions).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import torch
+
+from groundtruth.solution import GridSolution
+from reach_envs.systems import ControlAffineSystem, make_system
+from reach_envs.systems.value_function import ValueFunction
+from training.checkpoint import load_network
+from training.deepreach import load_deepreach
+from training.network import NeuralValueFunction
+
+Format = Literal["auto", "reach", "deepreach", "grid"]
+FORMATS = ("auto", "reach", "deepreach", "grid")
+
+
+def value_and_gradient(
+    vf: ValueFunction, x: torch.Tensor, t: float | torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(V(x, t), dV/dx)`` with one network pass where ``vf`` offers ``value_and_gradient``."""
+    fused = getattr(vf, "value_and_gradient", None)
+    if fused is not None:
+        return fused(x, t)
+    return vf.value(x, t), vf.gradient(x, t)
+
+
+@dataclass
+class LoadedValueFunction:
+    """A value function with where it came from (for tables and error messages)."""
+
+    value_function: ValueFunction
+    path: Path
+    kind: str  # "reach" | "deepreach" | "grid"
+    layout: str  # activation layout, or "grid"
+    label: str
+
+
+def resolve_checkpoint(path: str | os.PathLike) -> Path:
+    """A run directory means its ``checkpoint.pt``; files are returned as they are."""
+    p = Path(path)
+    if p.is_dir():
+        ckpt = p / "checkpoint.pt"
+        if not ckpt.exists():
+            raise ValueError(f"{p}: a directory without checkpoint.pt is not a training run")
+        return ckpt
+    if not p.exists():
+        raise ValueError(f"{p}: no such file or directory")
+    return p
+
+
+def detect_format(path: Path) -> str:
+    """``grid`` for ``.npz``, ``deepreach`` for ``.pth``, ``reach`` otherwise (``.pt``, run dirs)."""
+    if path.suffix == ".npz":
+        return "grid"
+    if path.suffix == ".pth":
+        return "deepreach"
+    return "reach"
+
+
+def load_value_function(
+    path: str | os.PathLike,
+    format: Format = "auto",
+    system: ControlAffineSystem | str | None = None,
+    layout: str | None = None,
+    device: str | torch.device = "cpu",
+    label: str | None = None,
+) -> LoadedValueFunction:
+    """Load a value function from disk; mismatches and corrupt files raise ``ValueError``.
+
+    Args:
+        path: a run directory, a checkpoint ``.pt``, a DeepReach ``.pth`` or a grid ``.npz``.
+        format: ``auto`` guesses from the suffix (see :func:`detect_format`).
+        system: the expected system (required for DeepReach files, which do not store it).
+        layout: the expected layout (required for DeepReach files).
+        device: where a network's weights go (grid tables follow the states' device).
+
+    Grid solutions load with ``outside="clamp"``: states that leave the grid (which closed-loop
+    rollouts and episodes do) get the nearest edge value instead of an error.
+    """
+    if format not in FORMATS:
+        raise ValueError(f"format must be one of {FORMATS}, got {format!r}")
+    if isinstance(system, str):
+        system = make_system(system)
+    p = resolve_checkpoint(path)
+    kind = detect_format(p) if format == "auto" else format
+    name = label or (p.parent.name if p.name == "checkpoint.pt" else p.stem)
+    if kind == "grid":
+        # closed-loop states drift off the grid (cars leave the box): use the nearest edge value there
+        sol = GridSolution.load(p, outside="clamp")
+        if system is not None and sol.system != system:
+            raise ValueError(f"{p}: grid solution is for {sol.system.config()}, not {system.config()}")
+        return LoadedValueFunction(sol, p, "grid", "grid", name)
+    if kind == "deepreach":
+        if system is None or layout is None:
+            raise ValueError(f"{p}: a DeepReach state dict stores neither system nor layout; give both")
+        net = load_deepreach(p, system, layout).to(device)
+        return LoadedValueFunction(NeuralValueFunction(net), p, "deepreach", layout, name)
+    net = load_network(p, system=system, layout=layout, device=device)
+    return LoadedValueFunction(NeuralValueFunction(net), p, "reach", net.layout, name)

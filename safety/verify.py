@@ -1,0 +1,140 @@
+"""Verification of one value function: rollouts from sampled states, statistics, the guarantee.
+
+:func:`verify` rolls out ``N`` given states (the same states for every value function being
+compared), computes :func:`~safety.metrics.violation_statistics`, and, unless told not to, certifies
+the delta-level on a *fresh* sample drawn uniformly from ``{V(x, T) > delta}`` (a delta chosen from
+one sample must be certified on another), giving the scenario ``eps`` for ``beta``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import torch
+
+from reach_envs.systems import ControlAffineSystem
+from reach_envs.systems.value_function import ValueFunction
+from safety.metrics import scenario_epsilon, violation_statistics, wilson_interval
+from safety.rollout import rollout
+
+
+@dataclass(frozen=True)
+class VerifySettings:
+    """What a verification run depends on; results are comparable only under equal settings."""
+
+    samples: int = 100_000
+    certify_samples: int | None = None  # None: as many as ``samples``; 0: skip the guarantee
+    beta: float = 1e-16
+    seed: int = 0
+    dt: float = 0.0025
+    integrator: str = "euler"
+    horizon: float | None = None
+    chunk_size: int = 16384
+
+    def __post_init__(self) -> None:
+        if isinstance(self.samples, bool) or not isinstance(self.samples, int) or self.samples < 1:
+            raise ValueError(f"samples must be a positive integer, got {self.samples!r}")
+        if self.certify_samples is not None and (not isinstance(self.certify_samples, int) or self.certify_samples < 0):
+            raise ValueError(f"certify_samples must be an integer >= 0, got {self.certify_samples!r}")
+        if not (0.0 < self.beta < 1.0):
+            raise ValueError(f"beta must lie in (0, 1), got {self.beta!r}")
+
+    @property
+    def fresh_samples(self) -> int:
+        return self.samples if self.certify_samples is None else self.certify_samples
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def sample_states(system: ControlAffineSystem, n: int, seed: int) -> torch.Tensor:
+    """``n`` uniform states from a seeded CPU generator: identical for every value function."""
+    return system.sample_states(n, generator=torch.Generator().manual_seed(seed), dtype=torch.float32)
+
+
+def _values(vf: ValueFunction, x: torch.Tensor, t: float, chunk: int, device: torch.device) -> torch.Tensor:
+    return torch.cat([vf.value(c.to(device), t).float().cpu() for c in x.split(chunk)])
+
+
+def sample_superlevel_set(
+    vf: ValueFunction,
+    level: float,
+    n: int,
+    seed: int,
+    t: float,
+    chunk: int = 65536,
+    device: str | torch.device = "cpu",
+    max_draws: int | None = None,
+) -> tuple[torch.Tensor, int]:
+    """``n`` states uniform on ``{V(x, t) > level}`` by rejection, and how many uniform draws it took.
+
+    Raises ``ValueError`` when the set is too small to fill after ``max_draws`` draws (default 100 n).
+    """
+    system = vf.system
+    gen = torch.Generator().manual_seed(seed)
+    max_draws = 100 * n if max_draws is None else max_draws
+    kept: list[torch.Tensor] = []
+    have = draws = 0
+    batch = max(chunk, 2 * n)
+    while have < n:
+        if draws >= max_draws:
+            raise ValueError(
+                f"only {have} of {n} states found in {{V > {level:.4g}}} after {draws} uniform draws; "
+                "the set is too small to certify"
+            )
+        x = system.sample_states(batch, generator=gen, dtype=torch.float32)
+        draws += batch
+        inside = x[_values(vf, x, t, chunk, torch.device(device)) > level]
+        kept.append(inside)
+        have += inside.shape[0]
+    return torch.cat(kept)[:n], draws
+
+
+def verify(
+    vf: ValueFunction,
+    states: torch.Tensor,
+    settings: VerifySettings,
+    device: str | torch.device = "cpu",
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Violation statistics of ``vf`` on ``states`` and, if asked, the certified delta-level."""
+    start = time.perf_counter()
+    horizon = vf.system.horizon if settings.horizon is None else settings.horizon
+    common = {
+        "horizon": horizon,
+        "dt": settings.dt,
+        "integrator": settings.integrator,
+        "chunk_size": settings.chunk_size,
+        "device": device,
+        "progress": progress,
+    }
+    result = rollout(vf, states, **common)
+    row: dict[str, Any] = violation_statistics(result.initial_value, result.collided)
+    collisions = int(result.collided.sum())
+    row["collision_ci_low"], row["collision_ci_high"] = wilson_interval(collisions, result.num_states)
+    row["rollout_seconds"] = result.wall_time
+    row["work_fraction"] = result.work_fraction
+    row["state_steps_per_second"] = result.state_steps / max(result.wall_time, 1e-12)
+    row.update(certified_samples=0, certified_failures=None, eps=math.nan, certified_volume=math.nan)
+    if settings.fresh_samples:
+        try:
+            fresh, _ = sample_superlevel_set(
+                vf, row["delta"], settings.fresh_samples, settings.seed + 1, horizon, device=device
+            )
+        except ValueError as err:
+            row["certify_error"] = str(err)
+        else:
+            check = rollout(vf, fresh, **common)
+            k = int(check.collided.sum())
+            n = check.num_states
+            row.update(
+                certified_samples=n,
+                certified_failures=k,
+                eps=scenario_epsilon(k, n, settings.beta) if k < n else 1.0,
+                certified_volume=row["safe_fraction"],
+            )
+    row["wall_time"] = time.perf_counter() - start
+    return row

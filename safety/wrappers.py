@@ -1,0 +1,235 @@
+"""The safety filter as environment wrappers: Gymnasium, Gymnasium vector, PettingZoo parallel.
+
+Each adapter reads the environment's exact (float64) state, asks :class:`~safety.filter.SafetyFilter`
+for the input to apply, and steps the wrapped environment with it. Actions stay in the
+environments' normalised units ([-1, 1] per turn rate): a kept action passes through unchanged and
+a replaced one is ``u*`` normalised (a box corner, so exactly +-1, or 0 on a tie).
+
+Time-to-go: ``time_to_go=None`` (default) evaluates ``V`` at the system's horizon, the fixed tube the
+value function was trained for; a number fixes another horizon; ``"remaining"`` uses the time left
+in the episode (``horizon - elapsed``, floored at 0).
+
+Threshold: a filter that acts once per environment step (zero-order hold) lets ``V`` fall by up to
+about ``|dl/dt|_max * dt`` before it can react, so the default threshold (``threshold=None``) is
+``2 * margin_rate_bound * dt`` (0.06 for Air3D at dt = 0.02; 0 for systems that declare no bound).
+With threshold 0 and a worst-case pursuer, the Air3D grid filter still lets most attacked episodes
+collide: the state rides the BRT boundary and slips in between decisions.
+
+``info`` gains ``filter_value`` (``V`` at the pre-step state), ``filter_intervened``,
+``nominal_action`` and ``applied_action`` (normalised units).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium.vector import VectorWrapper
+from pettingzoo.utils.wrappers import BaseParallelWrapper
+
+from reach_envs.systems.value_function import ValueFunction
+from safety.filter import FilterInfo, SafetyFilter
+from safety.value_functions import load_value_function
+
+
+def _resolve_value_function(value_function: ValueFunction | str, system: Any, device: str) -> ValueFunction:
+    vf = (
+        load_value_function(value_function, system=system, device=device).value_function
+        if isinstance(value_function, str)
+        else value_function
+    )
+    if not isinstance(vf, ValueFunction):
+        raise ValueError(f"value_function must be a ValueFunction or a path, got {type(value_function).__name__}")
+    if vf.system != system:
+        raise ValueError(
+            f"value function is for system {vf.system.config()}, but the environment simulates {system.config()}"
+        )
+    return vf
+
+
+def _check_time_to_go(time_to_go: float | str | None) -> None:
+    if time_to_go is None or time_to_go == "remaining":
+        return
+    if isinstance(time_to_go, str) or not (math.isfinite(time_to_go) and time_to_go >= 0):
+        raise ValueError(f"time_to_go must be None, 'remaining' or a number >= 0, got {time_to_go!r}")
+
+
+def default_threshold(system: Any, dt: float) -> float:
+    """``2 * margin_rate_bound * dt``: twice what ``V`` can lose in one held step (0 without a bound)."""
+    bound = system.margin_rate_bound()
+    return 0.0 if bound is None else 2.0 * bound * dt
+
+
+class _Adapter:
+    """Shared unit conversion and time-to-go logic of the three wrappers."""
+
+    def __init__(
+        self,
+        system: Any,
+        value_function: ValueFunction | str,
+        threshold: float | None,
+        time_to_go: float | str | None,
+        scene: Any,
+        device: str,
+    ) -> None:
+        _check_time_to_go(time_to_go)
+        episode_horizon = scene.episode_horizon
+        if threshold is None:
+            threshold = default_threshold(system, scene.dt)
+        vf = _resolve_value_function(value_function, system, device)
+        self.filter = SafetyFilter(vf, threshold)
+        self.time_to_go = time_to_go
+        self.episode_horizon = episode_horizon
+        self.centre = np.array(system.control_bounds.center)
+        self.half = np.array(system.control_bounds.half_width)
+
+    def times(self, elapsed: np.ndarray | float) -> float | torch.Tensor:
+        if self.time_to_go is None:
+            return self.filter.system.horizon
+        if self.time_to_go == "remaining":
+            return torch.as_tensor(np.maximum(self.episode_horizon - np.asarray(elapsed, dtype=np.float64), 0.0))
+        return float(self.time_to_go)
+
+    def apply(
+        self, state: np.ndarray, elapsed: np.ndarray | float, action: np.ndarray
+    ) -> tuple[np.ndarray, FilterInfo]:
+        """Filtered normalised actions for float64 ``state`` and normalised ``action`` (same batch)."""
+        a = np.asarray(action, dtype=np.float64)
+        if not np.isfinite(a).all():
+            raise ValueError(f"action contains a non-finite value (NaN or inf): {action!r}")
+        x = torch.as_tensor(state, dtype=torch.float64)
+        u_nominal = torch.as_tensor(self.centre + self.half * np.clip(a, -1.0, 1.0))
+        t = self.times(elapsed)
+        _, info = self.filter(x, t, u_nominal)
+        star = (info.applied.numpy() - self.centre) / self.half
+        keep = ~info.intervened.numpy()
+        applied = np.where(keep[..., None], a, star)
+        dtype = np.asarray(action).dtype
+        return (applied.astype(dtype) if dtype.kind == "f" else applied), info
+
+
+class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """A Gymnasium env whose actions pass through a least-restrictive safety filter.
+
+    ``value_function`` may be a path (run directory, checkpoint, ``.npz``), which keeps
+    ``env.spec`` serialisable, so ``gym.make(env.spec)`` rebuilds the wrapped env.
+    """
+
+    def __init__(
+        self,
+        env: gym.Env,
+        value_function: ValueFunction | str,
+        threshold: float | None = None,
+        time_to_go: float | str | None = None,
+        device: str = "cpu",
+    ) -> None:
+        gym.utils.RecordConstructorArgs.__init__(
+            self, value_function=value_function, threshold=threshold, time_to_go=time_to_go, device=device
+        )
+        gym.Wrapper.__init__(self, env)
+        base = env.unwrapped
+        self._adapter = _Adapter(base.system, value_function, threshold, time_to_go, base.scene, device)
+
+    @property
+    def safety_filter(self) -> SafetyFilter:
+        return self._adapter.filter
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
+        base = self.env.unwrapped
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != self.action_space.shape:
+            raise ValueError(f"action must have shape {self.action_space.shape}, got {a.shape}")
+        applied, info = self._adapter.apply(base.state, base.time, np.asarray(action))
+        obs, reward, terminated, truncated, step_info = self.env.step(applied)
+        step_info.update(
+            filter_value=float(info.value),
+            filter_intervened=bool(info.intervened),
+            nominal_action=np.asarray(action),
+            applied_action=applied,
+        )
+        return obs, reward, terminated, truncated, step_info
+
+
+class SafetyFilterVectorWrapper(VectorWrapper):
+    """The filter over a :class:`~reach_envs.vector.ReachVectorEnv`, batched over sub-environments."""
+
+    def __init__(
+        self,
+        env: Any,
+        value_function: ValueFunction | str,
+        threshold: float | None = None,
+        time_to_go: float | str | None = None,
+        device: str = "cpu",
+    ) -> None:
+        super().__init__(env)
+        base = env.unwrapped
+        self._adapter = _Adapter(base.system, value_function, threshold, time_to_go, base.scene, device)
+
+    @property
+    def safety_filter(self) -> SafetyFilter:
+        return self._adapter.filter
+
+    def step(self, actions: Any) -> tuple[Any, Any, Any, Any, dict]:
+        base = self.env.unwrapped
+        a = np.asarray(actions, dtype=np.float64)
+        if a.shape != self.action_space.shape:
+            raise ValueError(f"actions must have shape {self.action_space.shape}, got {a.shape}")
+        applied, info = self._adapter.apply(base.state, base.elapsed, np.asarray(actions))
+        obs, reward, terminated, truncated, step_info = self.env.step(applied)
+        step_info = dict(step_info)
+        step_info.update(
+            filter_value=info.value.numpy(),
+            filter_intervened=info.intervened.numpy(),
+            nominal_action=np.asarray(actions),
+            applied_action=applied,
+        )
+        return obs, reward, terminated, truncated, step_info
+
+
+class SafetyFilterParallelWrapper(BaseParallelWrapper):
+    """The filter over a PettingZoo parallel env: the joint nominal action is filtered as one input.
+
+    Agents that are no longer live contribute the centre of their box (zero turn rate) to the joint
+    nominal input, as the environment applies for them.
+    """
+
+    def __init__(
+        self,
+        env: Any,
+        value_function: ValueFunction | str,
+        threshold: float | None = None,
+        time_to_go: float | str | None = None,
+        device: str = "cpu",
+    ) -> None:
+        super().__init__(env)
+        base = env.unwrapped
+        self._adapter = _Adapter(base.system, value_function, threshold, time_to_go, base.scene, device)
+
+    @property
+    def safety_filter(self) -> SafetyFilter:
+        return self._adapter.filter
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        base = self.env.unwrapped
+        joint = np.zeros(base.system.control_dim)
+        for agent, action in actions.items():
+            a = np.asarray(action, dtype=np.float64)
+            if a.shape != (1,):
+                raise ValueError(f"action of {agent!r} must have shape (1,), got {a.shape}")
+            joint[base.control_index(agent)] = a[0]
+        applied, info = self._adapter.apply(base.full_state, base.elapsed, joint)
+        filtered = {agent: np.array([applied[base.control_index(agent)]], dtype=np.float32) for agent in actions}
+        obs, rewards, terminations, truncations, infos = self.env.step(filtered)
+        for agent in infos:
+            k = base.control_index(agent)
+            infos[agent] = {
+                **infos[agent],
+                "filter_value": float(info.value),
+                "filter_intervened": bool(info.intervened),
+                "nominal_action": float(joint[k]),
+                "applied_action": float(applied[k]),
+            }
+        return obs, rewards, terminations, truncations, infos
