@@ -1,8 +1,9 @@
 """``reach``: the command line of the reach toolkit.
 
-Subcommands only parse arguments and call library functions. Present: ``envs`` (list environments
-and scenes), ``record`` (run an episode and save a GIF), ``groundtruth`` (grid BRT solve) and
-``train`` (value networks). Later subcommands (evaluate, ...) arrive with their issues.
+Subcommands only parse arguments and call library functions: ``envs`` (list environments and
+scenes), ``record`` (run an episode and save a GIF), ``groundtruth`` (grid BRT solve), ``train``
+(value networks), ``evaluate`` (rollout verification across checkpoints) and ``plot`` (BRT slices,
+violation bars, safety-filtered episode GIFs).
 """
 
 from __future__ import annotations
@@ -152,6 +153,64 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from safety.evaluate import evaluate_many, markdown_table
+    from safety.plots import plot_violation_bars
+    from safety.verify import VerifySettings
+
+    settings = VerifySettings(
+        samples=args.samples,
+        certify_samples=args.certify_samples,
+        beta=args.beta,
+        seed=args.seed,
+        dt=args.dt,
+        integrator=args.integrator,
+        horizon=args.horizon,
+        chunk_size=args.chunk_size,
+    )
+    rows = evaluate_many(
+        args.sources,
+        args.out,
+        settings,
+        system=args.system,
+        format=args.format,
+        layout=args.layout,
+        ground_truth=args.ground_truth,
+        device=args.device,
+    )
+    print(markdown_table(rows))
+    out = Path(args.out)
+    print(f"\nwrote {out.with_suffix('.csv')}, {out.with_suffix('.json')}, {out.with_suffix('.md')}")
+    if args.plot and any(not r.get("error") for r in rows):
+        print(f"wrote {plot_violation_bars(rows, out.with_name(out.stem + '_violations.png'))}")
+    return 1 if all(r.get("error") for r in rows) else 0
+
+
+def _cmd_plot(args: argparse.Namespace) -> int:
+    from safety import plots
+    from safety.evaluate import expand_sources, load_results
+    from safety.value_functions import load_value_function
+
+    if args.kind == "bars":
+        rows = load_results(args.sources[0])
+        print(f"wrote {plots.plot_violation_bars(rows, args.out)}")
+        return 0
+    if args.kind == "episode":
+        summary = plots.record_filtered_episode(
+            args.sources[0], args.out, scene=args.scene, threshold=args.threshold, seed=args.seed
+        )
+        print(f"wrote {summary['path']}: {summary['steps']} steps, collision={summary['collision']}")
+        return 0
+    loaded = [
+        load_value_function(p, format=args.format, system=args.system, layout=args.layout)
+        for p in expand_sources(args.sources)
+    ]
+    reference = load_value_function(args.ground_truth).value_function if args.ground_truth else None
+    vfs = [(lv.label, lv.value_function) for lv in loaded]
+    print(f"wrote {plots.plot_brt_slices(vfs, args.out, t=args.t, reference=reference)}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="reach", description="Neural Hamilton-Jacobi reachability toolkit.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -210,6 +269,44 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="run directory for a new run")
     p.add_argument("--resume", default=None, metavar="RUN_DIR", help="continue the run in RUN_DIR")
     p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser(
+        "evaluate", help="verify value functions by rollouts: violations, delta-level, scenario guarantee"
+    )
+    p.add_argument("sources", nargs="+", help="run directories, checkpoints (.pt), DeepReach (.pth), grid (.npz)")
+    p.add_argument("--samples", type=int, default=100_000, help="uniform states, the same for every model")
+    p.add_argument(
+        "--certify-samples", type=int, default=None, help="fresh states for eps (default: --samples; 0 skips)"
+    )
+    p.add_argument("--beta", type=float, default=1e-16, help="confidence parameter of the scenario guarantee")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--dt", type=float, default=0.0025)
+    p.add_argument("--integrator", choices=["euler", "rk4"], default="euler")
+    p.add_argument("--horizon", type=float, default=None, help="time-to-go of the check (default: the system's)")
+    p.add_argument("--chunk-size", type=int, default=16384)
+    p.add_argument("--format", choices=["auto", "reach", "deepreach", "grid"], default="auto")
+    p.add_argument("--system", default=None, help="system name (needed for DeepReach files)")
+    p.add_argument("--layout", default=None, help="layout (needed for DeepReach files)")
+    p.add_argument("--ground-truth", default=None, help="grid .npz to score IoU and MSE against")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--plot", action="store_true", help="also draw a bar chart of violation rates")
+    p.add_argument("--out", default="results.csv", help="results path; .csv, .json and .md are written")
+    p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("plot", help="BRT slices, violation bars or a safety-filtered episode GIF")
+    p.add_argument("kind", choices=["slices", "bars", "episode"])
+    p.add_argument("sources", nargs="+", help="value functions (slices, episode) or a results .json (bars)")
+    p.add_argument("--ground-truth", default=None, help="grid .npz drawn as the reference BRT (slices)")
+    p.add_argument("--t", type=float, default=None, help="time-to-go of the slices (default: the system's horizon)")
+    p.add_argument("--format", choices=["auto", "reach", "deepreach", "grid"], default="auto")
+    p.add_argument("--system", default=None)
+    p.add_argument("--layout", default=None)
+    p.add_argument("--scene", default="air3d", help="scene of the episode")
+    p.add_argument("--threshold", type=float, default=None, help="filter threshold (default: 2 x rate bound x dt)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="PNG (slices, bars) or GIF (episode)")
+    p.set_defaults(func=_cmd_plot)
+
     return parser
 
 

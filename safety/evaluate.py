@@ -91,7 +91,8 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
     lines = ["| " + " | ".join(h for _, h, _ in cols) + " |", "|" + "---|" * len(cols)]
     for r in rows:
         if r.get("error"):
-            lines.append(f"| {r.get('label', r['source'])} | error: {r['error']} |" + " |" * (len(cols) - 2))
+            error = r["error"] if len(r["error"]) <= 120 else r["error"][:117] + "..."
+            lines.append(f"| {r.get('label', r['source'])} | error: {error} |" + " |" * (len(cols) - 2))
             continue
         lines.append("| " + " | ".join(_fmt(r.get(k), spec) for k, _, spec in cols) + " |")
     return "\n".join(lines)
@@ -178,7 +179,7 @@ def evaluate_many(
     done = _previous(out, header)
     states = sample_states(system, settings.samples, settings.seed)
     rows: list[dict[str, Any]] = []
-    for path in tqdm(paths, desc="value functions", unit="vf", disable=not progress):
+    for path in tqdm(paths, desc="value functions", unit="vf", **({} if progress else {"disable": True})):
         fp = fingerprint(path)
         old = done.get(path)
         if old is not None and old.get("fingerprint") == fp:

@@ -151,7 +151,12 @@ def rollout(
     state_steps = 0
     chunks = list(range(0, n, chunk_size))
     start = time.perf_counter()
-    with torch.no_grad(), tqdm(total=len(chunks) * n_steps, desc="rollouts", unit="step", disable=not progress) as bar:
+    with (
+        torch.no_grad(),
+        tqdm(
+            total=len(chunks) * n_steps, desc="rollouts", unit="step", **({} if progress else {"disable": True})
+        ) as bar,
+    ):
         for lo in chunks:
             hi = min(lo + chunk_size, n)
             x = states[lo:hi].to(device=device, dtype=dtype)

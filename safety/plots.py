@@ -1,0 +1,174 @@
+"""Figures of learned value functions: BRT slices against ground truth, violation bars, episode GIFs.
+
+All figures use Matplotlib's object API with the Agg canvas (no display needed) and are written
+atomically as PNG.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from reach_envs.atomic import atomic_path
+from reach_envs.systems import ControlAffineSystem
+from reach_envs.systems.value_function import ValueFunction
+
+#: DeepReach's 9D slice: car 2 at (-0.4, 0), car 3 at (0.4, 0), headings pi/2, pi/4, 3 pi/4; axes x1, y1.
+DEEPREACH_9D_SLICE = (0.0, 0.0, -0.4, 0.0, 0.4, 0.0, math.pi / 2, math.pi / 4, 3 * math.pi / 4)
+
+
+@dataclass(frozen=True)
+class SliceSpec:
+    """A 2D slice: a base state, the two dimensions that vary over the domain, a title."""
+
+    base: tuple[float, ...]
+    axes: tuple[int, int] = (0, 1)
+    title: str = ""
+
+
+def default_slices(system: ControlAffineSystem) -> list[SliceSpec]:
+    """Air3D: x1-x2 at x3 = 1.5863 (the reference slice), 0 and -pi/2; 9D: DeepReach's slice;
+    anything else: the domain centre over the first two dimensions."""
+    if system.name == "air3d":
+        return [SliceSpec((0.0, 0.0, v), (0, 1), f"x3 = {v:.4g}") for v in (1.5863, 0.0, -math.pi / 2)]
+    if system.state_dim == 9 and getattr(system, "num_cars", 0) == 3:
+        return [SliceSpec(DEEPREACH_9D_SLICE, (0, 1), "cars 2, 3 at (-0.4, 0), (0.4, 0); headings pi/2, pi/4, 3pi/4")]
+    centre = tuple(0.5 * (a + b) for a, b in system.domain)
+    return [SliceSpec(centre, (0, 1), "domain centre")]
+
+
+def slice_states(
+    system: ControlAffineSystem, spec: SliceSpec, resolution: int
+) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:
+    """Axis values of the two varying dimensions and the ``(resolution^2, n)`` states of the slice."""
+    if len(spec.base) != system.state_dim:
+        raise ValueError(f"slice base state has {len(spec.base)} entries, {system.name} has {system.state_dim}")
+    i, j = spec.axes
+    a = np.linspace(*system.domain[i], resolution)
+    b = np.linspace(*system.domain[j], resolution)
+    x = torch.tensor(spec.base, dtype=torch.float32).repeat(resolution * resolution, 1)
+    ga, gb = np.meshgrid(a, b, indexing="ij")
+    x[:, i] = torch.as_tensor(ga.ravel(), dtype=torch.float32)
+    x[:, j] = torch.as_tensor(gb.ravel(), dtype=torch.float32)
+    return a, b, x
+
+
+def plot_brt_slices(
+    value_functions: Sequence[tuple[str, ValueFunction]],
+    path: str | os.PathLike,
+    t: float | None = None,
+    slices: Sequence[SliceSpec] | None = None,
+    reference: ValueFunction | None = None,
+    resolution: int = 161,
+    level: float = 0.0,
+) -> Path:
+    """Zero-level contours ``{V = level}`` of each value function on each slice, the reference BRT filled."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    if not value_functions and reference is None:
+        raise ValueError("nothing to plot: give at least one value function or a reference")
+    system = (value_functions[0][1] if value_functions else reference).system
+    t = system.horizon if t is None else float(t)
+    slices = list(slices) if slices is not None else default_slices(system)
+    names = system.state_names
+    fig = Figure(figsize=(4.2 * len(slices), 4.2), dpi=100)
+    FigureCanvasAgg(fig)
+    colours = [f"C{k}" for k in range(10)]
+    for s, spec in enumerate(slices):
+        ax = fig.add_subplot(1, len(slices), s + 1)
+        a, b, x = slice_states(system, spec, resolution)
+        if reference is not None:
+            ref = reference.value(x, t).reshape(resolution, resolution).numpy()
+            ax.contourf(a, b, ref.T, levels=[-1e9, level], colors=["0.8"])
+            ax.contour(a, b, ref.T, levels=[level], colors="k", linewidths=2.0)
+        for k, (label, vf) in enumerate(value_functions):
+            v = vf.value(x, t).detach().reshape(resolution, resolution).cpu().numpy()
+            if v.min() <= level <= v.max():
+                ax.contour(a, b, v.T, levels=[level], colors=colours[k % 10], linewidths=1.3)
+            ax.plot([], [], color=colours[k % 10], label=label)
+        if reference is not None:
+            ax.plot([], [], color="k", lw=2, label="ground truth (grey: BRT)")
+        ax.set_xlabel(names[spec.axes[0]])
+        ax.set_ylabel(names[spec.axes[1]])
+        ax.set_aspect("equal")
+        ax.set_title(f"{spec.title}, t = {t:g}", fontsize=9)
+        if s == 0:
+            ax.legend(fontsize=7, loc="lower left")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    return Path(path)
+
+
+def plot_violation_bars(rows: Sequence[dict[str, Any]], path: str | os.PathLike) -> Path:
+    """Stacked bars per value function: false-safe and false-unsafe violation rates, collision rate beside."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    rows = [r for r in rows if not r.get("error")]
+    if not rows:
+        raise ValueError("no evaluated rows to plot")
+    labels = [f"{r['label']}\n({r.get('layout', '')})" for r in rows]
+    xs = np.arange(len(rows))
+    fs = np.array([100 * r["false_safe_rate"] for r in rows])
+    fu = np.array([100 * r["false_unsafe_rate"] for r in rows])
+    col = np.array([100 * r["collision_rate"] for r in rows])
+    fig = Figure(figsize=(max(5.0, 1.1 * len(rows) + 2), 4.0), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    ax.bar(xs - 0.2, fs, 0.4, label="false safe (V > 0, collides)", color="C3")
+    ax.bar(xs - 0.2, fu, 0.4, bottom=fs, label="false unsafe (V <= 0, safe)", color="C1")
+    ax.bar(xs + 0.2, col, 0.4, label="collision rate", color="C0")
+    ax.set_xticks(xs, labels, fontsize=8)
+    ax.set_ylabel("% of sampled states")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    return Path(path)
+
+
+def record_filtered_episode(
+    value_function: ValueFunction | str,
+    path: str | os.PathLike,
+    scene: str = "air3d",
+    threshold: float | None = None,
+    seed: int = 0,
+    adversary: bool = True,
+    every: int = 1,
+) -> dict[str, Any]:
+    """A GIF of one safety-filtered episode whose nominal policy drives straight.
+
+    With ``adversary=True`` and a system with a disturbance, the pursuer plays the value function's
+    worst-case ``d*`` (at the system's horizon), which is what the filter is built to withstand.
+    """
+    import gymnasium as gym
+
+    from reach_envs.env import ReachEnv
+    from reach_envs.recording import record_episode
+    from safety.policy import OptimalPolicy
+    from safety.value_functions import load_value_function
+    from safety.wrappers import SafetyFilterWrapper
+
+    vf = load_value_function(value_function).value_function if isinstance(value_function, str) else value_function
+    overrides: dict[str, Any] = {"trails": True}
+    if adversary and vf.system.disturbance_dim:
+        policy = OptimalPolicy(vf)
+        horizon = vf.system.horizon
+
+        def worst_case(x: np.ndarray) -> np.ndarray:
+            return policy.disturbance(torch.as_tensor(x), horizon).numpy()
+
+        overrides["disturbance"] = worst_case
+    env: gym.Env = SafetyFilterWrapper(ReachEnv(scene, render_mode="rgb_array", **overrides), vf, threshold=threshold)
+    summary = record_episode(env, path, seed=seed, every=every)
+    env.close()
+    return summary

@@ -1,0 +1,108 @@
+"""`reach evaluate` and `reach plot` end to end on tiny checkpoints: table, files, resume, bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from reach.cli import main
+from reach_envs.systems import Air3D, MultiVehicle9D
+from safety.evaluate import load_results
+from training import ValueNetwork, save_checkpoint
+
+
+@pytest.fixture
+def checkpoints(tmp_path: Path) -> Path:
+    for i, layout in enumerate(["ssrsl", "rrrsl"]):
+        torch.manual_seed(i)
+        save_checkpoint(tmp_path / f"9d_{layout}.pt", ValueNetwork(MultiVehicle9D(), layout, width=16))
+    torch.manual_seed(0)
+    save_checkpoint(tmp_path / "air3d.pt", ValueNetwork(Air3D(), "ssssl", width=16))
+    (tmp_path / "broken.pt").write_bytes(b"not a checkpoint")
+    net = ValueNetwork(MultiVehicle9D(), "ssssl", width=16)
+    with torch.no_grad():
+        net.layers[1].weight[0, 0] = float("nan")
+    save_checkpoint(tmp_path / "nan.pt", net)
+    return tmp_path
+
+
+def test_evaluate_two_checkpoints_with_bad_ones_beside(checkpoints: Path, capsys):
+    out = checkpoints / "res.csv"
+    sources = [str(checkpoints / n) for n in ("9d_ssrsl.pt", "9d_rrrsl.pt", "broken.pt", "air3d.pt", "nan.pt")]
+    args = ["evaluate", *sources, "--samples", "1500", "--certify-samples", "500", "--out", str(out), "--plot"]
+    assert main(args) == 0
+    table = capsys.readouterr().out
+    assert "| model | layout | violation % |" in table
+    rows = {Path(r["source"]).name: r for r in load_results(out)}
+    for name in ("9d_ssrsl.pt", "9d_rrrsl.pt"):
+        r = rows[name]
+        assert not r.get("error")
+        assert r["samples"] == 1500 and r["certified_samples"] == 500
+        assert r["violation_rate"] == pytest.approx(r["false_safe_rate"] + r["false_unsafe_rate"])
+        assert r["collision_rate"] >= 0.10  # ~12.7 % of the box starts in collision
+        assert 0 < r["eps"] < 1 and 0 <= r["certified_volume"] <= 1
+    assert "corrupt or unreadable" in rows["broken.pt"]["error"]
+    assert "checkpoint is for system" in rows["air3d.pt"]["error"]
+    assert "NaN or inf" in rows["nan.pt"]["error"]
+    assert out.with_suffix(".md").read_text().count("\n") == 7
+    assert (checkpoints / "res_violations.png").stat().st_size > 1000
+    header = out.read_text().splitlines()[0]
+    assert "violation_rate" in header and "delta" in header
+
+    # resume: finished rows come back untouched, without recomputation
+    before = json.loads(out.with_suffix(".json").read_text())
+    assert main(args) == 0
+    after = json.loads(out.with_suffix(".json").read_text())
+    done = [r for r in before["results"] if not r.get("error")]
+    again = [r for r in after["results"] if not r.get("error")]
+    assert [r["wall_time"] for r in again] == [r["wall_time"] for r in done]
+
+    # other settings into the same file are refused rather than mixed
+    assert main(["evaluate", *sources, "--samples", "1000", "--out", str(out)]) == 2
+    assert "other settings" in capsys.readouterr().err
+
+
+def test_same_states_for_every_model(checkpoints: Path):
+    out = checkpoints / "a.csv"
+    src = str(checkpoints / "9d_ssrsl.pt")
+    main(["evaluate", src, "--samples", "800", "--certify-samples", "0", "--out", str(out)])
+    main(["evaluate", src, "--samples", "800", "--certify-samples", "0", "--out", str(checkpoints / "b.csv")])
+    a, b = load_results(out)[0], load_results(checkpoints / "b.csv")[0]
+    for key in ("violation_rate", "collision_rate", "delta"):
+        assert a[key] == b[key]
+
+
+def test_evaluate_errors_are_clear(tmp_path: Path, capsys):
+    assert main(["evaluate", str(tmp_path / "nothing*"), "--out", str(tmp_path / "r.csv")]) == 2
+    assert "matched no file" in capsys.readouterr().err
+    (tmp_path / "dr.pth").write_bytes(b"x")
+    assert main(["evaluate", str(tmp_path / "dr.pth"), "--out", str(tmp_path / "r.csv")]) == 2
+    assert "give --system" in capsys.readouterr().err
+
+
+def test_grid_solution_evaluates_as_control_experiment(air3d_grid, tmp_path: Path):
+    path = tmp_path / "air3d.npz"
+    air3d_grid.save(path)
+    out = tmp_path / "grid.csv"
+    assert main(["evaluate", str(path), "--samples", "2000", "--certify-samples", "0", "--out", str(out)]) == 0
+    row = load_results(out)[0]
+    assert row["kind"] == "grid" and row["false_safe_rate"] < 3e-3
+
+
+def test_plot_slices_and_episode(air3d_grid, checkpoints: Path, tmp_path: Path):
+    grid = tmp_path / "air3d.npz"
+    air3d_grid.save(grid)
+    png = tmp_path / "slices.png"
+    assert main(["plot", "slices", str(checkpoints / "air3d.pt"), "--ground-truth", str(grid), "--out", str(png)]) == 0
+    assert png.stat().st_size > 5000
+    png9 = tmp_path / "slices9.png"
+    assert main(["plot", "slices", str(checkpoints / "9d_ssrsl.pt"), "--out", str(png9)]) == 0
+    gif = tmp_path / "episode.gif"
+    assert main(["plot", "episode", str(grid), "--out", str(gif), "--seed", "1"]) == 0
+    import imageio.v3 as iio
+
+    frames = iio.imread(gif, index=None)
+    assert frames.shape[0] > 10
