@@ -20,8 +20,10 @@ from reach.cli import main as reach_main
 
 
 def table(rows: list[dict]) -> str:
-    lines = ["| step | train s | loss | IoU volume | MSE volume | IoU slice | MSE slice | steps/s |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [
+        "| step | train s | loss | IoU volume | MSE volume | IoU slice | MSE slice | steps/s |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for r in rows:
         lines.append(
             f"| {r['step']} | {r['wall']:.0f} | {r['loss']:.4f} | {r['iou_volume']:.3f} | {r['mse_volume']:.2e} | "
@@ -71,8 +73,24 @@ def main() -> int:
         code = reach_main(["groundtruth", "air3d", "--grid", "101", "--horizon", "1.0", "--out", str(gt)])
         if code:
             return code
-    code = reach_main(["train", "--system", "air3d", "--budget", args.budget, "--groundtruth", str(gt),
-                       "--eval-every", "60", "--log-every", "50", "--out", args.out, *extra])
+    code = reach_main(
+        [
+            "train",
+            "--system",
+            "air3d",
+            "--budget",
+            args.budget,
+            "--groundtruth",
+            str(gt),
+            "--eval-every",
+            "60",
+            "--log-every",
+            "50",
+            "--out",
+            args.out,
+            *extra,
+        ]
+    )
     if code:
         return code
     rows = [json.loads(line) for line in (Path(args.out) / "metrics.jsonl").read_text().splitlines()]

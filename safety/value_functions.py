@@ -15,8 +15,9 @@ from typing import Literal
 
 import torch
 
+from groundtruth.pairwise import PairwiseUnion
 from groundtruth.solution import GridSolution
-from reach_envs.systems import ControlAffineSystem, make_system
+from reach_envs.systems import ControlAffineSystem, MultiVehicle, RelativePair, make_system
 from reach_envs.systems.value_function import ValueFunction
 from training.checkpoint import load_network
 from training.deepreach import load_deepreach
@@ -42,7 +43,7 @@ class LoadedValueFunction:
 
     value_function: ValueFunction
     path: Path
-    kind: str  # "reach" | "deepreach" | "grid"
+    kind: str  # "reach" | "deepreach" | "grid" | "pairwise"
     layout: str  # activation layout, or "grid"
     label: str
 
@@ -86,6 +87,8 @@ def load_value_function(
         layout: the expected layout (required for DeepReach files).
         device: where a network's weights go (grid tables follow the states' device).
 
+    A grid solution of a :class:`RelativePair` loaded for a multi-vehicle ``system`` becomes the
+    union of pairwise BRTs (:class:`~groundtruth.pairwise.PairwiseUnion`, kind ``"pairwise"``).
     Grid solutions load with ``outside="clamp"``: states that leave the grid (which closed-loop
     rollouts and episodes do) get the nearest edge value instead of an error.
     """
@@ -99,6 +102,9 @@ def load_value_function(
     if kind == "grid":
         # closed-loop states drift off the grid (cars leave the box): use the nearest edge value there
         sol = GridSolution.load(p, outside="clamp")
+        if isinstance(sol.system, RelativePair) and isinstance(system, MultiVehicle):
+            # a two-car solution evaluated on a multi-vehicle state: the union of pairwise BRTs
+            return LoadedValueFunction(PairwiseUnion(system, sol), p, "pairwise", "pairwise union", name)
         if system is not None and sol.system != system:
             raise ValueError(f"{p}: grid solution is for {sol.system.config()}, not {system.config()}")
         return LoadedValueFunction(sol, p, "grid", "grid", name)

@@ -245,12 +245,16 @@ class ValueNetwork(nn.Module):
         enc = self.encoding
         h = self.encode(x, t)
         slopes = []
+        weights = []
         for layer, letter in zip(self.layers, self.layout[:-1]):
-            z = layer(h)
+            w, b = layer.weight, layer.bias
+            if letter == "s":  # fold w0 into the layer: sin(w0 z) = sin(z'), d/dh = cos(z') (w0 W)
+                w, b = self.w0 * w, self.w0 * b
+            z = torch.nn.functional.linear(h, w, b)
+            weights.append(w)
             if letter == "s":
-                wz = self.w0 * z
-                h = torch.sin(wz)
-                slopes.append(self.w0 * torch.cos(wz))
+                h = torch.sin(z)
+                slopes.append(z.cos_())  # in place: z is not needed any more
             elif letter == "r":
                 h = torch.relu(z)
                 slopes.append((z > 0).to(z.dtype))
@@ -259,8 +263,8 @@ class ValueNetwork(nn.Module):
                 slopes.append(1.0 - h * h)
         o = self.output(h).squeeze(-1)
         g = self.output.weight[0].to(h.dtype).expand(h.shape)
-        for layer, slope in zip(reversed(self.layers), reversed(slopes)):
-            g = (g * slope) @ layer.weight
+        for w, slope in zip(reversed(weights), reversed(slopes)):
+            g = slope.mul_(g) @ w  # in place: each slope is used once
         g = g[..., 1:]  # drop the time input
         state_scale = self._scale.to(x.dtype)
         if enc.sincos_dims:

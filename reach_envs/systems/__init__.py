@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from reach_envs.systems.air3d import Air3D
+from reach_envs.systems.air3d import Air3D, RelativePair
 from reach_envs.systems.backend import FLOAT, NUMPY, TORCH
 from reach_envs.systems.base import Box, ControlAffineSystem, DeepReachNormalisation
 from reach_envs.systems.multivehicle import Car, MultiVehicle, MultiVehicle6D, MultiVehicle9D
@@ -15,7 +15,7 @@ from reach_envs.systems.value_function import ValueFunction
 
 #: Systems by registry name.
 SYSTEMS: dict[str, type[ControlAffineSystem]] = {
-    cls.name: cls for cls in (Air3D, MultiVehicle, MultiVehicle6D, MultiVehicle9D)
+    cls.name: cls for cls in (Air3D, RelativePair, MultiVehicle, MultiVehicle6D, MultiVehicle9D)
 }
 
 
@@ -47,6 +47,7 @@ __all__ = [
     "MultiVehicle",
     "MultiVehicle6D",
     "MultiVehicle9D",
+    "RelativePair",
     "ValueFunction",
     "make_system",
     "system_from_config",

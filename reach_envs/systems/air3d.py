@@ -1,13 +1,17 @@
-"""Air3D: two-aircraft pursuit-evasion in the evader's frame (Mitchell et al. 2005; DeepReach).
+"""Two Dubins cars in the first car's frame: Air3D and the cooperative pair of the 9D system.
 
-State ``x = (x1, x2, x3)``: the pursuer's position and heading relative to the evader::
+State ``x = (x1, x2, x3)``: car 2's position and heading relative to car 1, in car 1's frame::
 
-    x1' = -ve + vp cos x3 + u x2
-    x2' =        vp sin x3 - u x1
-    x3' = d - u
+    x1' = -v1 + v2 cos x3 + w1 x2
+    x2' =        v2 sin x3 - w1 x1
+    x3' = w2 - w1
 
-``u`` is the evader's turn rate (control, keeps safe), ``d`` the pursuer's turn rate (disturbance).
-Failure: the pursuer within ``collision_radius`` of the evader, ``l(x) = ||(x1, x2)|| - R``.
+``w1`` (car 1's turn rate) is a control. ``w2`` is a disturbance in Air3D (the pursuer attacks) and a
+second control in the cooperative pair (both cars try to avoid each other, as in the 9D system).
+Failure: the cars within ``collision_radius``, ``l(x) = ||(x1, x2)|| - R``.
+
+:class:`RelativePair` holds the physics once; :class:`Air3D` is its adversarial instance with
+DeepReach's constants and names (Mitchell et al. 2005; DeepReach).
 """
 
 from __future__ import annotations
@@ -17,15 +21,145 @@ from collections.abc import Sequence
 from typing import Any
 
 from reach_envs.systems.backend import Backend, Column
-from reach_envs.systems.base import Box, ControlAffineSystem, DeepReachNormalisation, InputMatrix
+from reach_envs.systems.base import NO_INPUT, Box, ControlAffineSystem, DeepReachNormalisation, InputMatrix
+
+ROLES = ("control", "disturbance")
 
 
-class Air3D(ControlAffineSystem):
-    """Air3D with DeepReach's constants by default (ve = vp = 0.75, |u|, |d| <= 3, R = 0.25, T = 1.1)."""
+def _check_positive(owner: str, pairs: Sequence[tuple[str, Any]]) -> None:
+    for field, value in pairs:
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            raise ValueError(f"{owner}: {field} must be a positive finite number, got {value!r}")
 
-    name = "air3d"
+
+class RelativePair(ControlAffineSystem):
+    """Two Dubins cars in car 1's frame; car 2's turn rate is a control or a disturbance.
+
+    The defaults are one pair of the 9D system (v = 0.6, |w| <= 1.1, both controls, R = 0.25,
+    T = 1.0) on relative positions in [-1.6, 1.6]^2, which covers every pair that can meet within the
+    horizon from the 9D box's near-collision region (farther pairs are safe by the margin bound).
+    """
+
+    name = "relativepair"
     state_names = ("x1", "x2", "x3")
     periodic = (False, False, True)
+
+    def __init__(
+        self,
+        speed_1: float = 0.6,
+        speed_2: float = 0.6,
+        max_turn_rate_1: float = 1.1,
+        max_turn_rate_2: float = 1.1,
+        role_2: str = "control",
+        collision_radius: float = 0.25,
+        horizon: float = 1.0,
+        half_width: float = 1.6,
+    ) -> None:
+        _check_positive(
+            "RelativePair",
+            (
+                ("speed_1", speed_1),
+                ("speed_2", speed_2),
+                ("max_turn_rate_1", max_turn_rate_1),
+                ("max_turn_rate_2", max_turn_rate_2),
+                ("collision_radius", collision_radius),
+                ("horizon", horizon),
+                ("half_width", half_width),
+            ),
+        )
+        if role_2 not in ROLES:
+            raise ValueError(f"RelativePair: role_2 must be one of {ROLES}, got {role_2!r}")
+        self._setup(speed_1, speed_2, max_turn_rate_1, max_turn_rate_2, role_2, collision_radius, horizon, half_width)
+
+    def _setup(
+        self,
+        v1: float,
+        v2: float,
+        w1: float,
+        w2: float,
+        role_2: str,
+        collision_radius: float,
+        horizon: float,
+        half_width: float,
+    ) -> None:
+        self.speed_1, self.speed_2 = float(v1), float(v2)
+        self.max_turn_rate_1, self.max_turn_rate_2 = float(w1), float(w2)
+        self.role_2 = role_2
+        self.collision_radius = float(collision_radius)
+        self.horizon = float(horizon)
+        self.half_width = float(half_width)
+        self.domain = ((-half_width, half_width), (-half_width, half_width), (-math.pi, math.pi))
+        if role_2 == "control":
+            self.control_bounds = Box.symmetric([w1, w2])
+            self.disturbance_bounds = NO_INPUT
+        else:
+            self.control_bounds = Box.symmetric([w1])
+            self.disturbance_bounds = Box.symmetric([w2])
+        self.deepreach = DeepReachNormalisation(
+            state_offset=(0.0, 0.0, 0.0), state_scale=(half_width, half_width, 1.2 * math.pi)
+        )
+        self.validate()
+
+    def parameters(self) -> dict[str, Any]:
+        return {
+            "speed_1": self.speed_1,
+            "speed_2": self.speed_2,
+            "max_turn_rate_1": self.max_turn_rate_1,
+            "max_turn_rate_2": self.max_turn_rate_2,
+            "role_2": self.role_2,
+            "collision_radius": self.collision_radius,
+            "horizon": self.horizon,
+            "half_width": self.half_width,
+        }
+
+    # ------------------------------------------------------------------ physics
+    def drift(self, x: Sequence[Column], xp: Backend) -> list[Column]:
+        _, _, x3 = x
+        return [-self.speed_1 + self.speed_2 * xp.cos(x3), self.speed_2 * xp.sin(x3), 0.0]
+
+    def control_matrix(self, x: Sequence[Column], xp: Backend) -> InputMatrix:
+        x1, x2, _ = x
+        matrix: InputMatrix = {(0, 0): x2, (1, 0): -x1, (2, 0): -1.0}
+        if self.role_2 == "control":
+            matrix[(2, 1)] = 1.0
+        return matrix
+
+    def disturbance_matrix(self, x: Sequence[Column], xp: Backend) -> InputMatrix:
+        return {(2, 0): 1.0} if self.role_2 == "disturbance" else {}
+
+    def margin_rate_bound(self) -> float:
+        """``v1 + v2``: turning only rotates the relative position, so only the speeds change ``||(x1, x2)||``."""
+        return self.speed_1 + self.speed_2
+
+    def failure_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
+        return xp.hypot(x[0], x[1]) - self.collision_radius
+
+    # ------------------------------------------------------------------ geometry (envs, rendering)
+    def car_poses(self, x: Sequence[Column], xp: Backend) -> list[tuple[Column, Column, Column]]:
+        """(x, y, heading) of car 1 (at the origin, heading 0) and car 2, in car 1's frame."""
+        zero = 0.0 * x[0]
+        return [(zero, zero, zero), (x[0], x[1], x[2])]
+
+    @property
+    def car_names(self) -> tuple[str, ...]:
+        return ("car_1", "car_2")
+
+    @property
+    def car_roles(self) -> tuple[str, ...]:
+        return ("control", self.role_2)
+
+    @property
+    def car_max_turn_rates(self) -> tuple[float, ...]:
+        return (self.max_turn_rate_1, self.max_turn_rate_2)
+
+
+class Air3D(RelativePair):
+    """Air3D with DeepReach's constants by default (ve = vp = 0.75, |u|, |d| <= 3, R = 0.25, T = 1.1).
+
+    Car 1 is the evader (control ``u``), car 2 the pursuer (disturbance ``d``).
+    """
+
+    name = "air3d"
 
     def __init__(
         self,
@@ -37,28 +171,45 @@ class Air3D(ControlAffineSystem):
         horizon: float = 1.1,
         half_width: float = 1.0,
     ) -> None:
-        for field, value in (
-            ("evader_speed", evader_speed),
-            ("pursuer_speed", pursuer_speed),
-            ("evader_max_turn_rate", evader_max_turn_rate),
-            ("pursuer_max_turn_rate", pursuer_max_turn_rate),
-            ("collision_radius", collision_radius),
-            ("half_width", half_width),
-        ):
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"Air3D: {field} must be a positive finite number, got {value!r}")
-        self.evader_speed = float(evader_speed)
-        self.pursuer_speed = float(pursuer_speed)
-        self.evader_max_turn_rate = float(evader_max_turn_rate)
-        self.pursuer_max_turn_rate = float(pursuer_max_turn_rate)
-        self.collision_radius = float(collision_radius)
-        self.horizon = float(horizon)
-        self.half_width = float(half_width)
-        self.domain = ((-half_width, half_width), (-half_width, half_width), (-math.pi, math.pi))
-        self.control_bounds = Box.symmetric([evader_max_turn_rate])
-        self.disturbance_bounds = Box.symmetric([pursuer_max_turn_rate])
+        _check_positive(
+            "Air3D",
+            (
+                ("evader_speed", evader_speed),
+                ("pursuer_speed", pursuer_speed),
+                ("evader_max_turn_rate", evader_max_turn_rate),
+                ("pursuer_max_turn_rate", pursuer_max_turn_rate),
+                ("collision_radius", collision_radius),
+                ("half_width", half_width),
+            ),
+        )
+        self._setup(
+            evader_speed,
+            pursuer_speed,
+            evader_max_turn_rate,
+            pursuer_max_turn_rate,
+            "disturbance",
+            collision_radius,
+            horizon,
+            half_width,
+        )
+        # DeepReach leaves positions raw (its Air3D box is [-1, 1]) and divides headings by 1.2 pi
         self.deepreach = DeepReachNormalisation(state_offset=(0.0, 0.0, 0.0), state_scale=(1.0, 1.0, 1.2 * math.pi))
-        self.validate()
+
+    @property
+    def evader_speed(self) -> float:
+        return self.speed_1
+
+    @property
+    def pursuer_speed(self) -> float:
+        return self.speed_2
+
+    @property
+    def evader_max_turn_rate(self) -> float:
+        return self.max_turn_rate_1
+
+    @property
+    def pursuer_max_turn_rate(self) -> float:
+        return self.max_turn_rate_2
 
     def parameters(self) -> dict[str, Any]:
         return {
@@ -71,33 +222,6 @@ class Air3D(ControlAffineSystem):
             "half_width": self.half_width,
         }
 
-    def drift(self, x: Sequence[Column], xp: Backend) -> list[Column]:
-        _, _, x3 = x
-        return [-self.evader_speed + self.pursuer_speed * xp.cos(x3), self.pursuer_speed * xp.sin(x3), 0.0]
-
-    def control_matrix(self, x: Sequence[Column], xp: Backend) -> InputMatrix:
-        x1, x2, _ = x
-        return {(0, 0): x2, (1, 0): -x1, (2, 0): -1.0}
-
-    def disturbance_matrix(self, x: Sequence[Column], xp: Backend) -> InputMatrix:
-        return {(2, 0): 1.0}
-
-    def margin_rate_bound(self) -> float:
-        """``ve + vp``: turning only rotates the relative position, so only the speeds change ``||(x1, x2)||``."""
-        return self.evader_speed + self.pursuer_speed
-
-    def failure_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
-        return xp.hypot(x[0], x[1]) - self.collision_radius
-
-    # ------------------------------------------------------------------ geometry (envs, rendering)
-    def car_poses(self, x: Sequence[Column], xp: Backend) -> list[tuple[Column, Column, Column]]:
-        """(x, y, heading) of the evader (at the origin, heading 0) and the pursuer, evader frame."""
-        zero = 0.0 * x[0]
-        return [(zero, zero, zero), (x[0], x[1], x[2])]
-
-    car_names = ("evader_1", "pursuer_1")
-    car_roles = ("control", "disturbance")
-
     @property
-    def car_max_turn_rates(self) -> tuple[float, ...]:
-        return (self.evader_max_turn_rate, self.pursuer_max_turn_rate)
+    def car_names(self) -> tuple[str, ...]:
+        return ("evader_1", "pursuer_1")

@@ -1,0 +1,138 @@
+"""Pairwise BRTs of a multi-vehicle system and their union, as a value function on the full state.
+
+Two cars that cannot avoid each other on their own cannot do so with more cars around, so every
+state in the union of the pairwise BRTs lies in the true multi-vehicle BRT. The union's value,
+``min over failure pairs (i, j) of V_ij(relative state of j in i's frame, t)``, is therefore an
+*outer* check of a learned value (a learned BRT that misses part of the union is provably wrong
+there) and a decomposition safety filter in its own right.
+
+Each pair's value comes from a 3D grid solution of :class:`~reach_envs.systems.RelativePair` (car 2's
+role = car j's role; car i is always a control car). Gradients on the full state are the pair
+gradient pulled back through the relative-coordinate map (autograd on that small map only).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+
+from groundtruth.solution import GridSolution
+from groundtruth.solver import solve
+from reach_envs.systems import MultiVehicle, RelativePair
+
+
+def pair_system(system: MultiVehicle, i: int, j: int, half_width: float = 1.6) -> RelativePair:
+    """The two-car problem of cars ``i`` (a control car) and ``j`` in ``i``'s frame."""
+    a, b = system.cars[i], system.cars[j]
+    if a.role != "control":
+        raise ValueError(f"pair ({i}, {j}): car {i} must be a control car (roles {a.role}, {b.role})")
+    return RelativePair(
+        speed_1=a.speed,
+        speed_2=b.speed,
+        max_turn_rate_1=a.max_turn_rate,
+        max_turn_rate_2=b.max_turn_rate,
+        role_2=b.role,
+        collision_radius=system.collision_radius,
+        horizon=system.horizon,
+        half_width=half_width,
+    )
+
+
+def _ordered_pairs(system: MultiVehicle) -> list[tuple[int, int]]:
+    """Failure pairs with the control car first."""
+    return [(i, j) if system.cars[i].role == "control" else (j, i) for i, j in system.failure_pairs]
+
+
+def solve_pairs(
+    system: MultiVehicle,
+    grid: int | Sequence[int] = 81,
+    times: Sequence[float] | None = None,
+    half_width: float = 1.6,
+    **solve_kwargs,
+) -> dict[RelativePair, GridSolution]:
+    """Grid solutions of every distinct pair problem (one for the 9D system: its cars are identical).
+
+    ``times`` default to 11 evenly spaced times over the horizon (the union interpolates between them).
+    """
+    times = list(times) if times is not None else [system.horizon * k / 10 for k in range(11)]
+    out: dict[RelativePair, GridSolution] = {}
+    for i, j in _ordered_pairs(system):
+        pair = pair_system(system, i, j, half_width)
+        if pair not in out:
+            out[pair] = solve(pair, grid, times, **solve_kwargs)
+            out[pair].outside = "clamp"
+    return out
+
+
+class PairwiseUnion:
+    """``V(x, t) = min over failure pairs of V_pair(relative state, t)`` on a multi-vehicle state.
+
+    Args:
+        system: the multi-vehicle system.
+        solutions: grid solutions of its pair problems (``solve_pairs``), or one solution used for
+            every pair whose problem equals that solution's system.
+
+    Relative positions beyond a pair grid's box use its edge value (``outside="clamp"``): such cars
+    are at least ``half_width`` apart, farther than the cars can close within the horizon.
+    """
+
+    def __init__(self, system: MultiVehicle, solutions: GridSolution | dict[RelativePair, GridSolution]) -> None:
+        if not isinstance(system, MultiVehicle):
+            raise ValueError(f"PairwiseUnion needs a multi-vehicle system, got {system.name}")
+        if isinstance(solutions, GridSolution):
+            solutions = {solutions.system: solutions}
+        self.system = system
+        self.pairs = _ordered_pairs(system)
+        self._solutions = []
+        for i, j in self.pairs:
+            match = [s for pair, s in solutions.items() if pair == pair_system(system, i, j, pair.half_width)]
+            if not match:
+                raise ValueError(
+                    f"no pair solution for cars ({i}, {j}) of {system.config()}; have {[p.config() for p in solutions]}"
+                )
+            match[0].outside = "clamp"
+            self._solutions.append(match[0])
+
+    def relative_states(self, x: torch.Tensor) -> torch.Tensor:
+        """``(..., pairs, 3)``: car j relative to car i, in i's frame, for each failure pair."""
+        n = self.system.num_cars
+        out = []
+        for i, j in self.pairs:
+            dx = x[..., 2 * j] - x[..., 2 * i]
+            dy = x[..., 2 * j + 1] - x[..., 2 * i + 1]
+            th = x[..., 2 * n + i]
+            c, s = torch.cos(th), torch.sin(th)
+            rel_th = torch.remainder(x[..., 2 * n + j] - th + math.pi, 2 * math.pi) - math.pi
+            out.append(torch.stack([c * dx + s * dy, -s * dx + c * dy, rel_th], dim=-1))
+        return torch.stack(out, dim=-2)
+
+    def pair_values(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        """``(..., pairs)`` pairwise values."""
+        rel = self.relative_states(x)
+        return torch.stack([sol.value(rel[..., k, :], t) for k, sol in enumerate(self._solutions)], dim=-1)
+
+    def value(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        self._check(x)
+        return self.pair_values(x, t).min(dim=-1).values
+
+    def gradient(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        """The gradient of the minimising pair's value, pulled back to the full state."""
+        self._check(x)
+        with torch.enable_grad():
+            xg = x.detach().requires_grad_(True)
+            rel = self.relative_states(xg)
+            detached = rel.detach()
+            values = torch.stack([s.value(detached[..., k, :], t) for k, s in enumerate(self._solutions)], -1)
+            grads = torch.stack([s.gradient(detached[..., k, :], t) for k, s in enumerate(self._solutions)], -2)
+            best = values.argmin(dim=-1)
+            mask = torch.nn.functional.one_hot(best, len(self.pairs)).to(x.dtype).unsqueeze(-1)
+            (g,) = torch.autograd.grad(rel, xg, grad_outputs=grads * mask)
+        return g
+
+    def _check(self, x: torch.Tensor) -> None:
+        if x.ndim == 0 or x.shape[-1] != self.system.state_dim:
+            raise ValueError(f"states must have shape (..., {self.system.state_dim}), got {tuple(x.shape)}")
+        if not bool(torch.isfinite(x).all()):
+            raise ValueError("states contain NaN or inf")
