@@ -176,6 +176,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         format=args.format,
         layout=args.layout,
         ground_truth=args.ground_truth,
+        pairwise=args.pairwise,
         device=args.device,
     )
     print(markdown_table(rows))
@@ -288,6 +289,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--system", default=None, help="system name (needed for DeepReach files)")
     p.add_argument("--layout", default=None, help="layout (needed for DeepReach files)")
     p.add_argument("--ground-truth", default=None, help="grid .npz to score IoU and MSE against")
+    p.add_argument(
+        "--pairwise", default=None, help="two-car grid .npz (reach groundtruth relativepair): containment metric"
+    )
     p.add_argument("--device", default="cpu")
     p.add_argument("--plot", action="store_true", help="also draw a bar chart of violation rates")
     p.add_argument("--out", default="results.csv", help="results path; .csv, .json and .md are written")

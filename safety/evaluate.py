@@ -2,7 +2,8 @@
 
 :func:`evaluate_many` verifies each source (run directory, checkpoint, DeepReach file, grid
 solution) with :func:`~safety.verify.verify` on states drawn once from the seed, optionally scores
-it against a grid ground truth (value MSE and BRT IoU over the volume and one slice), and after
+it against a grid ground truth (value MSE and BRT IoU over the volume and one slice) and, for
+multi-vehicle systems, against the union of pairwise BRTs (the containment metric), and after
 every source rewrites ``<out>.csv``, ``<out>.json`` and ``<out>.md`` atomically. A second call with
 the same settings skips sources already evaluated (same path, size and modification time); a source
 that fails to load or evaluate becomes a row with its error, and the others go on.
@@ -20,11 +21,13 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import torch
 from tqdm.auto import tqdm
 
 from groundtruth.solution import GridSolution
 from reach_envs.atomic import atomic_path
 from reach_envs.systems import ControlAffineSystem, make_system
+from safety.metrics import containment_statistics
 from safety.value_functions import load_value_function, resolve_checkpoint
 from safety.verify import VerifySettings, sample_states, verify
 from training.evaluate import ReferenceEvaluator
@@ -47,6 +50,7 @@ TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("mse_volume", "MSE vol.", "{:.2e}"),
     ("iou_slice", "IoU slice", "{:.3f}"),
     ("mse_slice", "MSE slice", "{:.2e}"),
+    ("containment_miss_rate", "misses union %", "pct"),
     ("wall_time", "time (s)", "{:.1f}"),
 )
 
@@ -122,17 +126,16 @@ def _previous(out: Path, header: dict[str, Any]) -> dict[str, dict[str, Any]]:
         data = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as err:
         raise ValueError(f"{path}: existing results are unreadable ({err}); move the file away to start over") from err
-    if (
-        data.get("format") != FORMAT
-        or data.get("settings") != header["settings"]
-        or data.get("system") != header["system"]
-        or data.get("ground_truth") != header["ground_truth"]
-    ):
+    if any(data.get(key) != header[key] for key in ("format", "settings", "system", "ground_truth", "pairwise")):
         raise ValueError(
             f"{path} holds results for other settings ({data.get('settings')}, system {data.get('system')}); "
             "use another --out or delete it"
         )
     return {r["source"]: r for r in data.get("results", []) if not r.get("error")}
+
+
+def _values(vf: Any, states: torch.Tensor, t: float, chunk: int = 65536) -> torch.Tensor:
+    return torch.cat([vf.value(c, t).detach().float().cpu() for c in states.split(chunk)])
 
 
 def evaluate_many(
@@ -145,6 +148,7 @@ def evaluate_many(
     ground_truth: str | os.PathLike | None = None,
     gt_time: float | None = None,
     gt_slice: float = 1.5863,
+    pairwise: str | os.PathLike | None = None,
     device: str = "cpu",
     progress: bool = True,
 ) -> list[dict[str, Any]]:
@@ -175,9 +179,17 @@ def evaluate_many(
         "system": system.config(),
         "settings": settings.to_dict(),
         "ground_truth": str(Path(ground_truth).resolve()) if ground_truth else None,
+        "pairwise": str(Path(pairwise).resolve()) if pairwise else None,
     }
     done = _previous(out, header)
     states = sample_states(system, settings.samples, settings.seed)
+    horizon = system.horizon if settings.horizon is None else settings.horizon
+    union_values = None
+    if pairwise is not None:
+        union = load_value_function(pairwise, format="grid", system=system)
+        if union.kind != "pairwise":
+            raise ValueError(f"{pairwise}: not a two-car (relativepair) solution for {system.name}")
+        union_values = _values(union.value_function, states, horizon)
     rows: list[dict[str, Any]] = []
     for path in tqdm(paths, desc="value functions", unit="vf", **({} if progress else {"disable": True})):
         fp = fingerprint(path)
@@ -194,6 +206,9 @@ def evaluate_many(
             row.update(verify(loaded.value_function, states, settings, device=device, progress=progress))
             if reference is not None:
                 row.update(reference(loaded.value_function))
+            if union_values is not None:
+                learned = _values(loaded.value_function, states, horizon)
+                row.update(containment_statistics(union_values, learned))
         except (ValueError, RuntimeError) as err:
             row["error"] = str(err).splitlines()[0][:300]
         rows.append(row)

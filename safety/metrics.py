@@ -91,3 +91,23 @@ def violation_statistics(initial_value: torch.Tensor, collided: torch.Tensor) ->
         "delta": max(0.0, delta_raw),
         "safe_fraction": float((v > max(0.0, delta_raw)).double().mean()),
     }
+
+
+def containment_statistics(union_values: torch.Tensor, learned_values: torch.Tensor) -> dict[str, float]:
+    """How much of the union of pairwise BRTs a learned value misses.
+
+    Every state in the union (``union <= 0``) is in the true BRT, so a learned value that calls such a
+    state safe (``V > 0``) is provably wrong there. Returns that fraction of the sampled states with
+    a 95 % Wilson interval, and the union's own fraction for scale.
+    """
+    if union_values.shape != learned_values.shape:
+        raise ValueError(f"shapes differ: {tuple(union_values.shape)} vs {tuple(learned_values.shape)}")
+    n = int(union_values.numel())
+    missed = int(((union_values <= 0) & (learned_values > 0)).sum())
+    low, high = wilson_interval(missed, n)
+    return {
+        "containment_miss_rate": missed / n,
+        "containment_ci_low": low,
+        "containment_ci_high": high,
+        "union_fraction": float((union_values <= 0).double().mean()),
+    }

@@ -28,3 +28,13 @@ def air3d_grid():
     sol = solve(Air3D(), 51, times, compile=False, progress=False)
     sol.outside = "clamp"
     return sol
+
+
+@pytest.fixture(scope="session")
+def pair_grid():
+    """The 9D system's cooperative two-car problem on a coarse 45^3 grid (11 times), ~3 s."""
+    from groundtruth.pairwise import solve_pairs
+    from reach_envs.systems import MultiVehicle9D
+
+    (solution,) = solve_pairs(MultiVehicle9D(), 45, compile=False, progress=False).values()
+    return solution

@@ -106,3 +106,35 @@ def test_plot_slices_and_episode(air3d_grid, checkpoints: Path, tmp_path: Path):
 
     frames = iio.imread(gif, index=None)
     assert frames.shape[0] > 10
+
+
+def test_evaluate_reports_containment_against_pairwise_union(pair_grid, checkpoints: Path):
+    pair = checkpoints / "pair.npz"
+    pair_grid.save(pair)
+    out = checkpoints / "c.csv"
+    src = [str(checkpoints / "9d_ssrsl.pt"), str(pair)]
+    assert (
+        main(
+            [
+                "evaluate",
+                *src,
+                "--system",
+                "multivehicle9d",
+                "--samples",
+                "1000",
+                "--certify-samples",
+                "0",
+                "--pairwise",
+                str(pair),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
+    rows = {r["kind"]: r for r in load_results(out)}
+    assert rows["pairwise"]["containment_miss_rate"] == 0.0  # the union contains itself
+    assert 0.15 < rows["pairwise"]["union_fraction"] < 0.6
+    learned = rows["reach"]
+    assert 0.0 <= learned["containment_ci_low"] <= learned["containment_miss_rate"] <= learned["containment_ci_high"]
+    assert "misses union %" in out.with_suffix(".md").read_text()

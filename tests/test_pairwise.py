@@ -1,0 +1,96 @@
+"""The union of pairwise BRTs: invariances, containment logic, and its policy keeping two cars apart."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from groundtruth.pairwise import PairwiseUnion, pair_system
+from reach_envs.systems import Car, MultiVehicle, MultiVehicle9D
+from safety import rollout
+from safety.value_functions import load_value_function
+
+
+def _rigid_motion(x: torch.Tensor, angle: float, shift: tuple[float, float], n: int) -> torch.Tensor:
+    c, s = math.cos(angle), math.sin(angle)
+    y = x.clone()
+    for i in range(n):
+        px, py = x[..., 2 * i], x[..., 2 * i + 1]
+        y[..., 2 * i] = c * px - s * py + shift[0]
+        y[..., 2 * i + 1] = s * px + c * py + shift[1]
+        y[..., 2 * n + i] = torch.remainder(x[..., 2 * n + i] + angle + math.pi, 2 * math.pi) - math.pi
+    return y
+
+
+def test_pair_solution_is_the_nine_d_pair_problem(pair_grid):
+    system = MultiVehicle9D()
+    assert pair_grid.system == pair_system(system, 0, 1)
+    assert pair_grid.system.control_dim == 2 and pair_grid.system.disturbance_dim == 0
+
+
+def test_union_is_invariant_under_rigid_motions(pair_grid):
+    system = MultiVehicle9D()
+    union = PairwiseUnion(system, pair_grid)
+    x = system.sample_states(500, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 0.6
+    for angle, shift in ((0.7, (0.1, -0.2)), (-2.5, (0.0, 0.3)), (math.pi, (0.0, 0.0))):
+        y = _rigid_motion(x, angle, shift, 3)
+        rel_x, rel_y = union.relative_states(x), union.relative_states(y)
+        assert torch.allclose(rel_x[..., :2], rel_y[..., :2], atol=1e-9)
+        dth = torch.remainder(rel_x[..., 2] - rel_y[..., 2] + math.pi, 2 * math.pi) - math.pi
+        assert dth.abs().max() < 1e-9
+        assert torch.allclose(union.value(x, 1.0), union.value(y, 1.0), atol=1e-6)
+
+
+def test_union_is_symmetric_under_relabelling(pair_grid):
+    system = MultiVehicle9D()
+    union = PairwiseUnion(system, pair_grid)
+    x = system.sample_states(2000, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    v = union.value(x, 1.0)
+    for perm in ((1, 0, 2), (2, 1, 0), (1, 2, 0)):
+        idx = [2 * p + k for p in perm for k in (0, 1)] + [6 + p for p in perm]
+        w = union.value(x[:, idx], 1.0)
+        # relabelling swaps which car's frame a pair is seen from; the grid's two frames of one pair
+        # agree up to its interpolation error near the BRT (far away, the clamped edges of the
+        # 3.2 x 3.2 pair box differ, but there both values are large and positive)
+        near = v < 0.5
+        assert (w[near] - v[near]).abs().max() < 0.03
+        assert (w[~near] > 0.4).all()
+        assert ((w <= 0) == (v <= 0)).float().mean() > 0.995
+
+
+def test_head_on_cars_are_in_the_union(pair_grid):
+    union = PairwiseUnion(MultiVehicle9D(), pair_grid)
+    # cars 1 and 2 head-on 0.4 apart (closing at 1.2/s), car 3 far away: a pairwise collision
+    x = torch.tensor([[-0.2, 0.0, 0.2, 0.0, 0.9, 0.9, 0.0, math.pi - 1e-6, 0.0]], dtype=torch.float64)
+    assert float(union.value(x, 1.0)) <= 0
+    assert int(union.pair_values(x, 1.0).argmin()) == 0  # the (1, 2) pair is the minimiser
+    # and the union is never above l(x): the pair values start from the pair margins
+    y = MultiVehicle9D().sample_states(1000, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    assert (union.value(y, 1.0) <= MultiVehicle9D().failure_margin(y) + 0.02).all()
+
+
+def test_two_cars_under_pairwise_policy_do_not_collide(pair_grid):
+    two = MultiVehicle([Car(0.6, 1.1, "control"), Car(0.6, 1.1, "control")], horizon=1.0)
+    union = PairwiseUnion(two, pair_grid)
+    x = two.sample_states(4000, generator=torch.Generator().manual_seed(3))
+    v = union.value(x, 1.0)
+    start = x[v > 0.05]
+    assert start.shape[0] > 1000
+    result = rollout(union, start, progress=False)
+    assert int(result.collided.sum()) == 0
+    inside = x[(v < -0.05) & (two.failure_margin(x) > 0)]
+    assert inside.shape[0] > 20
+    assert rollout(union, inside, progress=False).collided.float().mean() > 0.9
+
+
+def test_pair_npz_loads_as_union_for_nine_d(pair_grid, tmp_path):
+    path = tmp_path / "pair.npz"
+    pair_grid.save(path)
+    loaded = load_value_function(path, system="multivehicle9d")
+    assert loaded.kind == "pairwise" and isinstance(loaded.value_function, PairwiseUnion)
+    x = MultiVehicle9D().sample_states(10)
+    assert loaded.value_function.gradient(x, 1.0).shape == (10, 9)
+    with pytest.raises(ValueError, match="NaN or inf"):
+        loaded.value_function.value(torch.full((1, 9), float("nan")), 1.0)
