@@ -2,8 +2,9 @@
 
 Subcommands only parse arguments and call library functions: ``envs`` (list environments and
 scenes), ``record`` (run an episode and save a GIF), ``groundtruth`` (grid BRT solve), ``train``
-(value networks), ``evaluate`` (rollout verification across checkpoints) and ``plot`` (BRT slices,
-violation bars, safety-filtered episode GIFs).
+(value networks), ``evaluate`` (rollout verification across checkpoints), ``filter-eval`` (what a
+safety filter changes in episodes of a task) and ``plot`` (BRT slices, union overlays, violation
+bars, safety-filtered episode GIFs).
 """
 
 from __future__ import annotations
@@ -206,9 +207,106 @@ def _cmd_plot(args: argparse.Namespace) -> int:
         load_value_function(p, format=args.format, system=args.system, layout=args.layout)
         for p in expand_sources(args.sources)
     ]
-    reference = load_value_function(args.ground_truth).value_function if args.ground_truth else None
     vfs = [(lv.label, lv.value_function) for lv in loaded]
-    print(f"wrote {plots.plot_brt_slices(vfs, args.out, t=args.t, reference=reference)}")
+    system = vfs[0][1].system
+    slices = [plots.parse_slice(s, system) for s in args.slice] if args.slice else None
+    if args.kind == "union":
+        if not args.pairwise:
+            raise ValueError("plot union needs --pairwise PAIR.npz (reach groundtruth relativepair ...)")
+        union = load_value_function(args.pairwise, format="grid", system=system).value_function
+        print(f"wrote {plots.plot_union_overlay(vfs, union, args.out, slices=slices, t=args.t)}")
+        return 0
+    reference = load_value_function(args.ground_truth).value_function if args.ground_truth else None
+    print(f"wrote {plots.plot_brt_slices(vfs, args.out, t=args.t, slices=slices, reference=reference)}")
+    return 0
+
+
+def _cmd_filter_eval(args: argparse.Namespace) -> int:
+    from reach_envs.scenes import make_scene
+    from safety.evaluate import expand_sources
+    from safety.filter_eval import (
+        FilterConfig,
+        evaluate_filter_parallel,
+        evaluate_filters,
+        filter_table,
+        outside_states,
+        record_side_by_side,
+        worst_case_disturbance,
+        write_filter_results,
+    )
+    from safety.plots import plot_filter_tradeoff
+    from safety.value_functions import load_value_function
+
+    scene = make_scene(args.scene)
+    system = scene.system
+    loaded = [
+        load_value_function(p, format=args.format, system=system, layout=args.layout)
+        for p in (expand_sources(args.value_functions) if args.value_functions else [])
+    ]
+    overrides: dict = {}
+    if args.pursuer != "scene":
+        if not system.disturbance_dim:
+            raise ValueError(f"--pursuer {args.pursuer}: scene {args.scene} has no disturbance input")
+        if args.pursuer == "worst-case":
+            source = args.adversary or (str(loaded[0].path) if loaded else None)
+            if source is None:
+                raise ValueError("--pursuer worst-case needs --adversary VF (or a value function to filter with)")
+            adversary = load_value_function(source, system=system).value_function
+            overrides["disturbance"] = worst_case_disturbance(adversary)
+        else:
+            overrides["disturbance"] = args.pursuer
+    initial = None
+    if args.start_outside:
+        reference = load_value_function(args.start_outside, system=system).value_function
+        initial = outside_states(reference, args.episodes, args.start_margin, args.seed)
+    thresholds = [float(v) for v in args.thresholds.split(",")] if args.thresholds else [None]
+    configs = [FilterConfig("nominal")]
+    for lv in loaded:
+        configs += [FilterConfig(lv.label, lv.value_function, th) for th in thresholds]
+    ttg = args.time_to_go if args.time_to_go in (None, "remaining") else float(args.time_to_go)
+    if args.pettingzoo:
+        rows = [
+            evaluate_filter_parallel(scene, c, args.episodes, args.seed, ttg, scene_overrides=overrides)
+            for c in configs
+        ]
+    else:
+        rows = evaluate_filters(
+            scene, configs, args.episodes, args.seed, ttg, scene_overrides=overrides, initial_states=initial
+        )
+    for row, config in zip(rows, configs):
+        row["value_function"] = config.label
+        row["label"] = config.label if row["threshold"] is None else f"{config.label} @ {row['threshold']:.3g}"
+    header = {
+        "format": "reach.filter-eval.v1",
+        "scene": args.scene,
+        "episodes": args.episodes,
+        "seed": args.seed,
+        "pursuer": args.pursuer,
+        "time_to_go": args.time_to_go or "value function horizon",
+        "start_outside": args.start_outside,
+        "start_margin": args.start_margin if args.start_outside else None,
+        "path": "pettingzoo" if args.pettingzoo else "vector",
+    }
+    write_filter_results(rows, args.out, header)
+    print(filter_table(rows))
+    out = Path(args.out)
+    print(f"\nwrote {out.with_suffix('.csv')}, {out.with_suffix('.json')}, {out.with_suffix('.md')}")
+    print(f"wrote {plot_filter_tradeoff(rows, out.with_name(out.stem + '_tradeoff.png'), title=args.scene)}")
+    if args.gif and loaded:
+        # show episodes in which the nominal policy crashed (else the first three)
+        picks = list(dict.fromkeys(rows[0]["collided_episodes"][:3] + [0, 1, 2]))[:3]
+        starts = initial[picks] if initial is not None else None
+        gif = record_side_by_side(
+            scene,
+            loaded[0].value_function,
+            args.gif,
+            thresholds[0],
+            [args.seed + i for i in picks],
+            ttg,
+            scene_overrides=overrides,
+            initial_states=starts,
+        )
+        print(f"wrote {gif} (left: nominal, right: filtered by {loaded[0].label})")
     return 0
 
 
@@ -297,10 +395,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="results.csv", help="results path; .csv, .json and .md are written")
     p.set_defaults(func=_cmd_evaluate)
 
-    p = sub.add_parser("plot", help="BRT slices, violation bars or a safety-filtered episode GIF")
-    p.add_argument("kind", choices=["slices", "bars", "episode"])
+    p = sub.add_parser("plot", help="BRT slices, union-of-pairs overlays, violation bars or a filtered-episode GIF")
+    p.add_argument("kind", choices=["slices", "union", "bars", "episode"])
     p.add_argument("sources", nargs="+", help="value functions (slices, episode) or a results .json (bars)")
     p.add_argument("--ground-truth", default=None, help="grid .npz drawn as the reference BRT (slices)")
+    p.add_argument("--pairwise", default=None, help="two-car grid .npz whose union is overlaid (union)")
+    p.add_argument(
+        "--slice",
+        action="append",
+        default=None,
+        help="slice 'name=value,...;axis1,axis2', e.g. 'x2=-0.4,th1=pi/2;x1,y1' (repeatable; default per system)",
+    )
     p.add_argument("--t", type=float, default=None, help="time-to-go of the slices (default: the system's horizon)")
     p.add_argument("--format", choices=["auto", "reach", "deepreach", "grid"], default="auto")
     p.add_argument("--system", default=None)
@@ -310,6 +415,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, help="PNG (slices, bars) or GIF (episode)")
     p.set_defaults(func=_cmd_plot)
+
+    p = sub.add_parser(
+        "filter-eval", help="episodes of a goal-seeking task with and without the safety filter: safety vs task"
+    )
+    p.add_argument("value_functions", nargs="*", help="value functions to filter with (runs, .pt, .pth, .npz)")
+    p.add_argument("--scene", default="air3d", help="named scene (air3d, three-car-merge, three-car-crossing, ...)")
+    p.add_argument("--episodes", type=int, default=1000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--thresholds", default=None, help="comma-separated filter thresholds (default: 2 x rate bound x dt)"
+    )
+    p.add_argument("--time-to-go", default=None, help="None (value function horizon), a number, or 'remaining'")
+    p.add_argument("--pursuer", choices=["scene", "pursue", "random", "worst-case"], default="scene")
+    p.add_argument("--adversary", default=None, help="value function whose d* the worst-case pursuer plays")
+    p.add_argument("--start-outside", default=None, help="value function: start only from {V > margin}")
+    p.add_argument("--start-margin", type=float, default=0.1)
+    p.add_argument("--format", choices=["auto", "reach", "deepreach", "grid"], default="auto")
+    p.add_argument("--layout", default=None, help="layout (needed for DeepReach files)")
+    p.add_argument("--pettingzoo", action="store_true", help="run through the PettingZoo parallel env instead")
+    p.add_argument("--gif", default=None, help="also write a side-by-side GIF (nominal | filtered) of 3 episodes")
+    p.add_argument("--out", default="filter.csv", help="results path; .csv, .json and .md are written")
+    p.set_defaults(func=_cmd_filter_eval)
 
     return parser
 

@@ -245,6 +245,18 @@ def _scene_three_car_merge() -> Scene:
     )
 
 
+def _scene_three_car_crossing() -> Scene:
+    poses = [(-0.8, -0.1, 0.0), (0.1, -0.8, math.pi / 2), (0.8, 0.1, math.pi)]
+    return Scene.from_cars(
+        _cars(3),
+        name="three-car-crossing",
+        initial_state=FixedState(_poses_state(poses), _jitter(3)),
+        horizon=2.0,
+        arena=1.5,
+        trails=True,
+    )
+
+
 #: Named scenes: name -> factory.
 SCENES: dict[str, Callable[[], Scene]] = {
     "air3d": _scene_air3d,
@@ -253,6 +265,7 @@ SCENES: dict[str, Callable[[], Scene]] = {
     "head-on": _scene_head_on,
     "crossing": _scene_crossing,
     "three-car-merge": _scene_three_car_merge,
+    "three-car-crossing": _scene_three_car_crossing,
 }
 
 

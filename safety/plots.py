@@ -173,3 +173,125 @@ def record_filtered_episode(
     summary = record_episode(env, path, seed=seed, every=every)
     env.close()
     return summary
+
+
+def parse_slice(text: str, system: ControlAffineSystem) -> SliceSpec:
+    """A slice from ``"x2=-0.4,y2=0,...;x1,y1"``: fixed values by state name, then the two axes.
+
+    Unnamed dimensions sit at the centre of their domain (the DeepReach slice's defaults for 9D).
+    """
+    names = list(system.state_names)
+    try:
+        fixed, axes = text.split(";")
+    except ValueError:
+        raise ValueError(f"slice {text!r} must look like 'name=value,...;axis1,axis2'") from None
+    base = list(DEEPREACH_9D_SLICE) if len(names) == 9 else [0.5 * (a + b) for a, b in system.domain]
+    for item in filter(None, (s.strip() for s in fixed.split(","))):
+        key, _, value = item.partition("=")
+        if key not in names:
+            raise ValueError(f"slice: unknown state name {key!r}; names are {names}")
+        base[names.index(key)] = float(eval_number(value))
+    axis_names = [a.strip() for a in axes.split(",")]
+    if len(axis_names) != 2 or any(a not in names for a in axis_names):
+        raise ValueError(f"slice: give two axes among {names}, got {axes!r}")
+    return SliceSpec(tuple(base), (names.index(axis_names[0]), names.index(axis_names[1])), fixed)
+
+
+def eval_number(text: str) -> float:
+    """A float, allowing ``pi`` multiples such as ``3pi/4``, ``-pi/2`` or ``0.5pi``."""
+    t = text.strip().replace(" ", "")
+    if "pi" not in t:
+        return float(t)
+    head, _, tail = t.partition("pi")
+    factor = -1.0 if head == "-" else (1.0 if head in ("", "+") else float(head))
+    divisor = float(tail[1:]) if tail.startswith("/") else 1.0
+    if tail and not tail.startswith("/"):
+        raise ValueError(f"cannot read {text!r} as a number")
+    return factor * math.pi / divisor
+
+
+def plot_union_overlay(
+    value_functions: Sequence[tuple[str, ValueFunction]],
+    union: ValueFunction,
+    path: str | os.PathLike,
+    slices: Sequence[SliceSpec] | None = None,
+    t: float | None = None,
+    resolution: int = 161,
+) -> Path:
+    """One panel per (model, slice): the learned BRT, the union of pairwise BRTs, and where the
+    union is *not* inside the learned BRT (provably wrong there), in distinct colours."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.colors import ListedColormap
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Patch
+
+    if not value_functions:
+        raise ValueError("give at least one value function to overlay on the union")
+    system = union.system
+    t = system.horizon if t is None else float(t)
+    slices = list(slices) if slices is not None else default_slices(system)
+    rows, cols = len(value_functions), len(slices)
+    fig = Figure(figsize=(3.8 * cols, 3.6 * rows + 0.6), dpi=100)
+    FigureCanvasAgg(fig)
+    # 0 outside both, 1 learned only, 2 both, 3 union only (missed)
+    cmap = ListedColormap(["white", "#9ecae1", "#756bb1", "#de2d26"])
+    for r, (label, vf) in enumerate(value_functions):
+        for c, spec in enumerate(slices):
+            ax = fig.add_subplot(rows, cols, r * cols + c + 1)
+            a, b, x = slice_states(system, spec, resolution)
+            learned = (vf.value(x, t).detach().cpu() <= 0).reshape(resolution, resolution).numpy()
+            inside_union = (union.value(x, t) <= 0).reshape(resolution, resolution).numpy()
+            code = np.where(inside_union, np.where(learned, 2, 3), np.where(learned, 1, 0))
+            ax.pcolormesh(a, b, code.T, cmap=cmap, vmin=-0.5, vmax=3.5, shading="auto")
+            missed = float((inside_union & ~learned).sum()) / max(1, int(inside_union.sum()))
+            ax.set_title(f"{label}: misses {100 * missed:.1f} % of union", fontsize=8)
+            ax.set_xlabel(system.state_names[spec.axes[0]])
+            ax.set_ylabel(system.state_names[spec.axes[1]])
+            ax.set_aspect("equal")
+    handles = [
+        Patch(color="#9ecae1", label="learned BRT only"),
+        Patch(color="#756bb1", label="learned BRT and union"),
+        Patch(color="#de2d26", label="union only (learned model wrong)"),
+    ]
+    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8)
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    return Path(path)
+
+
+def plot_filter_tradeoff(rows: Sequence[dict[str, Any]], path: str | os.PathLike, title: str = "") -> Path:
+    """Collision rate (with its interval) against goal-reaching rate; one curve per value function
+    across thresholds, the nominal policy as a single point."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    if not rows:
+        raise ValueError("no filter-evaluation rows to plot")
+    fig = Figure(figsize=(5.6, 4.2), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault(r.get("value_function", r["label"]) if r["filtered"] else "nominal", []).append(r)
+    for k, (name, rs) in enumerate(groups.items()):
+        rs = sorted(rs, key=lambda r: r["threshold"] if r["threshold"] is not None else -1)
+        x = [r["goal_rate"] for r in rs]
+        y = [100 * r["collision_rate"] for r in rs]
+        err = [
+            [max(0.0, 100 * (r["collision_rate"] - r["collision_ci_low"])) for r in rs],
+            [max(0.0, 100 * (r["collision_ci_high"] - r["collision_rate"])) for r in rs],
+        ]
+        style = "s" if name == "nominal" else "o-"
+        ax.errorbar(x, y, yerr=err, fmt=style, color="k" if name == "nominal" else f"C{k}", capsize=3, label=name)
+        for r, xi, yi in zip(rs, x, y):
+            if r["threshold"] is not None:
+                ax.annotate(f"{r['threshold']:g}", (xi, yi), textcoords="offset points", xytext=(4, 4), fontsize=7)
+    ax.set_xlabel("goal-reaching rate")
+    ax.set_ylabel("collision rate (%)")
+    ax.set_title(title or "safety against task performance (labels: thresholds)", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    return Path(path)

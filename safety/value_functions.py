@@ -83,7 +83,9 @@ def load_value_function(
     Args:
         path: a run directory, a checkpoint ``.pt``, a DeepReach ``.pth`` or a grid ``.npz``.
         format: ``auto`` guesses from the suffix (see :func:`detect_format`).
-        system: the expected system (required for DeepReach files, which do not store it).
+        system: the expected system (required for DeepReach files, which do not store it); a
+            stored system with the same physics (:meth:`physics_config`: horizon and sampling box
+            may differ) is accepted.
         layout: the expected layout (required for DeepReach files).
         device: where a network's weights go (grid tables follow the states' device).
 
@@ -105,7 +107,7 @@ def load_value_function(
         if isinstance(sol.system, RelativePair) and isinstance(system, MultiVehicle):
             # a two-car solution evaluated on a multi-vehicle state: the union of pairwise BRTs
             return LoadedValueFunction(PairwiseUnion(system, sol), p, "pairwise", "pairwise union", name)
-        if system is not None and sol.system != system:
+        if system is not None and sol.system.physics_config() != system.physics_config():
             raise ValueError(f"{p}: grid solution is for {sol.system.config()}, not {system.config()}")
         return LoadedValueFunction(sol, p, "grid", "grid", name)
     if kind == "deepreach":
@@ -113,5 +115,7 @@ def load_value_function(
             raise ValueError(f"{p}: a DeepReach state dict stores neither system nor layout; give both")
         net = load_deepreach(p, system, layout).to(device)
         return LoadedValueFunction(NeuralValueFunction(net), p, "deepreach", layout, name)
-    net = load_network(p, system=system, layout=layout, device=device)
+    net = load_network(p, layout=layout, device=device)
+    if system is not None and net.system.physics_config() != system.physics_config():
+        raise ValueError(f"{p}: checkpoint is for system {net.system.config()}, not {system.config()}")
     return LoadedValueFunction(NeuralValueFunction(net), p, "reach", net.layout, name)

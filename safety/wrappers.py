@@ -43,9 +43,10 @@ def _resolve_value_function(value_function: ValueFunction | str, system: Any, de
     )
     if not isinstance(vf, ValueFunction):
         raise ValueError(f"value_function must be a ValueFunction or a path, got {type(value_function).__name__}")
-    if vf.system != system:
+    if vf.system.physics_config() != system.physics_config():
         raise ValueError(
-            f"value function is for system {vf.system.config()}, but the environment simulates {system.config()}"
+            f"value function is for system {vf.system.physics_config()}, "
+            f"but the environment simulates {system.physics_config()}"
         )
     return vf
 

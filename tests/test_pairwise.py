@@ -94,3 +94,24 @@ def test_pair_npz_loads_as_union_for_nine_d(pair_grid, tmp_path):
     assert loaded.value_function.gradient(x, 1.0).shape == (10, 9)
     with pytest.raises(ValueError, match="NaN or inf"):
         loaded.value_function.value(torch.full((1, 9), float("nan")), 1.0)
+
+
+def test_union_overlay_plot_and_slice_parsing(pair_grid, tmp_path):
+    from reach.cli import main
+    from safety.plots import DEEPREACH_9D_SLICE, eval_number, parse_slice
+    from training import ValueNetwork, save_checkpoint
+
+    assert eval_number("3pi/4") == pytest.approx(3 * math.pi / 4) and eval_number("-pi") == -math.pi
+    spec = parse_slice("x2=-0.5,th1=pi/4;x1,y1", MultiVehicle9D())
+    assert spec.axes == (0, 1) and spec.base[2] == -0.5 and spec.base[6] == pytest.approx(math.pi / 4)
+    assert spec.base[4] == DEEPREACH_9D_SLICE[4]
+    with pytest.raises(ValueError, match="unknown state name"):
+        parse_slice("q=1;x1,y1", MultiVehicle9D())
+    pair = tmp_path / "pair.npz"
+    pair_grid.save(pair)
+    ckpt = tmp_path / "net.pt"
+    save_checkpoint(ckpt, ValueNetwork(MultiVehicle9D(), "ssrsl", width=16))
+    out = tmp_path / "union.png"
+    args = ["plot", "union", str(ckpt), str(pair), "--system", "multivehicle9d", "--pairwise", str(pair)]
+    assert main([*args, "--slice", "th1=0;x1,y1", "--slice", ";x1,y1", "--out", str(out)]) == 0
+    assert out.stat().st_size > 5000

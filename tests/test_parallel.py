@@ -11,7 +11,7 @@ from pettingzoo.utils.conversions import parallel_to_aec
 
 from reach_envs.parallel import MultiVehicleParallelEnv, parallel_env
 
-SCENES = ["three-car-9d", "pursuit-evasion-6d", "head-on", "crossing", "three-car-merge"]
+SCENES = ["three-car-9d", "pursuit-evasion-6d", "head-on", "crossing", "three-car-merge", "three-car-crossing"]
 
 
 # Positions are unbounded on purpose (see tests/test_envs.py); PettingZoo's api_test warns about that.

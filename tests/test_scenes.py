@@ -111,7 +111,7 @@ def test_named_scenes_run(name):
 
 
 def test_scene_collisions_happen_in_the_collision_scenes():
-    for name in ("head-on", "crossing", "three-car-merge"):
+    for name in ("head-on", "crossing", "three-car-merge", "three-car-crossing"):
         env = ReachEnv(name)
         env.reset(seed=0)
         collided = False

@@ -143,6 +143,13 @@ class ControlAffineSystem(ABC):
         """Constructor arguments that rebuild this system (JSON-serialisable)."""
         return {}
 
+    def physics_config(self) -> dict[str, Any]:
+        """What the dynamics, input boxes and failure set depend on: :meth:`config` without the
+        horizon and the sampling box. Two systems with equal physics can share a value function
+        (e.g. a 9D network filters a 2 s merge scene of the same three cars)."""
+        params = {k: v for k, v in self.parameters().items() if k not in ("horizon", "half_width")}
+        return {"name": self.name, "parameters": params}
+
     # ------------------------------------------------------------------ description
     @property
     def state_dim(self) -> int:

@@ -104,6 +104,11 @@ class MultiVehicle(ControlAffineSystem):
             "half_width": self.half_width,
         }
 
+    def physics_config(self) -> dict[str, Any]:
+        """Cars (speed, turn bound, role, in order) and collision radius, whatever the subclass."""
+        cars = [[c.speed, c.max_turn_rate, c.role] for c in self.cars]
+        return {"name": "multivehicle", "parameters": {"cars": cars, "collision_radius": self.collision_radius}}
+
     @property
     def num_cars(self) -> int:
         return len(self.cars)
