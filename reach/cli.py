@@ -294,7 +294,7 @@ def _cmd_filter_eval(args: argparse.Namespace) -> int:
     print(f"wrote {plot_filter_tradeoff(rows, out.with_name(out.stem + '_tradeoff.png'), title=args.scene)}")
     if args.gif and loaded:
         # show episodes in which the nominal policy crashed (else the first three)
-        picks = list(dict.fromkeys(rows[0]["collided_episodes"][:3] + [0, 1, 2]))[:3]
+        picks = list(dict.fromkeys([*rows[0]["collided_episodes"][:3], 0, 1, 2]))[:3]
         starts = initial[picks] if initial is not None else None
         gif = record_side_by_side(
             scene,

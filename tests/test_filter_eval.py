@@ -1,0 +1,101 @@
+"""Filter evaluation over episodes: control experiments, PettingZoo = vector, the CLI end to end."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from reach.cli import main
+from reach_envs.systems import MultiVehicle9D
+from safety.filter_eval import (
+    FilterConfig,
+    evaluate_filter_parallel,
+    evaluate_filters,
+    outside_states,
+    worst_case_disturbance,
+)
+from safety.tasks import EvaderGoalTask, WaypointTask
+from training import NeuralValueFunction, ValueNetwork
+
+
+def test_grid_filter_stops_worst_case_attacks_from_outside_the_brt(air3d_grid):
+    starts = outside_states(air3d_grid, 400, 0.1, seed=0)
+    assert (air3d_grid.value(torch.as_tensor(starts), 1.1) > 0.1).all()
+    overrides = {"disturbance": worst_case_disturbance(air3d_grid)}
+    rows = evaluate_filters(
+        "air3d",
+        [FilterConfig("nominal"), FilterConfig("grid", air3d_grid)],
+        episodes=400,
+        seed=0,
+        scene_overrides=overrides,
+        initial_states=starts,
+    )
+    nominal, filtered = rows
+    assert nominal["collision_rate"] > 0.05  # the attack works on the unfiltered evader
+    assert filtered["collision_rate"] == 0.0
+    assert filtered["threshold"] == pytest.approx(0.06)  # 2 x (0.75 + 0.75) x 0.02
+    assert 0 < filtered["intervention_rate"] < 0.5 and filtered["mean_input_change"] > 0
+    assert nominal["intervention_rate"] == 0 and nominal["mean_input_change"] == 0
+    assert 0 < filtered["goal_rate"] <= 1 and 0 < filtered["mean_goal_time"] <= 1.1
+
+
+def test_untrained_network_shows_its_failure():
+    torch.manual_seed(0)
+    vf = NeuralValueFunction(ValueNetwork(MultiVehicle9D(), "ssssl", width=16))
+    nominal, filtered = evaluate_filters(
+        "three-car-merge", [FilterConfig("nominal"), FilterConfig("untrained", vf, 0.1)], episodes=30, seed=0
+    )
+    assert nominal["collision_rate"] == 1.0  # the merge is a pile-up without a filter
+    assert filtered["collision_rate"] > 0.5  # a network that knows nothing does not fix it, visibly
+
+
+@pytest.mark.parametrize("scene", ["three-car-crossing", "head-on"])
+def test_pettingzoo_path_gives_the_vector_numbers(scene):
+    torch.manual_seed(1)
+    from reach_envs.scenes import make_scene
+
+    system = make_scene(scene).system
+    vf = NeuralValueFunction(ValueNetwork(system if scene == "head-on" else MultiVehicle9D(), "ssrsl", width=16))
+    for config in (FilterConfig("nominal"), FilterConfig("net", vf, 0.2)):
+        (vector,) = evaluate_filters(scene, [config], episodes=12, seed=3)
+        parallel = evaluate_filter_parallel(scene, config, episodes=12, seed=3)
+        for key in ("collision_rate", "intervention_rate", "goal_rate", "mean_input_change"):
+            assert parallel[key] == pytest.approx(vector[key], abs=1e-9), key
+
+
+def test_tasks_steer_toward_goals():
+    task = WaypointTask(MultiVehicle9D())
+    x = np.array([[0.0, 0.0, 0.5, 0.5, -0.5, 0.5, 0.0, np.pi / 2, -np.pi / 2]])
+    task.reset(x, np.random.default_rng(0))
+    assert np.allclose(task.goals[0, 0], [1.0, 0.0]) and np.allclose(task.goals[0, 1], [0.5, 1.5])
+    assert np.allclose(task.nominal_actions(x), 0.0)  # already pointing at their goals
+    from reach_envs.systems import Air3D
+
+    evader = EvaderGoalTask(Air3D(), spread=0.0)
+    evader.reset(np.zeros((2, 3)), np.random.default_rng(0))
+    # a full-rate turn for 0.5 s traces an exact arc of radius v / w
+    evader.advance(np.zeros((2, 3)), np.array([[3.0], [0.0]]), 0.5, np.array([True, True]), 0.5)
+    r = 0.75 / 3.0
+    assert evader.pose[0] == pytest.approx([r * np.sin(1.5), r * (1 - np.cos(1.5)), 1.5])
+    assert evader.pose[1] == pytest.approx([0.375, 0.0, 0.0])
+
+
+def test_filter_eval_cli(air3d_grid, tmp_path: Path, capsys):
+    grid = tmp_path / "air3d.npz"
+    air3d_grid.save(grid)
+    out = tmp_path / "fe.csv"
+    args = ["filter-eval", str(grid), "--episodes", "60", "--thresholds", "0.03,0.1", "--pursuer", "worst-case"]
+    assert main([*args, "--start-outside", str(grid), "--out", str(out), "--gif", str(tmp_path / "fe.gif")]) == 0
+    table = capsys.readouterr().out
+    assert "| configuration | threshold | collision % [95 % CI] |" in table
+    data = json.loads(out.with_suffix(".json").read_text())
+    assert [r["label"] for r in data["results"]] == ["nominal", "air3d @ 0.03", "air3d @ 0.1"]
+    assert data["pursuer"] == "worst-case" and data["path"] == "vector"
+    assert (tmp_path / "fe_tradeoff.png").stat().st_size > 5000
+    assert (tmp_path / "fe.gif").stat().st_size > 10000
+    assert main(["filter-eval", "--scene", "three-car-merge", "--pursuer", "random", "--out", str(out)]) == 2
+    assert "no disturbance" in capsys.readouterr().err
