@@ -20,7 +20,7 @@ import torch
 
 from groundtruth.solution import GridSolution
 from groundtruth.solver import solve
-from reach_envs.systems import MultiVehicle, RelativePair
+from reach_envs.systems import MultiVehicle, RelativePair, system_from_config
 
 
 def pair_system(system: MultiVehicle, i: int, j: int, half_width: float = 1.6) -> RelativePair:
@@ -75,7 +75,9 @@ class PairwiseUnion:
             every pair whose problem equals that solution's system.
 
     Relative positions beyond a pair grid's box use its edge value (``outside="clamp"``): such cars
-    are at least ``half_width`` apart, farther than the cars can close within the horizon.
+    are at least ``half_width`` apart, farther than the cars can close within the horizon. Pairs
+    match solutions by physics (:meth:`physics_config`), and the union's ``system`` is the given one
+    with the horizon of its solutions, so it can filter a longer scene of the same cars.
     """
 
     def __init__(self, system: MultiVehicle, solutions: GridSolution | dict[RelativePair, GridSolution]) -> None:
@@ -83,17 +85,22 @@ class PairwiseUnion:
             raise ValueError(f"PairwiseUnion needs a multi-vehicle system, got {system.name}")
         if isinstance(solutions, GridSolution):
             solutions = {solutions.system: solutions}
-        self.system = system
         self.pairs = _ordered_pairs(system)
         self._solutions = []
         for i, j in self.pairs:
-            match = [s for pair, s in solutions.items() if pair == pair_system(system, i, j, pair.half_width)]
+            wanted = pair_system(system, i, j).physics_config()
+            match = [s for pair, s in solutions.items() if pair.physics_config() == wanted]
             if not match:
                 raise ValueError(
                     f"no pair solution for cars ({i}, {j}) of {system.config()}; have {[p.config() for p in solutions]}"
                 )
             match[0].outside = "clamp"
             self._solutions.append(match[0])
+        # the union is a value function up to the horizon its pair solutions reach
+        horizon = min(float(sol.times[-1]) for sol in self._solutions)
+        config = system.config()
+        config["parameters"] = {**config["parameters"], "horizon": horizon}
+        self.system = system_from_config(config) if "horizon" in system.parameters() else system
 
     def relative_states(self, x: torch.Tensor) -> torch.Tensor:
         """``(..., pairs, 3)``: car j relative to car i, in i's frame, for each failure pair."""
@@ -124,8 +131,9 @@ class PairwiseUnion:
             xg = x.detach().requires_grad_(True)
             rel = self.relative_states(xg)
             detached = rel.detach()
-            values = torch.stack([s.value(detached[..., k, :], t) for k, s in enumerate(self._solutions)], -1)
-            grads = torch.stack([s.gradient(detached[..., k, :], t) for k, s in enumerate(self._solutions)], -2)
+            both = [s.value_and_gradient(detached[..., k, :], t) for k, s in enumerate(self._solutions)]
+            values = torch.stack([v for v, _ in both], -1)
+            grads = torch.stack([g for _, g in both], -2)
             best = values.argmin(dim=-1)
             mask = torch.nn.functional.one_hot(best, len(self.pairs)).to(x.dtype).unsqueeze(-1)
             (g,) = torch.autograd.grad(rel, xg, grad_outputs=grads * mask)

@@ -57,7 +57,12 @@ class GridSolution:
     def _table(self, kind: str, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
         key = (kind, dtype, device)
         if key not in self._cache:
-            src = self.values if kind == "value" else self._grid_gradients()
+            if kind == "value":
+                src = self.values
+            elif kind == "gradient":
+                src = self._grid_gradients()
+            else:  # value and gradient side by side: one interpolation serves both
+                src = torch.cat([self.values.unsqueeze(-1), self._grid_gradients()], dim=-1)
             self._cache[key] = src.to(dtype=dtype, device=device)
         return self._cache[key]
 
@@ -91,7 +96,10 @@ class GridSolution:
         if not torch.isfinite(tt).all() or (tt < times[0] - 1e-9).any() or (tt > times[-1] + 1e-9).any():
             raise ValueError(f"t must lie in the stored range [{times[0].item()}, {times[-1].item()}], got {t}")
         # time bracket
-        k1 = torch.searchsorted(times, tt.clamp(times[0], times[-1]), right=False).clamp(1, max(len(times) - 1, 1))
+        # one bracket for a scalar time (the common case); searchsorted over an expanded tensor is slow
+        lookup = tt[:1].contiguous() if (isinstance(t, (int, float)) or torch.as_tensor(t).ndim == 0) else tt
+        k1 = torch.searchsorted(times, lookup.clamp(times[0], times[-1]), right=False).clamp(1, max(len(times) - 1, 1))
+        k1 = k1.expand(m) if lookup.shape[0] != m else k1
         if len(times) == 1:
             k0 = k1 = torch.zeros_like(k1)
             wt = torch.zeros(m, dtype=table.dtype, device=x.device)
@@ -141,6 +149,11 @@ class GridSolution:
     def gradient(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
         """``grad_x V(x, t)``, shape ``(..., n)``."""
         return self._interpolate(self._table("gradient", x.dtype, x.device), x, t)
+
+    def value_and_gradient(self, x: torch.Tensor, t: float | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(V, grad V)`` from one interpolation of a combined table."""
+        both = self._interpolate(self._table("both", x.dtype, x.device), x, t)
+        return both[..., 0], both[..., 1:]
 
     # ------------------------------------------------------------------ files
     def save(self, path: str | os.PathLike) -> Path:

@@ -177,6 +177,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         format=args.format,
         layout=args.layout,
         ground_truth=args.ground_truth,
+        gt_time=args.gt_time,
         pairwise=args.pairwise,
         device=args.device,
     )
@@ -387,6 +388,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--system", default=None, help="system name (needed for DeepReach files)")
     p.add_argument("--layout", default=None, help="layout (needed for DeepReach files)")
     p.add_argument("--ground-truth", default=None, help="grid .npz to score IoU and MSE against")
+    p.add_argument("--gt-time", type=float, default=None, help="time of that comparison (default: last stored)")
     p.add_argument(
         "--pairwise", default=None, help="two-car grid .npz (reach groundtruth relativepair): containment metric"
     )

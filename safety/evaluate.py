@@ -126,7 +126,10 @@ def _previous(out: Path, header: dict[str, Any]) -> dict[str, dict[str, Any]]:
         data = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as err:
         raise ValueError(f"{path}: existing results are unreadable ({err}); move the file away to start over") from err
-    if any(data.get(key) != header[key] for key in ("format", "settings", "system", "ground_truth", "pairwise")):
+    if any(
+        data.get(key) != header[key]
+        for key in ("format", "settings", "system", "ground_truth", "ground_truth_time", "pairwise")
+    ):
         raise ValueError(
             f"{path} holds results for other settings ({data.get('settings')}, system {data.get('system')}); "
             "use another --out or delete it"
@@ -179,6 +182,7 @@ def evaluate_many(
         "system": system.config(),
         "settings": settings.to_dict(),
         "ground_truth": str(Path(ground_truth).resolve()) if ground_truth else None,
+        "ground_truth_time": gt_time,
         "pairwise": str(Path(pairwise).resolve()) if pairwise else None,
     }
     done = _previous(out, header)

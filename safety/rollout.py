@@ -32,7 +32,6 @@ from tqdm.auto import tqdm
 
 from reach_envs.systems.value_function import ValueFunction
 from safety.policy import check_states
-from safety.value_functions import value_and_gradient
 
 DisturbanceSpec = Literal["optimal", "none"] | Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -124,7 +123,7 @@ def rollout(
     use_disturbance = system.disturbance_dim > 0 and disturbance != "none"
 
     def step(x: torch.Tensor, t: float) -> torch.Tensor:
-        _, p = value_and_gradient(value_function, x, t)
+        p = value_function.gradient(x, t)  # networks fuse it with the value; grids interpolate it alone
         u = system.optimal_control(x, p)
         if not use_disturbance:
             d = None
