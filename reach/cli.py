@@ -3,8 +3,8 @@
 Subcommands only parse arguments and call library functions: ``envs`` (list environments and
 scenes), ``record`` (run an episode and save a GIF), ``groundtruth`` (grid BRT solve), ``train``
 (value networks), ``evaluate`` (rollout verification across checkpoints), ``filter-eval`` (what a
-safety filter changes in episodes of a task) and ``plot`` (BRT slices, union overlays, violation
-bars, safety-filtered episode GIFs).
+safety filter changes in episodes of a task), ``plot`` (BRT slices, union overlays, violation
+bars, safety-filtered episode GIFs) and ``demo`` (all of it on Air3D, with a report).
 """
 
 from __future__ import annotations
@@ -311,6 +311,22 @@ def _cmd_filter_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from safety.demo import run_demo
+    from training.config import parse_duration
+
+    report = run_demo(
+        args.out,
+        budget_s=parse_duration(args.budget),
+        grid=args.grid,
+        samples=args.samples,
+        episodes=args.episodes,
+        seed=args.seed,
+    )
+    print(f"report: {report}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="reach", description="Neural Hamilton-Jacobi reachability toolkit.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -439,6 +455,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gif", default=None, help="also write a side-by-side GIF (nominal | filtered) of 3 episodes")
     p.add_argument("--out", default="filter.csv", help="results path; .csv, .json and .md are written")
     p.set_defaults(func=_cmd_filter_eval)
+
+    p = sub.add_parser("demo", help="Air3D end to end: ground truth, training, verification, filter, report")
+    p.add_argument("--out", default="reach-demo", help="report directory (an interrupted demo resumes)")
+    p.add_argument("--budget", default="3m", help="training wall-clock budget, e.g. 90s, 3m")
+    p.add_argument("--grid", type=int, default=101, help="ground-truth grid nodes per dimension")
+    p.add_argument("--samples", type=int, default=10_000, help="verification rollouts per value function")
+    p.add_argument("--episodes", type=int, default=500, help="filter-evaluation episodes per configuration")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_cmd_demo)
 
     return parser
 

@@ -20,6 +20,9 @@ from reach_envs.atomic import atomic_path
 from reach_envs.systems import ControlAffineSystem
 from reach_envs.systems.value_function import ValueFunction
 
+#: A second 9D slice (ours): cars 2 and 3 head-on across the x axis, car 1 heading east.
+SECOND_9D_SLICE = (0.0, 0.0, 0.0, 0.5, 0.0, -0.5, 0.0, -math.pi / 2, math.pi / 2)
+
 #: DeepReach's 9D slice: car 2 at (-0.4, 0), car 3 at (0.4, 0), headings pi/2, pi/4, 3 pi/4; axes x1, y1.
 DEEPREACH_9D_SLICE = (0.0, 0.0, -0.4, 0.0, 0.4, 0.0, math.pi / 2, math.pi / 4, 3 * math.pi / 4)
 
@@ -39,7 +42,12 @@ def default_slices(system: ControlAffineSystem) -> list[SliceSpec]:
     if system.name == "air3d":
         return [SliceSpec((0.0, 0.0, v), (0, 1), f"x3 = {v:.4g}") for v in (1.5863, 0.0, -math.pi / 2)]
     if system.state_dim == 9 and getattr(system, "num_cars", 0) == 3:
-        return [SliceSpec(DEEPREACH_9D_SLICE, (0, 1), "cars 2, 3 at (-0.4, 0), (0.4, 0); headings pi/2, pi/4, 3pi/4")]
+        return [
+            SliceSpec(
+                DEEPREACH_9D_SLICE, (0, 1), "DeepReach: cars 2, 3 at (-0.4, 0), (0.4, 0)\nheadings pi/2, pi/4, 3pi/4"
+            ),
+            SliceSpec(SECOND_9D_SLICE, (0, 1), "cars 2, 3 at (0, 0.5), (0, -0.5) facing each other\ncar 1 heading 0"),
+        ]
     centre = tuple(0.5 * (a + b) for a, b in system.domain)
     return [SliceSpec(centre, (0, 1), "domain centre")]
 
@@ -230,13 +238,13 @@ def plot_union_overlay(
     system = union.system
     t = system.horizon if t is None else float(t)
     slices = list(slices) if slices is not None else default_slices(system)
-    rows, cols = len(value_functions), len(slices)
-    fig = Figure(figsize=(3.8 * cols, 3.6 * rows + 0.6), dpi=100)
+    rows, cols = len(slices), len(value_functions)
+    fig = Figure(figsize=(max(7.5, 3.8 * cols), 3.8 * rows + 0.6), dpi=100)
     FigureCanvasAgg(fig)
     # 0 outside both, 1 learned only, 2 both, 3 union only (missed)
     cmap = ListedColormap(["white", "#9ecae1", "#756bb1", "#de2d26"])
-    for r, (label, vf) in enumerate(value_functions):
-        for c, spec in enumerate(slices):
+    for c, (label, vf) in enumerate(value_functions):
+        for r, spec in enumerate(slices):
             ax = fig.add_subplot(rows, cols, r * cols + c + 1)
             a, b, x = slice_states(system, spec, resolution)
             learned = (vf.value(x, t).detach().cpu() <= 0).reshape(resolution, resolution).numpy()
@@ -244,7 +252,7 @@ def plot_union_overlay(
             code = np.where(inside_union, np.where(learned, 2, 3), np.where(learned, 1, 0))
             ax.pcolormesh(a, b, code.T, cmap=cmap, vmin=-0.5, vmax=3.5, shading="auto")
             missed = float((inside_union & ~learned).sum()) / max(1, int(inside_union.sum()))
-            ax.set_title(f"{label}: misses {100 * missed:.1f} % of union", fontsize=8)
+            ax.set_title(f"{label}: misses {100 * missed:.1f} % of union\n{spec.title}", fontsize=7)
             ax.set_xlabel(system.state_names[spec.axes[0]])
             ax.set_ylabel(system.state_names[spec.axes[1]])
             ax.set_aspect("equal")
