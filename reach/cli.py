@@ -274,9 +274,6 @@ def _cmd_filter_eval(args: argparse.Namespace) -> int:
         rows = evaluate_filters(
             scene, configs, args.episodes, args.seed, ttg, scene_overrides=overrides, initial_states=initial
         )
-    for row, config in zip(rows, configs):
-        row["value_function"] = config.label
-        row["label"] = config.label if row["threshold"] is None else f"{config.label} @ {row['threshold']:.3g}"
     header = {
         "format": "reach.filter-eval.v1",
         "scene": args.scene,

@@ -91,9 +91,6 @@ def run_demo(
         for th in (0.0, 0.06)
     ]
     filter_rows = evaluate_filters("air3d", configs, episodes, seed, scene_overrides=overrides, initial_states=starts)
-    for row, config in zip(filter_rows, configs):
-        row["value_function"] = config.label
-        row["label"] = config.label if row["threshold"] is None else f"{config.label} @ {row['threshold']:.3g}"
     write_filter_results(filter_rows, out / "filter.csv", {"scene": "air3d", "episodes": episodes, "seed": seed})
     plot_filter_tradeoff(filter_rows, out / "filter_tradeoff.png", title="Air3D, worst-case pursuer")
 

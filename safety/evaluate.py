@@ -11,9 +11,7 @@ that fails to load or evaluate becomes a row with its error, and the others go o
 
 from __future__ import annotations
 
-import csv
 import glob
-import io
 import json
 import math
 import os
@@ -25,9 +23,9 @@ import torch
 from tqdm.auto import tqdm
 
 from groundtruth.solution import GridSolution
-from reach_envs.atomic import atomic_path
 from reach_envs.systems import ControlAffineSystem, make_system
 from safety.metrics import containment_statistics
+from safety.results_io import write_results
 from safety.value_functions import load_value_function, resolve_checkpoint
 from safety.verify import VerifySettings, sample_states, verify
 from training.evaluate import ReferenceEvaluator
@@ -103,19 +101,7 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
 
 
 def _write_outputs(out: Path, header: dict[str, Any], rows: list[dict[str, Any]]) -> None:
-    with atomic_path(out.with_suffix(".json")) as tmp, open(tmp, "w") as fh:
-        json.dump({**header, "results": rows}, fh, indent=2, sort_keys=True, default=str)
-    keys: list[str] = []
-    for r in rows:
-        keys.extend(k for k in r if k not in keys and not isinstance(r[k], dict))
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=keys, extrasaction="ignore")
-    writer.writeheader()
-    writer.writerows(rows)
-    with atomic_path(out.with_suffix(".csv")) as tmp:
-        Path(tmp).write_text(buf.getvalue())
-    with atomic_path(out.with_suffix(".md")) as tmp:
-        Path(tmp).write_text(markdown_table(rows) + "\n")
+    write_results(out, header, rows, markdown_table(rows))
 
 
 def _previous(out: Path, header: dict[str, Any]) -> dict[str, dict[str, Any]]:

@@ -17,15 +17,11 @@ the value function's own horizon, a fixed-horizon filter).
 from __future__ import annotations
 
 import copy
-import csv
-import io
-import json
 import math
 import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -34,6 +30,7 @@ from reach_envs.scenes import Scene, make_scene
 from reach_envs.systems.value_function import ValueFunction
 from reach_envs.vector import ReachVectorEnv
 from safety.metrics import wilson_interval
+from safety.results_io import write_results
 from safety.tasks import GoalTask, make_task
 from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper, default_threshold
 
@@ -70,7 +67,7 @@ class _Tally:
         hits = int(self.collided.sum())
         low, high = wilson_interval(hits, n)
         reached = task.reached & ~self.collided
-        return {
+        row = {
             "label": config.label,
             "filtered": config.value_function is not None,
             "threshold": threshold,
@@ -85,6 +82,7 @@ class _Tally:
             "wall_time": wall,
             "collided_episodes": [int(i) for i in np.flatnonzero(self.collided)[:20]],
         }
+        return _labelled(row)
 
 
 def _scene(scene: str | Scene, overrides: dict[str, Any] | None) -> Scene:
@@ -142,6 +140,13 @@ def evaluate_filters(
         env.close()
         rows.append(tally.row(config, task, system.control_dim, threshold, time.perf_counter() - start))
     return rows
+
+
+def _labelled(row: dict[str, Any]) -> dict[str, Any]:
+    """``value_function`` = the configuration's name; ``label`` adds the threshold when filtered."""
+    name = row["label"]
+    threshold = row["threshold"]
+    return {**row, "value_function": name, "label": name if threshold is None else f"{name} @ {threshold:.3g}"}
 
 
 def evaluate_filter_parallel(
@@ -242,20 +247,7 @@ def filter_table(rows: Sequence[dict[str, Any]]) -> str:
 
 def write_filter_results(rows: Sequence[dict[str, Any]], out: str | os.PathLike, header: dict[str, Any]) -> None:
     """``out`` with suffixes .csv, .json and .md, each written atomically."""
-    from reach_envs.atomic import atomic_path
-
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out.with_suffix(".json")) as tmp, open(tmp, "w") as fh:
-        json.dump({**header, "results": list(rows)}, fh, indent=2, default=str)
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=list(rows[0]))
-    writer.writeheader()
-    writer.writerows(rows)
-    with atomic_path(out.with_suffix(".csv")) as tmp:
-        Path(tmp).write_text(buf.getvalue())
-    with atomic_path(out.with_suffix(".md")) as tmp:
-        Path(tmp).write_text(filter_table(rows) + "\n")
+    write_results(out, header, rows, filter_table(rows))
 
 
 def worst_case_disturbance(value_function: ValueFunction, time_to_go: float | None = None) -> Any:

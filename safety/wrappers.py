@@ -112,7 +112,24 @@ class _Adapter:
         return (applied.astype(dtype) if dtype.kind == "f" else applied), info
 
 
-class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
+class _FilterAdapterMixin:
+    """The one set-up every wrapper shares: an :class:`_Adapter` for the wrapped env's system."""
+
+    _adapter: _Adapter
+
+    def _attach_filter(
+        self, env: Any, value_function: ValueFunction | str, threshold: float | None, time_to_go: Any, device: str
+    ) -> None:
+        base = env.unwrapped
+        self._adapter = _Adapter(base.system, value_function, threshold, time_to_go, base.scene, device)
+
+    @property
+    def safety_filter(self) -> SafetyFilter:
+        """The :class:`SafetyFilter` in use (its ``threshold`` may be changed between steps)."""
+        return self._adapter.filter
+
+
+class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordConstructorArgs):
     """A Gymnasium env whose actions pass through a least-restrictive safety filter.
 
     ``value_function`` may be a path (run directory, checkpoint, ``.npz``), which keeps
@@ -131,12 +148,7 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self, value_function=value_function, threshold=threshold, time_to_go=time_to_go, device=device
         )
         gym.Wrapper.__init__(self, env)
-        base = env.unwrapped
-        self._adapter = _Adapter(base.system, value_function, threshold, time_to_go, base.scene, device)
-
-    @property
-    def safety_filter(self) -> SafetyFilter:
-        return self._adapter.filter
+        self._attach_filter(env, value_function, threshold, time_to_go, device)
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         base = self.env.unwrapped
@@ -154,7 +166,7 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         return obs, reward, terminated, truncated, step_info
 
 
-class SafetyFilterVectorWrapper(VectorWrapper):
+class SafetyFilterVectorWrapper(_FilterAdapterMixin, VectorWrapper):
     """The filter over a :class:`~reach_envs.vector.ReachVectorEnv`, batched over sub-environments."""
 
     def __init__(
@@ -166,12 +178,7 @@ class SafetyFilterVectorWrapper(VectorWrapper):
         device: str = "cpu",
     ) -> None:
         super().__init__(env)
-        base = env.unwrapped
-        self._adapter = _Adapter(base.system, value_function, threshold, time_to_go, base.scene, device)
-
-    @property
-    def safety_filter(self) -> SafetyFilter:
-        return self._adapter.filter
+        self._attach_filter(env, value_function, threshold, time_to_go, device)
 
     def step(self, actions: Any) -> tuple[Any, Any, Any, Any, dict]:
         base = self.env.unwrapped
@@ -190,7 +197,7 @@ class SafetyFilterVectorWrapper(VectorWrapper):
         return obs, reward, terminated, truncated, step_info
 
 
-class SafetyFilterParallelWrapper(BaseParallelWrapper):
+class SafetyFilterParallelWrapper(_FilterAdapterMixin, BaseParallelWrapper):
     """The filter over a PettingZoo parallel env: the joint nominal action is filtered as one input.
 
     Agents that are no longer live contribute the centre of their box (zero turn rate) to the joint
@@ -206,12 +213,7 @@ class SafetyFilterParallelWrapper(BaseParallelWrapper):
         device: str = "cpu",
     ) -> None:
         super().__init__(env)
-        base = env.unwrapped
-        self._adapter = _Adapter(base.system, value_function, threshold, time_to_go, base.scene, device)
-
-    @property
-    def safety_filter(self) -> SafetyFilter:
-        return self._adapter.filter
+        self._attach_filter(env, value_function, threshold, time_to_go, device)
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         base = self.env.unwrapped
