@@ -105,3 +105,57 @@ def test_bad_states_into_filter_and_rollout_are_named():
     with pytest.raises(ValueError, match="record=True"):
         rollout(vf, torch.zeros(200_000, 3), record=True, progress=False)
     assert np.isfinite(vf.value(torch.tensor([[1e6, -1e6, 1e6]]), 1.0).numpy()).all()
+
+
+def test_values_and_gradients_agree_for_headings_two_pi_apart(air3d_grid):
+    system = MultiVehicle9D()
+    x = system.sample_states(200, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    for shift in (2 * math.pi, -4 * math.pi, 2 * math.pi * 160):  # up to about 1e3 rad
+        y = x.clone()
+        y[:, 6:] += shift
+        for vf in (_tiny(system), _tiny(system, encoding=Encoding.for_system(system, sincos=True))):
+            vf.network.double()
+            assert torch.allclose(vf.value(x, 1.0), vf.value(y, 1.0), atol=1e-9)
+            assert torch.allclose(vf.gradient(x, 1.0), vf.gradient(y, 1.0), atol=1e-8)
+    a = Air3D().sample_states(200, generator=torch.Generator().manual_seed(4))
+    b = a.clone()
+    b[:, 2] -= 2 * math.pi
+    assert torch.allclose(air3d_grid.value(a, 1.0), air3d_grid.value(b, 1.0), atol=1e-5)
+    assert torch.allclose(air3d_grid.gradient(a, 1.0), air3d_grid.gradient(b, 1.0), atol=1e-4)
+
+
+def test_nearest_pair_switch_is_continuous_with_finite_gradient():
+    system = MultiVehicle9D()
+    # car 1 at the origin, cars 2 and 3 both 0.5 away: the nearest pair is a tie
+    x = torch.tensor([[0.0, 0.0, 0.5, 0.0, -0.5, 0.0, 0.0, 1.0, 2.0]], dtype=torch.float64, requires_grad=True)
+    margin = system.failure_margin(x)
+    (g,) = torch.autograd.grad(margin.sum(), x)
+    assert margin.item() == pytest.approx(0.25) and torch.isfinite(g).all()
+    eps = torch.zeros(1, 9, dtype=torch.float64)
+    eps[0, 2] = 1e-9  # nudging car 2 moves the margin by at most the nudge: continuous across the kink
+    assert abs(system.failure_margin(x.detach() + eps).item() - margin.item()) <= 1e-9 + 1e-15
+    r = rollout(_tiny(system), x.detach().float(), dt=0.01, record=True, progress=False)
+    assert torch.isfinite(r.trajectories).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_tiny_and_subnormal_costates_never_give_nan(dtype):
+    system = Air3D()
+    tiny = torch.finfo(dtype).tiny
+    sub = tiny / 2**10  # subnormal
+    x = torch.tensor([[0.0, 0.0, 0.5]] * 4, dtype=dtype)
+    p = torch.tensor([[0, 0, 1e-30], [0, 0, -sub], [0, 0, 0.0], [0, 0, -0.0]], dtype=dtype)
+    u, d = system.optimal_control(x, p), system.optimal_disturbance(x, p)
+    assert torch.isfinite(u).all() and torch.isfinite(d).all()
+    # a nonzero costate, however small, picks its corner; exactly zero (either sign) the box centre
+    assert u[:, 0].tolist() == [-3.0, 3.0, 0.0, 0.0] and d[:, 0].tolist() == [-3.0, 3.0, 0.0, 0.0]
+    assert torch.isfinite(system.hamiltonian(x, p)).all()
+
+
+def test_huge_finite_states_in_envs_stay_finite():
+    import gymnasium as gym
+
+    env = gym.make("MultiVehicle9D-v0")
+    env.reset(seed=0, options={"state": [1e12, -1e12, 0.0, 0.0, 5e11, 5e11, 1e6, -1e6, 3.0]})
+    obs, *_ = env.step(np.zeros(3, dtype=np.float32))
+    assert np.isfinite(obs).all() and (np.abs(obs[6:]) <= math.pi).all()

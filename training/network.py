@@ -310,7 +310,9 @@ class NeuralValueFunction:
         if not torch.isfinite(x).all():
             raise ValueError("states contain NaN or inf")
         p = next(self.network.parameters())
-        x = x.to(device=p.device, dtype=p.dtype)
+        # headings are wrapped first: the network was trained on [-pi, pi), and V must not depend
+        # on which multiple of 2 pi a caller's heading carries
+        x = self.system.wrap(x.to(device=p.device, dtype=p.dtype))
         tt = torch.broadcast_to(torch.as_tensor(t, dtype=p.dtype, device=p.device), x.shape[:-1])
         return x, tt
 
