@@ -19,7 +19,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import torch
 from tqdm.auto import tqdm
 
 from groundtruth.solution import GridSolution
@@ -27,7 +26,7 @@ from reach_envs.systems import ControlAffineSystem, make_system
 from safety.metrics import containment_statistics
 from safety.results_io import write_results
 from safety.value_functions import load_value_function, resolve_checkpoint
-from safety.verify import VerifySettings, sample_states, verify
+from safety.verify import VerifySettings, sample_states, values_at, verify
 from training.evaluate import ReferenceEvaluator
 
 FORMAT = "reach.evaluation.v1"
@@ -123,10 +122,6 @@ def _previous(out: Path, header: dict[str, Any]) -> dict[str, dict[str, Any]]:
     return {r["source"]: r for r in data.get("results", []) if not r.get("error")}
 
 
-def _values(vf: Any, states: torch.Tensor, t: float, chunk: int = 65536) -> torch.Tensor:
-    return torch.cat([vf.value(c, t).detach().float().cpu() for c in states.split(chunk)])
-
-
 def evaluate_many(
     sources: Sequence[str],
     out: str | os.PathLike,
@@ -179,7 +174,7 @@ def evaluate_many(
         union = load_value_function(pairwise, format="grid", system=system)
         if union.kind != "pairwise":
             raise ValueError(f"{pairwise}: not a two-car (relativepair) solution for {system.name}")
-        union_values = _values(union.value_function, states, horizon)
+        union_values = values_at(union.value_function, states, horizon)
     rows: list[dict[str, Any]] = []
     for path in tqdm(paths, desc="value functions", unit="vf", **({} if progress else {"disable": True})):
         fp = fingerprint(path)
@@ -197,7 +192,7 @@ def evaluate_many(
             if reference is not None:
                 row.update(reference(loaded.value_function))
             if union_values is not None:
-                learned = _values(loaded.value_function, states, horizon)
+                learned = values_at(loaded.value_function, states, horizon)
                 row.update(containment_statistics(union_values, learned))
         except (ValueError, RuntimeError) as err:
             row["error"] = str(err).splitlines()[0][:300]

@@ -163,20 +163,14 @@ def record_filtered_episode(
 
     from reach_envs.env import ReachEnv
     from reach_envs.recording import record_episode
-    from safety.policy import OptimalPolicy
+    from safety.filter_eval import worst_case_disturbance
     from safety.value_functions import load_value_function
     from safety.wrappers import SafetyFilterWrapper
 
     vf = load_value_function(value_function).value_function if isinstance(value_function, str) else value_function
     overrides: dict[str, Any] = {"trails": True}
     if adversary and vf.system.disturbance_dim:
-        policy = OptimalPolicy(vf)
-        horizon = vf.system.horizon
-
-        def worst_case(x: np.ndarray) -> np.ndarray:
-            return policy.disturbance(torch.as_tensor(x), horizon).numpy()
-
-        overrides["disturbance"] = worst_case
+        overrides["disturbance"] = worst_case_disturbance(vf)
     env: gym.Env = SafetyFilterWrapper(ReachEnv(scene, render_mode="rgb_array", **overrides), vf, threshold=threshold)
     summary = record_episode(env, path, seed=seed, every=every)
     env.close()

@@ -55,8 +55,11 @@ def sample_states(system: ControlAffineSystem, n: int, seed: int) -> torch.Tenso
     return system.sample_states(n, generator=torch.Generator().manual_seed(seed), dtype=torch.float32)
 
 
-def _values(vf: ValueFunction, x: torch.Tensor, t: float, chunk: int, device: torch.device) -> torch.Tensor:
-    return torch.cat([vf.value(c.to(device), t).float().cpu() for c in x.split(chunk)])
+def values_at(
+    vf: ValueFunction, x: torch.Tensor, t: float, chunk: int = 65536, device: str | torch.device = "cpu"
+) -> torch.Tensor:
+    """``V(x, t)`` in chunks on ``device``, returned as float32 on the CPU."""
+    return torch.cat([vf.value(c.to(device), t).detach().float().cpu() for c in x.split(chunk)])
 
 
 def sample_superlevel_set(
@@ -87,7 +90,7 @@ def sample_superlevel_set(
             )
         x = system.sample_states(batch, generator=gen, dtype=torch.float32)
         draws += batch
-        inside = x[_values(vf, x, t, chunk, torch.device(device)) > level]
+        inside = x[values_at(vf, x, t, chunk, device) > level]
         kept.append(inside)
         have += inside.shape[0]
     return torch.cat(kept)[:n], draws
