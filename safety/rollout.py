@@ -166,10 +166,11 @@ def rollout(
             if record:
                 trajectories[0, lo:hi] = x.cpu()
             if bool(hit0.any()):
-                collided[idx[hit0].cpu()] = True
-                collision_time[idx[hit0].cpu()] = 0.0
-                decided_time[idx[hit0].cpu()] = 0.0
-                x, idx, margin = x[~hit0], idx[~hit0], margin[~hit0]
+                where = idx[hit0].cpu()
+                collided[where] = True
+                collision_time[where] = 0.0
+                decided_time[where] = 0.0
+                x, idx = x[~hit0], idx[~hit0]
             for k in range(n_steps):
                 if idx.numel() == 0:
                     bar.update(n_steps - k)
