@@ -4,7 +4,8 @@ Subcommands only parse arguments and call library functions: ``envs`` (list envi
 scenes), ``record`` (run an episode and save a GIF), ``groundtruth`` (grid BRT solve), ``train``
 (value networks), ``evaluate`` (rollout verification across checkpoints), ``filter-eval`` (what a
 safety filter changes in episodes of a task), ``plot`` (BRT slices, union overlays, violation
-bars, safety-filtered episode GIFs) and ``demo`` (all of it on Air3D, with a report).
+bars, safety-filtered episode GIFs), ``sweep`` (layouts x seeds trained on a budget and scored along
+training, with a report) and ``demo`` (all of it on Air3D, with a report).
 """
 
 from __future__ import annotations
@@ -141,6 +142,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
             log_every=args.log_every,
             checkpoint_every_s=args.checkpoint_every,
             eval_every_s=args.eval_every,
+            snapshots=args.snapshots,
         )
         if (Path(args.out) / "checkpoint.pt").exists():
             raise ValueError(f"{args.out} already holds a run; use --resume {args.out} to continue it")
@@ -308,6 +310,75 @@ def _cmd_filter_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _parse_seeds(text: str) -> list[int]:
+    """``"3"`` means seeds 0, 1, 2; ``"0,4,7"`` lists them."""
+    try:
+        if "," in text:
+            return [int(s) for s in text.split(",") if s.strip()]
+        count = int(text)
+    except ValueError as err:
+        raise ValueError(f"--seeds must be a count (3) or a list (0,4,7), got {text!r}") from err
+    if count < 1:
+        raise ValueError(f"--seeds must be at least 1, got {count}")
+    return list(range(count))
+
+
+def _parse_train_options(items: Sequence[str]) -> dict[str, object]:
+    """``KEY=VALUE`` training options; values are read as JSON where they parse, else as strings."""
+    import json
+
+    options: dict[str, object] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--train expects KEY=VALUE, got {item!r}")
+        try:
+            options[key.replace("-", "_")] = json.loads(value)
+        except json.JSONDecodeError:
+            options[key.replace("-", "_")] = value
+    return options
+
+
+def _cmd_sweep(args: argparse.Namespace) -> int:
+    from studies.spec import AIR3D_LAYOUTS, NINE_D_LAYOUTS, SweepSpec
+    from studies.sweep import run_sweep
+    from training import parse_duration
+
+    if args.layouts:
+        layouts = [s.strip() for s in args.layouts.split(",") if s.strip()]
+    else:
+        layouts = list(AIR3D_LAYOUTS if args.system == "air3d" else NINE_D_LAYOUTS)
+    spec = SweepSpec(
+        system=args.system,
+        layouts=layouts,
+        seeds=_parse_seeds(args.seeds),
+        budget_s=parse_duration(args.budget) if args.budget else (None if args.steps else 300.0),
+        steps=args.steps,
+        snapshots=args.snapshots,
+        width=args.width,
+        device=args.device,
+        train=_parse_train_options(args.train),
+        evaluation=args.evaluation,
+        grid=args.grid,
+        groundtruth=args.groundtruth,
+        eval_time=args.eval_time,
+        samples=args.samples,
+        certify_samples=args.certify_samples,
+        rollout_every=args.rollout_every,
+        eval_seed=args.eval_seed,
+    )
+    if spec.budget_s is not None and spec.steps is not None:
+        raise ValueError("give --budget or --steps, not both")
+    report, failed = run_sweep(
+        spec, args.out, backend=args.backend, workers=args.workers, threads=args.threads, address=args.address
+    )
+    print(f"report: {report}")
+    if failed:
+        print(f"reach sweep: {len(failed)} of {len(spec.tasks())} runs failed (listed in the report)", file=sys.stderr)
+        return 1
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from safety.demo import run_demo
     from training.config import parse_duration
@@ -379,6 +450,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--groundtruth", default=None, help="grid solution .npz to evaluate against while training")
     p.add_argument("--eval-time", type=float, default=None, help="time for evaluation (default: last stored)")
     p.add_argument("--eval-every", type=float, default=60.0, help="seconds between evaluations")
+    p.add_argument(
+        "--snapshots", type=int, default=0, help="save the network after every 1/N of the run (RUN/snapshots/)"
+    )
     p.add_argument("--out", default=None, help="run directory for a new run")
     p.add_argument("--resume", default=None, metavar="RUN_DIR", help="continue the run in RUN_DIR")
     p.set_defaults(func=_cmd_train)
@@ -452,6 +526,36 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gif", default=None, help="also write a side-by-side GIF (nominal | filtered) of 3 episodes")
     p.add_argument("--out", default="filter.csv", help="results path; .csv, .json and .md are written")
     p.set_defaults(func=_cmd_filter_eval)
+
+    p = sub.add_parser(
+        "sweep",
+        help="train many layouts x seeds on a budget, score them along training, write a report (resumable)",
+    )
+    p.add_argument("--system", default="air3d")
+    p.add_argument("--layouts", default=None, help="comma-separated (default: the seed paper's layouts)")
+    p.add_argument("--seeds", default="3", help="a count (3 = seeds 0,1,2) or a list (0,4,7)")
+    p.add_argument("--budget", default=None, help="training wall-clock budget per run, e.g. 90s, 5m (default 5m)")
+    p.add_argument("--steps", type=int, default=None, help="train a fixed number of steps instead of a budget")
+    p.add_argument("--snapshots", type=int, default=10, help="score each run after every 1/N of its budget")
+    p.add_argument("--width", type=int, default=128)
+    p.add_argument("--device", default="cpu")
+    p.add_argument(
+        "--train", action="append", default=[], metavar="KEY=VALUE", help="other reach train options, e.g. points=4096"
+    )
+    p.add_argument("--evaluation", choices=["auto", "groundtruth", "rollout"], default="auto")
+    p.add_argument("--grid", type=int, default=101, help="ground-truth grid nodes per dimension (solved once)")
+    p.add_argument("--groundtruth", default=None, help="an existing grid solution .npz to score against")
+    p.add_argument("--eval-time", type=float, default=None, help="time to score at (default: the horizon)")
+    p.add_argument("--samples", type=int, default=10_000, help="rollout evaluation: sampled states")
+    p.add_argument("--certify-samples", type=int, default=None, help="rollout evaluation: fresh states (0: skip)")
+    p.add_argument("--rollout-every", type=int, default=1, help="rollout evaluation: every k-th snapshot (+ last)")
+    p.add_argument("--eval-seed", type=int, default=0)
+    p.add_argument("--backend", choices=["local", "ray"], default="local")
+    p.add_argument("--address", default=None, help="ray: address of an existing cluster (default: start one)")
+    p.add_argument("--workers", type=int, default=1, help="local: runs trained at once")
+    p.add_argument("--threads", type=int, default=None, help="torch threads per run (local default: cores/workers)")
+    p.add_argument("--out", required=True, help="sweep directory (an interrupted sweep continues there)")
+    p.set_defaults(func=_cmd_sweep)
 
     p = sub.add_parser("demo", help="Air3D end to end: ground truth, training, verification, filter, report")
     p.add_argument("--out", default="reach-demo", help="report directory (an interrupted demo resumes)")

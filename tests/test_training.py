@@ -242,3 +242,15 @@ def test_deepreach_checkpoint_import_matches_the_toolbox_slice():
         load_deepreach(path, Air3D(), "sssl")
     with pytest.raises(ValueError, match="shape"):
         load_deepreach(path, MultiVehicle9D(), "ssssl")
+
+
+def test_network_initialisation_follows_the_seed_not_the_global_rng():
+    from training.trainer import build_network
+
+    cfg = TrainConfig(layout="srsl", width=8, steps=1, seed=3)
+    a = build_network(cfg).state_dict()
+    torch.rand(100)  # whatever the process did before must not matter
+    b = build_network(cfg).state_dict()
+    c = build_network(TrainConfig(layout="srsl", width=8, steps=1, seed=4)).state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert not all(torch.equal(a[k], c[k]) for k in a)

@@ -55,6 +55,7 @@ class TrainConfig:
     log_every: int = 25
     checkpoint_every_s: float = 30.0
     eval_every_s: float = 60.0
+    snapshots: int = 0  # evenly spaced network snapshots over the run (RUN/snapshots/NNN.pt); needs steps or budget_s
 
     def validate(self) -> TrainConfig:
         parse_layout(self.layout)
@@ -73,10 +74,13 @@ class TrainConfig:
             "steps": self.steps is None or self.steps >= 1,
             "budget_s": self.budget_s is None or self.budget_s > 0,
             "log_every": self.log_every >= 1,
+            "snapshots": isinstance(self.snapshots, int) and self.snapshots >= 0,
         }
         for name, ok in checks.items():
             if not ok:
                 raise ValueError(f"invalid {name}: {getattr(self, name)!r}")
+        if self.snapshots and self.steps is None and self.budget_s is None:
+            raise ValueError("snapshots are spaced over steps or budget_s; give one of them")
         if self.parameterisation not in ("exact", "vanilla"):
             raise ValueError(f"parameterisation must be 'exact' or 'vanilla', got {self.parameterisation!r}")
         if self.schedule not in ("cosine", "constant"):

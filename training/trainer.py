@@ -6,6 +6,8 @@ A run is a directory::
     RUN/checkpoint.pt      latest good state (network, optimizer, RNG, step, wall time)
     RUN/checkpoint.json    its metadata (system, layout, width, encoding, steps, versions, ...)
     RUN/metrics.jsonl      one JSON line per logged step (loss terms, lr, steps/s, evaluations)
+    RUN/snapshots/NNN.pt   with ``snapshots = K``: the network after each K-th of the run (+ .json),
+                           for accuracy-versus-time studies that evaluate after training
 
 Checkpoint files are replaced atomically; metrics lines are appended and flushed, and on resume any
 line past the checkpoint's step (or torn by a kill) is dropped, so a killed run resumes exactly
@@ -41,9 +43,14 @@ Evaluator = Callable[[NeuralValueFunction], dict[str, float]]
 
 
 def build_network(config: TrainConfig) -> ValueNetwork:
+    """The run's network, initialised from ``config.seed`` alone (not from the global RNG's state, which
+    depends on what the process did before: runs of one sweep in one process would differ from the
+    same runs in fresh processes)."""
     system = make_system(config.system, **config.system_parameters)
     encoding = Encoding.for_system(system, sincos=config.sincos, value_scale=config.value_scale)
-    return ValueNetwork(system, config.layout, config.width, config.parameterisation, config.w0, encoding)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(config.seed)
+        return ValueNetwork(system, config.layout, config.width, config.parameterisation, config.w0, encoding)
 
 
 def _clean_metrics(path: Path, last_step: int) -> None:
@@ -128,6 +135,33 @@ class Trainer:
         _clean_metrics(run_dir / "metrics.jsonl", trainer.step)
         return trainer
 
+    @property
+    def snapshot_dir(self) -> Path:
+        return self.run_dir / "snapshots"
+
+    def _snapshot(self, index: int) -> None:
+        """Save the network alone as snapshot ``index`` (of ``config.snapshots``), with its step and wall time."""
+        meta = {
+            "steps": self.step,
+            "wall_time_s": self.wall,
+            "fraction": self.progress_fraction(),
+            "snapshot": index,
+            "snapshots": self.config.snapshots,
+            "seed": self.config.seed,
+            "config": json.loads(self.config.to_json()),
+        }
+        self.snapshot_dir.mkdir(parents=True, exist_ok=True)
+        save_checkpoint(self.snapshot_dir / f"{index:03d}.pt", self.network, None, meta)
+
+    def _snapshots_due(self) -> int:
+        """How many snapshots the run's progress calls for (0 .. ``config.snapshots``)."""
+        k = self.config.snapshots
+        return min(k, int(self.progress_fraction() * k + 1e-9))
+
+    def stop_reason(self) -> str | None:
+        """Why the run would stop now (a stop rule that holds), or None while it has work left."""
+        return self._done()
+
     # ------------------------------------------------------------------ schedule
     def progress_fraction(self) -> float:
         """How far the run is, in [0, 1], by its step or time budget (whichever is further)."""
@@ -196,6 +230,8 @@ class Trainer:
             **({} if self.progress else {"disable": True}),
         )
         reason = self._done()
+        # snapshots past the checkpoint (a killed run) are retaken as the resumed run passes them
+        snapshots_taken = self._snapshots_due()
         try:
             while reason is None:
                 t0 = time.perf_counter()
@@ -246,10 +282,16 @@ class Trainer:
                         steps_s=f"{rate:.1f}",
                         left=f"{left:.0f}s" if left is not None else "-",
                     )
+                due = self._snapshots_due()
+                if due > snapshots_taken:
+                    self._snapshot(due)
+                    snapshots_taken = due
                 if time.perf_counter() - last_ckpt >= c.checkpoint_every_s:
                     self._save()
                     last_ckpt = time.perf_counter()
                 reason = self._done()
+            if c.snapshots and not (self.snapshot_dir / f"{c.snapshots:03d}.pt").exists():
+                self._snapshot(c.snapshots)  # a run stopped early (target loss): its end is the last snapshot
             self._save()
         finally:
             bar.close()
