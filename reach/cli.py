@@ -340,8 +340,8 @@ def _parse_train_options(items: Sequence[str]) -> dict[str, object]:
 
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
-    from studies.spec import AIR3D_LAYOUTS, NINE_D_LAYOUTS, SweepSpec
-    from studies.sweep import run_sweep
+    from sweeps.spec import AIR3D_LAYOUTS, NINE_D_LAYOUTS, SweepSpec
+    from sweeps.sweep import run_sweep
     from training import parse_duration
 
     if args.layouts:

@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from reach.cli import main as reach_main
-from studies import SweepSpec, claims, pareto_front, run_sweep
-from studies.report import _spearman, spread, summary_table
-from studies.spec import load_spec, store_spec
+from sweeps import SweepSpec, claims, pareto_front, run_sweep
+from sweeps.report import _spearman, spread, summary_table
+from sweeps.spec import load_spec, store_spec
 from training import TrainConfig, Trainer
 
 
@@ -162,7 +162,7 @@ def test_sweep_writes_the_report_and_resumes_without_redoing_work(tmp_path, gt21
 
 
 def test_interrupted_sweep_continues_where_it_stopped(tmp_path, gt21, monkeypatch):
-    import studies.backends as backends
+    import sweeps.backends as backends
 
     out = tmp_path / "sweep"
     spec = tiny_spec(groundtruth=gt21, seeds=[0])

@@ -1,0 +1,96 @@
+"""How a sweep scores one network snapshot: against a grid ground truth, or by rollouts.
+
+A scorer is built once per worker process and applied to every snapshot of a task. Its ``key``
+names everything its numbers depend on, so cached scores are reused only under the same settings.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Protocol
+
+from reach_envs.systems import ControlAffineSystem
+from reach_envs.systems.value_function import ValueFunction
+
+
+class Scorer(Protocol):
+    key: dict[str, Any]
+    #: (metric, higher is better) pairs the report plots and ranks by, most important first
+    headline: tuple[tuple[str, bool], ...]
+
+    def __call__(self, vf: ValueFunction) -> dict[str, float]: ...
+
+
+class GroundTruthScorer:
+    """Value MSE and IoU of ``{V <= 0}`` at ``t`` over every grid node and over one slice."""
+
+    headline = (("iou_volume", True), ("mse_volume", False), ("iou_slice", True), ("mse_slice", False))
+
+    def __init__(self, system: ControlAffineSystem, path: str | os.PathLike, t: float | None, slice_value: float):
+        from groundtruth.solution import GridSolution
+        from training.evaluate import ReferenceEvaluator
+
+        solution = GridSolution.load(path, outside="clamp")
+        if solution.system != system:
+            raise ValueError(f"ground truth {path} is for {solution.system.config()}, not {system.config()}")
+        t = float(solution.times[-1]) if t is None else float(t)
+        if not float(solution.times[0]) <= t <= float(solution.times[-1]) + 1e-9:
+            raise ValueError(f"eval time {t} lies outside the ground truth's times [0, {float(solution.times[-1])}]")
+        self.solution = solution
+        self._evaluate = ReferenceEvaluator(solution, t, slice_value=slice_value)
+        st = Path(path).stat()
+        self.key = {
+            "kind": "groundtruth",
+            "file": str(Path(path).resolve()),
+            "size": st.st_size,
+            "t": t,
+            "slice_value": slice_value,
+        }
+
+    def __call__(self, vf: ValueFunction) -> dict[str, float]:
+        return self._evaluate(vf)
+
+
+class RolloutScorer:
+    """Violation rate, collision rate, delta-level and certified volume from rollouts of the policy."""
+
+    headline = (("violation_rate", False), ("delta", False), ("certified_volume", True), ("collision_rate", False))
+
+    #: the columns of :func:`safety.verify.verify` a sweep keeps
+    KEEP = (
+        "violation_rate",
+        "false_safe_rate",
+        "false_unsafe_rate",
+        "collision_rate",
+        "delta",
+        "delta_raw",
+        "safe_fraction",
+        "eps",
+        "certified_volume",
+        "certified_failures",
+        "rollout_seconds",
+    )
+
+    def __init__(
+        self, system: ControlAffineSystem, samples: int, certify_samples: int | None, seed: int, device: str = "cpu"
+    ) -> None:
+        from safety.verify import VerifySettings, sample_states
+
+        self.settings = VerifySettings(samples=samples, certify_samples=certify_samples, seed=seed)
+        self.states = sample_states(system, samples, seed)
+        self.device = device
+        self.key = {"kind": "rollout", "system": system.config(), **self.settings.to_dict()}
+
+    def __call__(self, vf: ValueFunction) -> dict[str, float]:
+        from safety.verify import verify
+
+        row = verify(vf, self.states, self.settings, device=self.device, progress=False)
+        if self.settings.fresh_samples == 0:  # no guarantee asked for: the volume a certificate would cover
+            row["certified_volume"] = row["safe_fraction"]
+        return {k: row[k] for k in self.KEEP if k in row}
+
+
+def headline_of(evaluation: str) -> tuple[tuple[str, bool], ...]:
+    """The headline metrics of an evaluation kind, without building a scorer."""
+    return GroundTruthScorer.headline if evaluation == "groundtruth" else RolloutScorer.headline

@@ -1,0 +1,218 @@
+"""``reach sweep``: train every (layout, seed) on a budget, score snapshots along the way, report.
+
+A sweep directory::
+
+    OUT/sweep.json                 the spec (see :mod:`sweeps.spec`)
+    OUT/groundtruth.npz            the grid ground truth, solved once (ground-truth evaluations only)
+    OUT/runs/<layout>-s<seed>/     each task's training run, snapshots and cached scores
+    OUT/results.{json,csv,md}      every (layout, seed, snapshot) row, rewritten as tasks finish
+    OUT/pareto.png                 accuracy against training time, one curve per layout
+    OUT/slices.png                 BRT slices of the best and worst layouts' final networks
+    OUT/report.md                  the tables, plots and the paper's claims checked on these data
+
+Interrupting a sweep loses at most the work since each task's last checkpoint; running the same
+command again continues it (finished tasks are read back, not redone).
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from tqdm.auto import tqdm
+
+from reach_envs.atomic import atomic_path
+from sweeps.report import claims_table, final_rows, plot_pareto, rank_layouts, summary_table
+from sweeps.scoring import headline_of
+from sweeps.spec import SweepSpec, store_spec
+from sweeps.task import run_dir
+
+RESULTS_FORMAT = "reach.sweep-results.v1"
+
+
+def _ground_truth(spec: SweepSpec, out: Path, progress: bool, log: Callable[[str], Any]) -> str | None:
+    """The ground-truth file (given, or solved once into ``OUT/groundtruth.npz``)."""
+    if spec.evaluation != "groundtruth":
+        return None
+    if spec.groundtruth is not None:
+        if not Path(spec.groundtruth).exists():
+            raise ValueError(f"ground truth {spec.groundtruth} does not exist")
+        return str(Path(spec.groundtruth).resolve())
+    path = out / "groundtruth.npz"
+    if not path.exists():
+        from groundtruth.solver import solve
+        from reach_envs.systems import make_system
+
+        system = make_system(spec.system, **spec.system_parameters)
+        t = system.horizon if spec.eval_time is None else spec.eval_time
+        times = [t * k / 20 for k in range(21)]
+        log(f"ground truth: {spec.system} on a {spec.grid}^{system.state_dim} grid to t = {t:g} -> {path}")
+        # torch.compile costs ~20 s once and pays off only on large grids
+        solve(system, spec.grid, times, progress=progress, compile=None if spec.grid >= 51 else False).save(path)
+    return str(path.resolve())
+
+
+def machine() -> str:
+    """One line naming the machine a study ran on."""
+    import torch
+
+    threads = torch.get_num_threads()
+    return (
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, torch {torch.__version__} "
+        f"({threads} threads), Python {platform.python_version()}"
+    )
+
+
+def run_sweep(
+    spec: SweepSpec,
+    out: str | os.PathLike,
+    backend: str = "local",
+    workers: int = 1,
+    threads: int | None = None,
+    address: str | None = None,
+    progress: bool = True,
+    log: Callable[[str], Any] = print,
+) -> tuple[Path, list[tuple[str, int, str]]]:
+    """Run (or continue) the sweep into ``out``; returns the report's path and the failed tasks
+    as ``(layout, seed, error)``."""
+    from sweeps.backends import run_local, run_ray
+
+    spec.validate()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    store_spec(spec, out)
+    groundtruth = _ground_truth(spec, out, progress, log)
+    if threads is None and backend == "local" and workers > 1:
+        threads = max(1, (os.cpu_count() or 1) // workers)  # workers share the cores instead of fighting
+    spec_dict = spec.to_dict()
+    tasks = [(str(out), spec_dict, layout, seed, groundtruth, threads) for layout, seed in spec.tasks()]
+    if backend == "local":
+        outcomes = run_local(tasks, workers)
+    elif backend == "ray":
+        outcomes = run_ray(tasks, address)
+    else:
+        raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
+    rows_by_task: dict[tuple[str, int], list[dict[str, Any]]] = {}
+    failed: list[tuple[str, int, str]] = []
+    start = time.perf_counter()
+    bar = tqdm(total=len(tasks), desc=f"sweep {spec.system}", unit="run", **({} if progress else {"disable": True}))
+    for args, result in outcomes:
+        layout, seed = args[2], args[3]
+        if isinstance(result, BaseException):
+            failed.append((layout, seed, f"{type(result).__name__}: {result}"))
+            log(f"sweep: {layout} seed {seed} failed: {result}")
+        else:
+            rows_by_task[(layout, seed)] = result
+        _write_rows(out, spec, rows_by_task, failed)
+        bar.update(1)
+    bar.close()
+    rows = [r for layout, seed in spec.tasks() for r in rows_by_task.get((layout, seed), [])]
+    report = write_report(spec, out, rows, failed, groundtruth, time.perf_counter() - start)
+    return report, failed
+
+
+def _write_rows(out: Path, spec: SweepSpec, rows_by_task: dict, failed: list) -> None:
+    from safety.results_io import write_results
+
+    rows = [r for layout, seed in spec.tasks() for r in rows_by_task.get((layout, seed), [])]
+    headline = headline_of(spec.evaluation)
+    header = {"format": RESULTS_FORMAT, "spec": spec.to_dict(), "failed": failed}
+    write_results(out / "results", header, rows, summary_table(rows, headline) if rows else "(no results yet)")
+
+
+def _slice_plot(spec: SweepSpec, out: Path, rows: list[dict[str, Any]], groundtruth: str | None) -> Path | None:
+    """BRT slices of the best and the worst layout (by the first headline metric), the seed nearest
+    its layout's mean, final snapshot; the ground truth filled where there is one."""
+    from safety.plots import plot_brt_slices
+    from safety.value_functions import load_value_function
+
+    metric, higher = headline_of(spec.evaluation)[0]
+    ranked = rank_layouts(rows, metric, higher)
+    if not ranked:
+        return None
+    picks = [ranked[0]] if len(ranked) == 1 else [ranked[0], ranked[-1]]
+    finals = final_rows(rows)
+    curves = []
+    for (layout, mean), tag in zip(picks, ("best", "worst")):
+        row = min(finals[layout], key=lambda r: abs(r[metric] - mean))
+        path = run_dir(out, layout, row["seed"]) / "snapshots" / f"{row['snapshot']:03d}.pt"
+        vf = load_value_function(path).value_function
+        curves.append((f"{tag}: {layout} (seed {row['seed']}, {metric} {row[metric]:.3g})", vf))
+    reference = None
+    t = None
+    if groundtruth is not None:
+        from groundtruth.solution import GridSolution
+
+        reference = GridSolution.load(groundtruth, outside="clamp")
+        t = float(reference.times[-1]) if spec.eval_time is None else spec.eval_time
+    return plot_brt_slices(curves, out / "slices.png", t=t, reference=reference)
+
+
+def write_report(
+    spec: SweepSpec,
+    out: Path,
+    rows: list[dict[str, Any]],
+    failed: list[tuple[str, int, str]],
+    groundtruth: str | None,
+    seconds: float,
+) -> Path:
+    """``report.md`` (and its plots) from the rows; returns its path."""
+    headline = headline_of(spec.evaluation)
+    budget = f"{spec.budget_s:.0f} s" if spec.budget_s is not None else f"{spec.steps} steps"
+    parts = [
+        f"# Layout sweep: {spec.system}",
+        "",
+        f"{len(spec.layouts)} layouts x {len(spec.seeds)} seeds, width {spec.width}, {budget} of training each "
+        f"({', '.join(f'{k}={v}' for k, v in spec.train.items()) or 'reach train defaults'}), scored at "
+        f"{spec.snapshots} evenly spaced snapshots. Training time excludes evaluation. Machine: {machine()}; "
+        f"this call took {seconds:.0f} s.",
+        "",
+    ]
+    if spec.evaluation == "groundtruth":
+        from groundtruth.solution import GridSolution
+
+        gt = GridSolution.load(groundtruth)
+        t = float(gt.times[-1]) if spec.eval_time is None else spec.eval_time
+        parts.append(
+            f"Accuracy against the grid ground truth `{Path(groundtruth).name}` "
+            f"({'x'.join(str(n) for n in gt.grid.shape)} nodes) at t = {t:g}: value MSE and IoU of "
+            f"{{V <= 0}} over every grid node (vol.) and over the slice x3 = {spec.slice_value:g}."
+        )
+    else:
+        parts.append(
+            f"Rollouts of the learned policy from {spec.samples} uniform states (seed {spec.eval_seed}): violation "
+            "rate (both kinds), collision rate, delta-level and certified volume (the fraction of the box with "
+            "V > delta)."
+        )
+    parts.append(
+        "The time curriculum and learning-rate schedule follow each run's budget, so an early snapshot is "
+        "a run cut short, not a run trained for that long."
+    )
+    if not rows:
+        parts += ["", "No results: every task failed."]
+    else:
+        parts += ["", "## Final snapshot, mean ± std over seeds (best first)", "", summary_table(rows, headline)]
+        pareto = plot_pareto(rows, out / "pareto.png", headline, title=f"{spec.system}: accuracy against time")
+        parts += ["", "## Accuracy against training time", "", f"![Pareto plot]({pareto.name})"]
+        slices = _slice_plot(spec, out, rows, groundtruth)
+        if slices is not None:
+            parts += ["", "## Best and worst layouts", "", f"![slices]({slices.name})"]
+        parts += [
+            "",
+            "## The seed paper's claims on these data",
+            "",
+            claims_table(rows, headline),
+            "",
+            "A claim is supported only where the statistic is positive by more than the seed-to-seed spread.",
+        ]
+    if failed:
+        parts += ["", "## Failed tasks", ""] + [f"- `{layout}` seed {seed}: {err}" for layout, seed, err in failed]
+    parts += ["", "Data: `results.json`, `results.csv`; each run in `runs/<layout>-s<seed>/`."]
+    report = out / "report.md"
+    with atomic_path(report) as tmp:
+        Path(tmp).write_text("\n".join(parts) + "\n")
+    return report
