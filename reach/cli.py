@@ -116,7 +116,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
         evaluator = ReferenceEvaluator(reference, t_eval)
     budget = parse_duration(args.budget) if args.budget else None
     if args.resume:
-        trainer = Trainer.resume(args.resume, evaluator=evaluator, steps=args.steps, budget_s=budget)
+        trainer = Trainer.resume(
+            args.resume, evaluator=evaluator, steps=args.steps, budget_s=budget, tensorboard=args.tensorboard or None
+        )
     else:
         if not args.out:
             raise ValueError("give --out RUN_DIR for a new run (or --resume RUN_DIR)")
@@ -143,6 +145,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
             checkpoint_every_s=args.checkpoint_every,
             eval_every_s=args.eval_every,
             snapshots=args.snapshots,
+            tensorboard=args.tensorboard,
         )
         if (Path(args.out) / "checkpoint.pt").exists():
             raise ValueError(f"{args.out} already holds a run; use --resume {args.out} to continue it")
@@ -450,6 +453,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--groundtruth", default=None, help="grid solution .npz to evaluate against while training")
     p.add_argument("--eval-time", type=float, default=None, help="time for evaluation (default: last stored)")
     p.add_argument("--eval-every", type=float, default=60.0, help="seconds between evaluations")
+    p.add_argument(
+        "--tensorboard", action="store_true", help="also log metrics for TensorBoard (RUN/tensorboard; reach[tensorboard])"
+    )
     p.add_argument(
         "--snapshots", type=int, default=0, help="save the network after every 1/N of the run (RUN/snapshots/)"
     )

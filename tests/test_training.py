@@ -254,3 +254,18 @@ def test_network_initialisation_follows_the_seed_not_the_global_rng():
     c = build_network(TrainConfig(layout="srsl", width=8, steps=1, seed=4)).state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert not all(torch.equal(a[k], c[k]) for k in a)
+
+
+def test_tensorboard_logging_writes_the_metrics_and_resumes(tmp_path):
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    cfg = TrainConfig(layout="srsl", width=8, points=64, steps=10, log_every=5, tensorboard=True)
+    Trainer(cfg, tmp_path / "run", progress=False).train()
+    Trainer.resume(tmp_path / "run", progress=False, steps=20).train()
+    events = EventAccumulator(str(tmp_path / "run" / "tensorboard"))
+    events.Reload()
+    assert {"loss", "lr", "steps_per_s"} <= set(events.Tags()["scalars"])
+    assert [e.step for e in events.Scalars("loss")] == [5, 10, 15, 20]
+    logged = [json.loads(line)["loss"] for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert [e.value for e in events.Scalars("loss")] == pytest.approx(logged, rel=1e-6)

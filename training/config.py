@@ -55,6 +55,7 @@ class TrainConfig:
     log_every: int = 25
     checkpoint_every_s: float = 30.0
     eval_every_s: float = 60.0
+    tensorboard: bool = False  # also log the metrics as TensorBoard scalars in RUN/tensorboard (reach[tensorboard])
     snapshots: int = 0  # evenly spaced network snapshots over the run (RUN/snapshots/NNN.pt); needs steps or budget_s
 
     def validate(self) -> TrainConfig:

@@ -6,6 +6,7 @@ A run is a directory::
     RUN/checkpoint.pt      latest good state (network, optimizer, RNG, step, wall time)
     RUN/checkpoint.json    its metadata (system, layout, width, encoding, steps, versions, ...)
     RUN/metrics.jsonl      one JSON line per logged step (loss terms, lr, steps/s, evaluations)
+    RUN/tensorboard/       with ``tensorboard = True``: the same metrics as TensorBoard scalars
     RUN/snapshots/NNN.pt   with ``snapshots = K``: the network after each K-th of the run (+ .json),
                            for accuracy-versus-time studies that evaluate after training
 
@@ -199,6 +200,14 @@ class Trainer:
             t = torch.where(mask, torch.zeros_like(t), t)
         return x, t, mask
 
+    def _tensorboard(self) -> Any:
+        """A SummaryWriter for the run, purging events past the resumed step (a killed run's tail)."""
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except ImportError as err:
+            raise ValueError("TensorBoard logging needs the tensorboard package: pip install 'reach[tensorboard]'") from err
+        return SummaryWriter(str(self.run_dir / "tensorboard"), purge_step=self.step + 1 if self.step else None)
+
     # ------------------------------------------------------------------ loop
     def _done(self) -> str | None:
         c = self.config
@@ -217,6 +226,7 @@ class Trainer:
         cfg_path = self.run_dir / "config.json"
         with atomic_path(cfg_path) as tmp:
             Path(tmp).write_text(c.to_json())
+        board = self._tensorboard() if c.tensorboard else None
         metrics = open(self.run_dir / "metrics.jsonl", "a")  # noqa: SIM115 - kept open for the loop
         last_ckpt = last_eval = time.perf_counter()
         window_start, window_steps = time.perf_counter(), 0
@@ -276,6 +286,10 @@ class Trainer:
                         last_eval = window_start = time.perf_counter()  # evaluation is not training time
                     metrics.write(json.dumps(row) + "\n")
                     metrics.flush()
+                    if board is not None:
+                        for key, value in row.items():
+                            if key != "step" and isinstance(value, (int, float)):
+                                board.add_scalar(key, value, self.step)
                     left = (c.budget_s - self.wall) if c.budget_s else None
                     bar.set_postfix(
                         loss=f"{terms['loss']:.3g}",
@@ -296,6 +310,8 @@ class Trainer:
         finally:
             bar.close()
             metrics.close()
+            if board is not None:
+                board.close()
         return {
             "run_dir": str(self.run_dir),
             "steps": self.step,
