@@ -454,7 +454,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eval-time", type=float, default=None, help="time for evaluation (default: last stored)")
     p.add_argument("--eval-every", type=float, default=60.0, help="seconds between evaluations")
     p.add_argument(
-        "--tensorboard", action="store_true", help="also log metrics for TensorBoard (RUN/tensorboard; reach[tensorboard])"
+        "--tensorboard", action="store_true", help="also log metrics for TensorBoard in RUN/tensorboard"
     )
     p.add_argument(
         "--snapshots", type=int, default=0, help="save the network after every 1/N of the run (RUN/snapshots/)"

@@ -205,7 +205,7 @@ class Trainer:
         try:
             from torch.utils.tensorboard import SummaryWriter
         except ImportError as err:
-            raise ValueError("TensorBoard logging needs the tensorboard package: pip install 'reach[tensorboard]'") from err
+            raise ValueError("TensorBoard logging needs: pip install 'reach[tensorboard]'") from err
         return SummaryWriter(str(self.run_dir / "tensorboard"), purge_step=self.step + 1 if self.step else None)
 
     # ------------------------------------------------------------------ loop
