@@ -26,6 +26,11 @@ SECOND_9D_SLICE = (0.0, 0.0, 0.0, 0.5, 0.0, -0.5, 0.0, -math.pi / 2, math.pi / 2
 #: DeepReach's 9D slice: car 2 at (-0.4, 0), car 3 at (0.4, 0), headings pi/2, pi/4, 3 pi/4; axes x1, y1.
 DEEPREACH_9D_SLICE = (0.0, 0.0, -0.4, 0.0, 0.4, 0.0, math.pi / 2, math.pi / 4, 3 * math.pi / 4)
 
+#: The slice of DeepReach's 2021 figure comparing the 9D BRT with the union of pairwise BRTs (its
+#: validation script ``2E1P_valfunc_and_BRT.py``, at t = 1.0): car 1 varies over (x1, y1) with heading
+#: -2.54, car 2 at (-0.4, 0) heading 0, car 3 at (0.43, 0.33) heading -2.44.
+PAPER_2021_9D_SLICE = (0.0, 0.0, -0.4, 0.0, 0.43, 0.33, -2.54, 0.0, -2.44)
+
 
 @dataclass(frozen=True)
 class SliceSpec:
@@ -37,14 +42,20 @@ class SliceSpec:
 
 
 def default_slices(system: ControlAffineSystem) -> list[SliceSpec]:
-    """Air3D: x1-x2 at x3 = 1.5863 (the reference slice), 0 and -pi/2; 9D: DeepReach's slice;
-    anything else: the domain centre over the first two dimensions."""
+    """Air3D: x1-x2 at x3 = 1.5863 (the reference slice), 0 and -pi/2; 9D: DeepReach's slice, the
+    2021 paper's figure's slice and one of ours; anything else: the domain centre over the first two
+    dimensions."""
     if system.name == "air3d":
         return [SliceSpec((0.0, 0.0, v), (0, 1), f"x3 = {v:.4g}") for v in (1.5863, 0.0, -math.pi / 2)]
     if system.state_dim == 9 and getattr(system, "num_cars", 0) == 3:
         return [
             SliceSpec(
                 DEEPREACH_9D_SLICE, (0, 1), "DeepReach: cars 2, 3 at (-0.4, 0), (0.4, 0)\nheadings pi/2, pi/4, 3pi/4"
+            ),
+            SliceSpec(
+                PAPER_2021_9D_SLICE,
+                (0, 1),
+                "2021 figure: cars 2, 3 at (-0.4, 0), (0.43, 0.33)\nheadings -2.54, 0, -2.44",
             ),
             SliceSpec(SECOND_9D_SLICE, (0, 1), "cars 2, 3 at (0, 0.5), (0, -0.5) facing each other\ncar 1 heading 0"),
         ]

@@ -115,3 +115,17 @@ def test_union_overlay_plot_and_slice_parsing(pair_grid, tmp_path):
     args = ["plot", "union", str(ckpt), str(pair), "--system", "multivehicle9d", "--pairwise", str(pair)]
     assert main([*args, "--slice", "th1=0;x1,y1", "--slice", ";x1,y1", "--out", str(out)]) == 0
     assert out.stat().st_size > 5000
+
+
+def test_the_2021_figure_slice_is_drawn_and_its_cars_sit_in_the_union(pair_grid):
+    from safety.plots import PAPER_2021_9D_SLICE, default_slices
+
+    system = MultiVehicle9D()
+    assert [s.base for s in default_slices(system)].count(PAPER_2021_9D_SLICE) == 1
+    union = PairwiseUnion(system, pair_grid)
+    x = torch.tensor([PAPER_2021_9D_SLICE] * 3)
+    x[0, :2] = torch.tensor([-0.4, 0.0])  # car 1 on car 2
+    x[1, :2] = torch.tensor([0.43, 0.33])  # car 1 on car 3
+    x[2, :2] = torch.tensor([0.0, -0.9])  # car 1 far below both, heading away (-2.54 rad)
+    v = union.value(x, 1.0)
+    assert v[0] <= 0 and v[1] <= 0 and v[2] > 0
