@@ -369,6 +369,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
         certify_samples=args.certify_samples,
         rollout_every=args.rollout_every,
         eval_seed=args.eval_seed,
+        pairwise=args.pairwise,
     )
     if spec.budget_s is not None and spec.steps is not None:
         raise ValueError("give --budget or --steps, not both")
@@ -556,6 +557,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--certify-samples", type=int, default=None, help="rollout evaluation: fresh states (0: skip)")
     p.add_argument("--rollout-every", type=int, default=1, help="rollout evaluation: every k-th snapshot (+ last)")
     p.add_argument("--eval-seed", type=int, default=0)
+    p.add_argument("--pairwise", default=None, help="rollout evaluation: two-car .npz for the union containment")
     p.add_argument("--backend", choices=["local", "ray"], default="local")
     p.add_argument("--address", default=None, help="ray: address of an existing cluster (default: start one)")
     p.add_argument("--workers", type=int, default=1, help="local: runs trained at once")

@@ -26,6 +26,7 @@ METRIC_FORMATS: dict[str, tuple[str, str]] = {
     "delta": ("delta", "{:.3f}"),
     "certified_volume": ("certified vol.", "{:.3f}"),
     "collision_rate": ("collision %", "pct"),
+    "containment_miss_rate": ("misses union %", "pct"),
 }
 
 

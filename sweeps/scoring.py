@@ -73,22 +73,42 @@ class RolloutScorer:
     )
 
     def __init__(
-        self, system: ControlAffineSystem, samples: int, certify_samples: int | None, seed: int, device: str = "cpu"
+        self,
+        system: ControlAffineSystem,
+        samples: int,
+        certify_samples: int | None,
+        seed: int,
+        device: str = "cpu",
+        pairwise: str | os.PathLike | None = None,
     ) -> None:
-        from safety.verify import VerifySettings, sample_states
+        from safety.verify import VerifySettings, sample_states, values_at
 
         self.settings = VerifySettings(samples=samples, certify_samples=certify_samples, seed=seed)
         self.states = sample_states(system, samples, seed)
         self.device = device
-        self.key = {"kind": "rollout", "system": system.config(), **self.settings.to_dict()}
+        self.key = {"kind": "rollout", "system": system.config(), **self.settings.to_dict(), "pairwise": None}
+        self.union_values = None
+        if pairwise is not None:  # containment in the union of pairwise BRTs (a sound model misses none)
+            from safety.value_functions import load_value_function
+
+            union = load_value_function(pairwise, format="grid", system=system)
+            if union.kind != "pairwise":
+                raise ValueError(f"{pairwise}: not a two-car (relativepair) solution for {system.name}")
+            self.union_values = values_at(union.value_function, self.states, system.horizon)
+            self.key["pairwise"] = {"file": str(Path(pairwise).resolve()), "size": Path(pairwise).stat().st_size}
 
     def __call__(self, vf: ValueFunction) -> dict[str, float]:
-        from safety.verify import verify
+        from safety.metrics import containment_statistics
+        from safety.verify import values_at, verify
 
         row = verify(vf, self.states, self.settings, device=self.device, progress=False)
         if self.settings.fresh_samples == 0:  # no guarantee asked for: the volume a certificate would cover
             row["certified_volume"] = row["safe_fraction"]
-        return {k: row[k] for k in self.KEEP if k in row}
+        out = {k: row[k] for k in self.KEEP if k in row}
+        if self.union_values is not None:
+            learned = values_at(vf, self.states, vf.system.horizon, device=self.device)
+            out.update(containment_statistics(self.union_values, learned))
+        return out
 
 
 def headline_of(evaluation: str) -> tuple[tuple[str, bool], ...]:

@@ -42,6 +42,8 @@ class SweepSpec:
     of at most 3 dimensions) or ``"rollout"`` (violation rate, delta-level and certified volume from
     ``samples`` rollouts); ``"auto"`` picks the first where a grid is feasible. Rollouts are costly,
     so with ``rollout_every = k`` only every k-th snapshot (and always the last) is rolled out.
+    ``pairwise`` (a two-car ``relativepair`` solution) adds the share of states in the union of
+    pairwise BRTs that a network calls safe, which a sound model keeps at zero.
     """
 
     system: str = "air3d"
@@ -63,6 +65,7 @@ class SweepSpec:
     certify_samples: int | None = None
     rollout_every: int = 1
     eval_seed: int = 0
+    pairwise: str | None = None
 
     def __post_init__(self) -> None:
         self.layouts = [str(x) for x in self.layouts]
@@ -95,6 +98,10 @@ class SweepSpec:
             self.evaluation = "groundtruth" if system.state_dim <= 3 else "rollout"
         if self.evaluation not in ("groundtruth", "rollout"):
             raise ValueError(f"evaluation must be 'auto', 'groundtruth' or 'rollout', got {self.evaluation!r}")
+        if self.pairwise is not None and self.evaluation != "rollout":
+            raise ValueError("pairwise containment is a rollout-evaluation metric (multi-vehicle systems)")
+        if self.pairwise is not None and not Path(self.pairwise).exists():
+            raise ValueError(f"pairwise solution {self.pairwise} does not exist")
         if self.evaluation == "groundtruth" and system.state_dim > 3:
             raise ValueError(f"{self.system} has {system.state_dim} dimensions; a grid ground truth needs at most 3")
         for layout in self.layouts[:1]:

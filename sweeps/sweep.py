@@ -56,14 +56,21 @@ def _ground_truth(spec: SweepSpec, out: Path, progress: bool, log: Callable[[str
     return str(path.resolve())
 
 
+def headline(spec: SweepSpec, rows: list[dict[str, Any]]) -> tuple[tuple[str, bool], ...]:
+    """The metrics tables and plots show: the scorer's, plus union containment where it was measured."""
+    base = headline_of(spec.evaluation)
+    if any("containment_miss_rate" in r for r in rows):
+        base = (*base, ("containment_miss_rate", False))
+    return base
+
+
 def machine() -> str:
-    """One line naming the machine a study ran on."""
+    """One line naming the machine a study's driver ran on."""
     import torch
 
-    threads = torch.get_num_threads()
     return (
-        f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, torch {torch.__version__} "
-        f"({threads} threads), Python {platform.python_version()}"
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, torch {torch.__version__}, "
+        f"Python {platform.python_version()}"
     )
 
 
@@ -111,7 +118,12 @@ def run_sweep(
         bar.update(1)
     bar.close()
     rows = [r for layout, seed in spec.tasks() for r in rows_by_task.get((layout, seed), [])]
-    report = write_report(spec, out, rows, failed, groundtruth, time.perf_counter() - start)
+    if backend == "ray":
+        execution = f"Ray tasks ({'cluster ' + address if address else 'local Ray instance'}), one CPU each"
+    else:
+        per_run = f"{threads} torch thread(s)" if threads else "torch's default threads"
+        execution = f"{workers} local run(s) at a time, {per_run} each"
+    report = write_report(spec, out, rows, failed, groundtruth, time.perf_counter() - start, execution)
     return report, failed
 
 
@@ -119,9 +131,9 @@ def _write_rows(out: Path, spec: SweepSpec, rows_by_task: dict, failed: list) ->
     from safety.results_io import write_results
 
     rows = [r for layout, seed in spec.tasks() for r in rows_by_task.get((layout, seed), [])]
-    headline = headline_of(spec.evaluation)
     header = {"format": RESULTS_FORMAT, "spec": spec.to_dict(), "failed": failed}
-    write_results(out / "results", header, rows, summary_table(rows, headline) if rows else "(no results yet)")
+    table = summary_table(rows, headline(spec, rows)) if rows else "(no results yet)"
+    write_results(out / "results", header, rows, table)
 
 
 def _slice_plot(spec: SweepSpec, out: Path, rows: list[dict[str, Any]], groundtruth: str | None) -> Path | None:
@@ -159,9 +171,10 @@ def write_report(
     failed: list[tuple[str, int, str]],
     groundtruth: str | None,
     seconds: float,
+    execution: str = "",
 ) -> Path:
     """``report.md`` (and its plots) from the rows; returns its path."""
-    headline = headline_of(spec.evaluation)
+    metrics = headline(spec, rows)
     budget = f"{spec.budget_s:.0f} s" if spec.budget_s is not None else f"{spec.steps} steps"
     parts = [
         f"# Layout sweep: {spec.system}",
@@ -169,7 +182,7 @@ def write_report(
         f"{len(spec.layouts)} layouts x {len(spec.seeds)} seeds, width {spec.width}, {budget} of training each "
         f"({', '.join(f'{k}={v}' for k, v in spec.train.items()) or 'reach train defaults'}), scored at "
         f"{spec.snapshots} evenly spaced snapshots. Training time excludes evaluation. Machine: {machine()}; "
-        f"this call took {seconds:.0f} s.",
+        f"{execution + '; ' if execution else ''}this call took {seconds:.0f} s.",
         "",
     ]
     if spec.evaluation == "groundtruth":
@@ -186,7 +199,13 @@ def write_report(
         parts.append(
             f"Rollouts of the learned policy from {spec.samples} uniform states (seed {spec.eval_seed}): violation "
             "rate (both kinds), collision rate, delta-level and certified volume (the fraction of the box with "
-            "V > delta)."
+            "V > delta)"
+            + (
+                f", and the share of states in the union of pairwise BRTs `{Path(spec.pairwise).name}` that a "
+                "network calls safe (misses union; a sound model misses none)."
+                if spec.pairwise
+                else "."
+            )
         )
     parts.append(
         "The time curriculum and learning-rate schedule follow each run's budget, so an early snapshot is "
@@ -195,8 +214,8 @@ def write_report(
     if not rows:
         parts += ["", "No results: every task failed."]
     else:
-        parts += ["", "## Final snapshot, mean ± std over seeds (best first)", "", summary_table(rows, headline)]
-        pareto = plot_pareto(rows, out / "pareto.png", headline, title=f"{spec.system}: accuracy against time")
+        parts += ["", "## Final snapshot, mean ± std over seeds (best first)", "", summary_table(rows, metrics)]
+        pareto = plot_pareto(rows, out / "pareto.png", metrics, title=f"{spec.system}: accuracy against time")
         parts += ["", "## Accuracy against training time", "", f"![Pareto plot]({pareto.name})"]
         slices = _slice_plot(spec, out, rows, groundtruth)
         if slices is not None:
@@ -205,7 +224,7 @@ def write_report(
             "",
             "## The seed paper's claims on these data",
             "",
-            claims_table(rows, headline),
+            claims_table(rows, metrics),
             "",
             "A claim is supported only where the statistic is positive by more than the seed-to-seed spread.",
         ]

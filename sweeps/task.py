@@ -39,7 +39,9 @@ def _scorer(spec: Any, groundtruth: str | None) -> Any:
                 raise ValueError("a ground-truth evaluation needs the ground-truth file")
             scorer = GroundTruthScorer(system, groundtruth, spec.eval_time, spec.slice_value)
         else:
-            scorer = RolloutScorer(system, spec.samples, spec.certify_samples, spec.eval_seed, spec.device)
+            scorer = RolloutScorer(
+                system, spec.samples, spec.certify_samples, spec.eval_seed, spec.device, spec.pairwise
+            )
         _SCORERS.clear()
         _SCORERS[ident] = scorer
     return _SCORERS[ident]

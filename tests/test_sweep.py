@@ -213,8 +213,9 @@ def test_sweep_solves_and_caches_its_own_ground_truth(tmp_path):
     assert gt.grid.shape == (11, 11, 11) and float(gt.times[-1]) == pytest.approx(1.0)
 
 
-def test_rollout_sweep_on_9d_scores_every_kth_snapshot(tmp_path):
+def test_rollout_sweep_on_9d_scores_every_kth_snapshot(tmp_path, pair_grid):
     out = tmp_path / "sweep"
+    pair_grid.save(tmp_path / "pair.npz")
     spec = SweepSpec(
         system="multivehicle9d",
         layouts=["ssrsl"],
@@ -227,6 +228,7 @@ def test_rollout_sweep_on_9d_scores_every_kth_snapshot(tmp_path):
         samples=64,
         certify_samples=0,
         rollout_every=2,
+        pairwise=str(tmp_path / "pair.npz"),
     )
     report, failed = run_sweep(spec, out, progress=False, log=lambda *_: None)
     assert not failed
@@ -234,7 +236,10 @@ def test_rollout_sweep_on_9d_scores_every_kth_snapshot(tmp_path):
     assert [r["snapshot"] for r in rows] == [2, 4]
     for r in rows:
         assert 0 <= r["violation_rate"] <= 1 and r["delta"] >= 0 and 0 <= r["certified_volume"] <= 1
-    assert "violation %" in report.read_text()
+        assert 0 <= r["containment_miss_rate"] <= r["union_fraction"] <= 1
+    assert "violation %" in report.read_text() and "misses union %" in report.read_text()
+    with pytest.raises(ValueError, match="rollout-evaluation"):
+        tiny_spec(pairwise=str(tmp_path / "pair.npz")).validate()
 
 
 def test_local_worker_processes_match_the_in_process_run(tmp_path, gt21):
