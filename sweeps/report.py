@@ -166,23 +166,9 @@ def plot_pareto(
 
 def _spearman(x: Sequence[float], y: Sequence[float]) -> float:
     """Spearman rank correlation (average ranks for ties); NaN with fewer than 3 points or no spread."""
-
-    def ranks(v: Sequence[float]) -> list[float]:
-        order = sorted(range(len(v)), key=lambda i: v[i])
-        r = [0.0] * len(v)
-        i = 0
-        while i < len(order):
-            j = i
-            while j + 1 < len(order) and v[order[j + 1]] == v[order[i]]:
-                j += 1
-            for k in range(i, j + 1):
-                r[order[k]] = (i + j) / 2
-            i = j + 1
-        return r
-
     if len(x) < 3:
         return math.nan
-    rx, ry = ranks(x), ranks(y)
+    rx, ry = _ranks(x), _ranks(y)
     mx, my = statistics.fmean(rx), statistics.fmean(ry)
     sx = math.sqrt(sum((a - mx) ** 2 for a in rx))
     sy = math.sqrt(sum((b - my) ** 2 for b in ry))
@@ -191,13 +177,76 @@ def _spearman(x: Sequence[float], y: Sequence[float]) -> float:
     return sum((a - mx) * (b - my) for a, b in zip(rx, ry)) / (sx * sy)
 
 
+def _ranks(values: Sequence[float]) -> list[float]:
+    """Ranks from 0, ties sharing their average rank."""
+    order = sorted(range(len(values)), key=lambda i: values[i])
+    r = [0.0] * len(values)
+    i = 0
+    while i < len(order):
+        j = i
+        while j + 1 < len(order) and values[order[j + 1]] == values[order[i]]:
+            j += 1
+        for k in range(i, j + 1):
+            r[order[k]] = (i + j) / 2
+        i = j + 1
+    return r
+
+
+def spearman_permutation_p(x: Sequence[float], y: Sequence[float], max_exact: int = 9, draws: int = 100_000) -> float:
+    """One-sided p-value of Spearman's rho being at least the observed one if ``y`` were unrelated to
+    ``x``: exact over all orderings of ``y`` for up to ``max_exact`` points, else from ``draws``
+    seeded random orderings. NaN below 3 points."""
+    import itertools
+
+    import numpy as np
+
+    n = len(x)
+    if n < 3:
+        return math.nan
+    rx = np.asarray(_ranks(x), dtype=float)
+    ry = np.asarray(_ranks(y), dtype=float)
+    rx, ry = rx - rx.mean(), ry - ry.mean()
+    denom = math.sqrt(float((rx**2).sum()) * float((ry**2).sum()))
+    if denom == 0:
+        return math.nan
+    observed = float(rx @ ry) / denom
+    if n <= max_exact:
+        perms = np.array(list(itertools.permutations(range(n))), dtype=np.int64)
+    else:
+        rng = np.random.default_rng(0)
+        perms = np.argsort(rng.random((draws, n)), axis=1)
+    stats = ry[perms] @ rx / denom
+    return float((stats >= observed - 1e-12).mean())
+
+
+def _subset_permutation_p(scores: Sequence[float], chosen: Sequence[bool]) -> float:
+    """One-sided p-value of the chosen layouts' mean minus the rest's being at least the observed
+    gap if the chosen ones were any layouts of the same count (exact, over all subsets)."""
+    import itertools
+
+    n, k = len(scores), sum(chosen)
+    if k == 0 or k == n:
+        return math.nan
+    total = sum(scores)
+
+    def gap(idx: Sequence[int]) -> float:
+        a = sum(scores[i] for i in idx)
+        return a / k - (total - a) / (n - k)
+
+    observed = gap([i for i, c in enumerate(chosen) if c])
+    gaps = [gap(idx) for idx in itertools.combinations(range(n), k)]
+    return sum(g >= observed - 1e-12 for g in gaps) / len(gaps)
+
+
 def claims(rows: Sequence[Row], metric: str, higher_is_better: bool) -> list[dict[str, Any]]:
     """Numbers behind the seed paper's two claims, on the final ``metric`` (seed means per layout).
 
     1. "more sine layers are better": Spearman correlation between a layout's number of sine
-       layers and its score (sign-adjusted so that > 0 supports the claim);
+       layers and its score (sign-adjusted so that > 0 supports the claim), with the one-sided
+       permutation p-value over the layouts;
     2. "sine on the first and last hidden layer matters most": mean score of layouts with sine in
-       both places minus that of the others (sign-adjusted), against the typical seed spread.
+       both places minus that of the others (sign-adjusted), with the one-sided p-value of that gap
+       over all ways of picking as many layouts, and the mean seed-to-seed spread for scale.
     """
     finals = final_rows(rows)
     sign = 1.0 if higher_is_better else -1.0
@@ -206,41 +255,44 @@ def claims(rows: Sequence[Row], metric: str, higher_is_better: bool) -> list[dic
         s = spread([r.get(metric) for r in rs])
         if s["n"]:
             layouts.append(layout)
-            scores.append(s["mean"])
+            scores.append(sign * s["mean"])  # sign-adjusted: larger is better from here on
             spreads.append(s["std"])
     hidden = [layout[:-1] for layout in layouts]
     sines = [h.count("s") for h in hidden]
-    rho = sign * _spearman(sines, scores)
     ends = [h[0] == "s" and h[-1] == "s" for h in hidden]
     with_ends = [s for s, e in zip(scores, ends) if e]
     without = [s for s, e in zip(scores, ends) if not e]
-    gap = sign * (statistics.fmean(with_ends) - statistics.fmean(without)) if with_ends and without else math.nan
-    noise = statistics.fmean(spreads) if spreads else math.nan
+    gap = statistics.fmean(with_ends) - statistics.fmean(without) if with_ends and without else math.nan
     return [
         {
             "claim": "more sine layers are better",
-            "statistic": "Spearman rho (sine layers, score); > 0 supports",
-            "value": rho,
+            "statistic": f"Spearman rho (sine layers, score) over {len(layouts)} layouts",
+            "value": _spearman(sines, scores),
+            "p_value": spearman_permutation_p(sines, scores),
             "layouts": len(layouts),
         },
         {
             "claim": "sine on the first and last hidden layer matters most",
-            "statistic": f"mean score with sine at both ends minus without ({len(with_ends)} vs {len(without)} "
-            "layouts); > 0 supports",
+            "statistic": f"mean score with sine at both ends minus without ({len(with_ends)} vs {len(without)})",
             "value": gap,
-            "seed_std": noise,
+            "p_value": _subset_permutation_p(scores, ends),
+            "seed_std": statistics.fmean(spreads) if spreads else math.nan,
         },
     ]
 
 
 def claims_table(rows: Sequence[Row], headline: Sequence[tuple[str, bool]]) -> str:
-    """Markdown: the claims' statistics on each headline metric, with the mean seed-to-seed spread."""
-    lines = ["| metric | claim | statistic | value | mean seed std |", "|---|---|---|---:|---:|"]
+    """Markdown: the claims' statistics on each headline metric (sign-adjusted: > 0 agrees with the
+    claim), their one-sided permutation p-values, and the mean seed-to-seed spread."""
+    lines = [
+        "| metric | claim | statistic (> 0 agrees) | value | one-sided p | mean seed std |",
+        "|---|---|---|---:|---:|---:|",
+    ]
     for metric, higher in headline:
         for c in claims(rows, metric, higher):
             std = c.get("seed_std")
             lines.append(
                 f"| {metric} | {c['claim']} | {c['statistic']} | {_fmt(c['value'], '{:.3g}')} | "
-                f"{_fmt(std, '{:.3g}') if std is not None else ''} |"
+                f"{_fmt(c['p_value'], '{:.3f}')} | {_fmt(std, '{:.3g}') if std is not None else ''} |"
             )
     return "\n".join(lines)

@@ -226,7 +226,9 @@ def write_report(
             "",
             claims_table(rows, metrics),
             "",
-            "A claim is supported only where the statistic is positive by more than the seed-to-seed spread.",
+            "Statistics are sign-adjusted (> 0 agrees with the claim); p is the chance of a statistic at least "
+            "as large if the layouts were labelled at random (exact permutations over the layouts). With few "
+            'layouts and seeds, read p > 0.05 as "not established", not as "refuted".',
         ]
     if failed:
         parts += ["", "## Failed tasks", ""] + [f"- `{layout}` seed {seed}: {err}" for layout, seed, err in failed]

@@ -10,7 +10,7 @@ import torch
 
 from reach.cli import main as reach_main
 from sweeps import SweepSpec, claims, pareto_front, run_sweep
-from sweeps.report import _spearman, spread, summary_table
+from sweeps.report import _spearman, spearman_permutation_p, spread, summary_table
 from sweeps.spec import load_spec, store_spec
 from training import TrainConfig, Trainer
 
@@ -110,6 +110,12 @@ def test_spearman_and_spread():
     assert _spearman([1, 2, 3, 4], [10, 20, 30, 40]) == pytest.approx(1.0)
     assert _spearman([1, 2, 3, 4], [4, 3, 2, 1]) == pytest.approx(-1.0)
     assert math.isnan(_spearman([1, 1, 1], [1, 2, 3]))
+    # ties in x: orderings that only swap tied points give the same rho, so p counts them all
+    assert spearman_permutation_p([0, 1, 1], [1.0, 2.0, 3.0]) == pytest.approx(2 / 6)
+    # beyond the exact limit: seeded random orderings, close to the exact value
+    x, y = [0, 1, 2, 3, 4, 5, 6], [0.1, 0.3, 0.2, 0.5, 0.4, 0.7, 0.6]
+    exact = spearman_permutation_p(x, y)
+    assert spearman_permutation_p(x, y, max_exact=3, draws=50_000) == pytest.approx(exact, abs=0.005)
     s = spread([1.0, 3.0, float("nan")])
     assert (s["mean"], s["n"], s["min"], s["max"]) == (2.0, 2, 1.0, 3.0)
     assert s["std"] == pytest.approx(math.sqrt(2))
@@ -125,8 +131,10 @@ def _rows(scores: dict[str, list[float]]) -> list[dict]:
 
 def test_claims_read_the_direction_of_the_data():
     supports = _rows({"ssssl": [0.9, 0.92], "ssrsl": [0.8, 0.82], "srrrl": [0.5, 0.52], "rrrrl": [0.3, 0.31]})
-    rho, gap = (c["value"] for c in claims(supports, "iou", higher_is_better=True))
-    assert rho == pytest.approx(1.0) and gap > 0.3
+    (one, two) = claims(supports, "iou", higher_is_better=True)
+    assert one["value"] == pytest.approx(1.0) and two["value"] > 0.3
+    assert one["p_value"] == pytest.approx(1 / 24)  # the one best ordering of 4 layouts out of 4!
+    assert two["p_value"] == pytest.approx(1 / 6)  # the best pair of 4 layouts out of C(4, 2)
     # the same data read as an error (lower is better) refutes both
     rho, gap = (c["value"] for c in claims(supports, "iou", higher_is_better=False))
     assert rho == pytest.approx(-1.0) and gap < -0.3
