@@ -164,6 +164,16 @@ def _slice_plot(spec: SweepSpec, out: Path, rows: list[dict[str, Any]], groundtr
     return plot_brt_slices(curves, out / "slices.png", t=t, reference=reference)
 
 
+def _effort(rows: list[dict[str, Any]]) -> str:
+    """Training and scoring time summed over the runs (what the study cost, whichever call did it)."""
+    finals: dict[tuple[str, int], float] = {}
+    for r in rows:
+        finals[(r["layout"], r["seed"])] = max(finals.get((r["layout"], r["seed"]), 0.0), float(r["wall"]))
+    scoring = sum(float(r.get("eval_seconds", 0.0)) for r in rows)
+    trained = sum(finals.values()) / 60
+    return f"{len(finals)} runs trained {trained:.0f} min and were scored in {scoring / 60:.1f} min in all"
+
+
 def write_report(
     spec: SweepSpec,
     out: Path,
@@ -182,7 +192,7 @@ def write_report(
         f"{len(spec.layouts)} layouts x {len(spec.seeds)} seeds, width {spec.width}, {budget} of training each "
         f"({', '.join(f'{k}={v}' for k, v in spec.train.items()) or 'reach train defaults'}), scored at "
         f"{spec.snapshots} evenly spaced snapshots. Training time excludes evaluation. Machine: {machine()}; "
-        f"{execution + '; ' if execution else ''}this call took {seconds:.0f} s.",
+        f"{execution + '; ' if execution else ''}{_effort(rows)}; this call took {seconds:.0f} s.",
         "",
     ]
     if spec.evaluation == "groundtruth":
