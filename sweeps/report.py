@@ -134,6 +134,7 @@ def plot_pareto(
     FigureCanvasAgg(fig)
     for i, (metric, higher) in enumerate(metrics):
         ax = fig.add_subplot(1, len(metrics), i + 1)
+        scale = 100.0 if METRIC_FORMATS.get(metric, ("", ""))[1] == "pct" else 1.0  # rates drawn in percent
         points = []
         for k, (layout, pts) in enumerate(sorted(curves(rows, metric).items())):
             pts = [p for p in pts if p["n"]]
@@ -141,9 +142,10 @@ def plot_pareto(
                 continue
             wall = [p["wall"] for p in pts]
             colour = f"C{k % 10}"
-            ax.plot(wall, [p["mean"] for p in pts], "o-", ms=3, color=colour, label=layout)
-            ax.fill_between(wall, [p["min"] for p in pts], [p["max"] for p in pts], color=colour, alpha=0.15)
-            points += [(p["wall"], p["mean"], layout) for p in pts]
+            ax.plot(wall, [scale * p["mean"] for p in pts], "o-", ms=3, color=colour, label=layout)
+            lo, hi = [scale * p["min"] for p in pts], [scale * p["max"] for p in pts]
+            ax.fill_between(wall, lo, hi, color=colour, alpha=0.15)
+            points += [(p["wall"], scale * p["mean"], layout) for p in pts]
         front = pareto_front(points, higher)
         if front:  # drawn on to the latest time: nothing later beats the front's last point
             xs = [p[0] for p in front] + [max(p[0] for p in points)]
