@@ -171,6 +171,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         seed=args.seed,
         dt=args.dt,
         integrator=args.integrator,
+        matmul_precision=args.matmul_precision,
         horizon=args.horizon,
         chunk_size=args.chunk_size,
     )
@@ -476,6 +477,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--dt", type=float, default=0.0025)
     p.add_argument("--integrator", choices=["euler", "rk4"], default="euler")
+    p.add_argument(
+        "--matmul-precision",
+        choices=["float32", "bfloat16"],
+        default="float32",
+        help="bfloat16: networks' hidden products in bf16 during rollouts (faster, inexact; grids stay exact)",
+    )
     p.add_argument("--horizon", type=float, default=None, help="time-to-go of the check (default: the system's)")
     p.add_argument("--chunk-size", type=int, default=16384)
     p.add_argument("--format", choices=["auto", "reach", "deepreach", "grid"], default="auto")

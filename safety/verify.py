@@ -33,6 +33,9 @@ class VerifySettings:
     integrator: str = "euler"
     horizon: float | None = None
     chunk_size: int = 16384
+    #: "bfloat16": networks' hidden products in bfloat16 during rollouts (faster, inexact; other
+    #: value functions are always rolled out exactly, and each row records what was used)
+    matmul_precision: str = "float32"
 
     def __post_init__(self) -> None:
         if isinstance(self.samples, bool) or not isinstance(self.samples, int) or self.samples < 1:
@@ -41,6 +44,8 @@ class VerifySettings:
             raise ValueError(f"certify_samples must be an integer >= 0, got {self.certify_samples!r}")
         if not (0.0 < self.beta < 1.0):
             raise ValueError(f"beta must lie in (0, 1), got {self.beta!r}")
+        if self.matmul_precision not in ("float32", "bfloat16"):
+            raise ValueError(f"matmul_precision must be 'float32' or 'bfloat16', got {self.matmul_precision!r}")
 
     @property
     def fresh_samples(self) -> int:
@@ -106,7 +111,9 @@ def verify(
     """Violation statistics of ``vf`` on ``states`` and, if asked, the certified delta-level."""
     start = time.perf_counter()
     horizon = vf.system.horizon if settings.horizon is None else settings.horizon
+    precision = settings.matmul_precision if hasattr(vf, "with_matmul_dtype") else "float32"
     common = {
+        "matmul_precision": precision,
         "horizon": horizon,
         "dt": settings.dt,
         "integrator": settings.integrator,
@@ -116,6 +123,7 @@ def verify(
     }
     result = rollout(vf, states, **common)
     row: dict[str, Any] = violation_statistics(result.initial_value, result.collided)
+    row["matmul_precision"] = precision
     collisions = int(result.collided.sum())
     row["collision_ci_low"], row["collision_ci_high"] = wilson_interval(collisions, result.num_states)
     row["rollout_seconds"] = result.wall_time

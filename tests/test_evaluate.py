@@ -138,3 +138,18 @@ def test_evaluate_reports_containment_against_pairwise_union(pair_grid, checkpoi
     learned = rows["reach"]
     assert 0.0 <= learned["containment_ci_low"] <= learned["containment_miss_rate"] <= learned["containment_ci_high"]
     assert "misses union %" in out.with_suffix(".md").read_text()
+
+
+def test_bfloat16_evaluation_applies_to_networks_and_records_it(air3d_grid, checkpoints: Path, tmp_path: Path):
+    grid = tmp_path / "air3d.npz"
+    air3d_grid.save(grid)
+    common = ["--system", "air3d", "--samples", "300", "--certify-samples", "0", "--dt", "0.01"]
+    exact_out, fast_out = tmp_path / "exact.csv", tmp_path / "fast.csv"
+    sources = [str(grid), str(checkpoints / "air3d.pt")]
+    assert main(["evaluate", *sources, *common, "--out", str(exact_out)]) == 0
+    assert main(["evaluate", *sources, *common, "--matmul-precision", "bfloat16", "--out", str(fast_out)]) == 0
+    exact, fast = load_results(exact_out), load_results(fast_out)
+    assert [r["matmul_precision"] for r in exact] == ["float32", "float32"]
+    assert [r["matmul_precision"] for r in fast] == ["float32", "bfloat16"]  # the grid stays exact
+    assert fast[0]["collision_rate"] == exact[0]["collision_rate"]
+    assert abs(fast[1]["collision_rate"] - exact[1]["collision_rate"]) <= 0.03
