@@ -60,13 +60,11 @@ def run_demo(
     gt = GridSolution.load(gt_path, outside="clamp")
 
     run = out / "air3d-ssssl"
-    if not (run / "checkpoint.pt").exists() or _budget_left(run, budget_s):
-        log(f"[2/5] training layout ssssl for {budget_s:.0f} s (reach train defaults)")
-        if (run / "config.json").exists():  # an interrupted demo: continue its run
-            Trainer.resume(run, progress=progress).train()
-        else:
-            config = TrainConfig(system="air3d", layout="ssssl", budget_s=budget_s, seed=seed)
-            Trainer(config, run, progress=progress).train()
+    config = TrainConfig(system="air3d", layout="ssssl", budget_s=budget_s, seed=seed)
+    trainer = Trainer.open(config, run, progress=progress)  # an interrupted demo continues its run
+    if trainer.needs_training():
+        log(f"[2/5] training layout ssssl for {trainer.config.budget_s:.0f} s (reach train defaults)")
+        trainer.train()
     network = load_value_function(run).value_function
 
     log(f"[3/5] verification: {samples} rollouts each, IoU/MSE against the grid at t = 1.0")
@@ -129,13 +127,3 @@ of `reach train` defaults (run directory `{run.name}`). Total wall time {time.pe
         Path(tmp).write_text(text)
     return report
 
-
-def _budget_left(run: Path, budget_s: float) -> bool:
-    """Whether an interrupted training run in ``run`` has budget left (resume instead of retrain)."""
-    import json
-
-    meta = run / "checkpoint.json"
-    if not meta.exists():
-        return False
-    wall = json.loads(meta.read_text()).get("wall_time_s", budget_s)
-    return float(wall) < budget_s - 1.0

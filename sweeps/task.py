@@ -50,13 +50,11 @@ def _scorer(spec: Any, groundtruth: str | None) -> Any:
 def _train(spec: Any, layout: str, seed: int, directory: Path) -> None:
     from training import Trainer
 
-    if (directory / "config.json").exists():
-        trainer = Trainer.resume(directory, progress=False)
-        if trainer.config.to_json() != spec.train_config(layout, seed).to_json():
-            raise ValueError(f"{directory} holds a run with another configuration than this sweep's")
-    else:
-        trainer = Trainer(spec.train_config(layout, seed), directory, progress=False)
-    if trainer.stop_reason() is None or not (directory / "checkpoint.pt").exists():
+    config = spec.train_config(layout, seed)
+    trainer = Trainer.open(config, directory, progress=False)
+    if trainer.config.to_json() != config.to_json():
+        raise ValueError(f"{directory} holds a run with another configuration than this sweep's")
+    if trainer.needs_training():
         trainer.train()
 
 

@@ -159,9 +159,18 @@ class Trainer:
         k = self.config.snapshots
         return min(k, int(self.progress_fraction() * k + 1e-9))
 
-    def stop_reason(self) -> str | None:
-        """Why the run would stop now (a stop rule that holds), or None while it has work left."""
-        return self._done()
+    @classmethod
+    def open(cls, config: TrainConfig, run_dir: str | os.PathLike, progress: bool = True) -> Trainer:
+        """The run in ``run_dir``: resumed (its stored configuration rules) if it exists, else a new
+        run of ``config``. Callers that must not adopt another configuration compare ``.config``."""
+        run_dir = Path(run_dir)
+        if (run_dir / "config.json").exists():
+            return cls.resume(run_dir, progress=progress)
+        return cls(config, run_dir, progress=progress)
+
+    def needs_training(self) -> bool:
+        """Whether :meth:`train` has work left: no stop rule holds yet, or nothing was saved."""
+        return self.stop_reason() is None or not self.checkpoint_path.exists()
 
     # ------------------------------------------------------------------ schedule
     def progress_fraction(self) -> float:
@@ -209,7 +218,8 @@ class Trainer:
         return SummaryWriter(str(self.run_dir / "tensorboard"), purge_step=self.step + 1 if self.step else None)
 
     # ------------------------------------------------------------------ loop
-    def _done(self) -> str | None:
+    def stop_reason(self) -> str | None:
+        """Why the run would stop now (a stop rule that holds), or None while it has work left."""
         c = self.config
         if c.steps is not None and self.step >= c.steps:
             return f"reached {c.steps} steps"
@@ -239,7 +249,7 @@ class Trainer:
             unit="step",
             **({} if self.progress else {"disable": True}),
         )
-        reason = self._done()
+        reason = self.stop_reason()
         # snapshots past the checkpoint (a killed run) are retaken as the resumed run passes them
         snapshots_taken = self._snapshots_due()
         try:
@@ -269,7 +279,7 @@ class Trainer:
                 self.loss_ema = terms["loss"] if self.loss_ema is None else 0.95 * self.loss_ema + 0.05 * terms["loss"]
                 bar.update(1)
                 now = time.perf_counter()
-                if self.step % c.log_every == 0 or self._done():
+                if self.step % c.log_every == 0 or self.stop_reason():
                     rate = window_steps / max(now - window_start, 1e-9)
                     window_start, window_steps = now, 0
                     row = {
@@ -281,7 +291,7 @@ class Trainer:
                         "points_per_s": round(rate * c.points, 1),
                         **terms,
                     }
-                    if self.evaluator is not None and (now - last_eval >= c.eval_every_s or self._done()):
+                    if self.evaluator is not None and (now - last_eval >= c.eval_every_s or self.stop_reason()):
                         row.update(self.evaluator(NeuralValueFunction(self.network)))
                         last_eval = window_start = time.perf_counter()  # evaluation is not training time
                     metrics.write(json.dumps(row) + "\n")
@@ -303,7 +313,7 @@ class Trainer:
                 if time.perf_counter() - last_ckpt >= c.checkpoint_every_s:
                     self._save()
                     last_ckpt = time.perf_counter()
-                reason = self._done()
+                reason = self.stop_reason()
             if c.snapshots and not (self.snapshot_dir / f"{c.snapshots:03d}.pt").exists():
                 self._snapshot(c.snapshots)  # a run stopped early (target loss): its end is the last snapshot
             self._save()
