@@ -124,6 +124,14 @@ def _previous(out: Path, header: dict[str, Any]) -> dict[str, dict[str, Any]]:
     return {r["source"]: r for r in data.get("results", []) if not r.get("error")}
 
 
+def pairwise_union_values(pairwise: str | os.PathLike, system: ControlAffineSystem, states: Any, horizon: float) -> Any:
+    """Values of the union of pairwise BRTs (a two-car ``relativepair`` solution) at ``states``."""
+    union = load_value_function(pairwise, format="grid", system=system)
+    if union.kind != "pairwise":
+        raise ValueError(f"{pairwise}: not a two-car (relativepair) solution for {system.name}")
+    return values_at(union.value_function, states, horizon)
+
+
 def evaluate_many(
     sources: Sequence[str],
     out: str | os.PathLike,
@@ -171,12 +179,7 @@ def evaluate_many(
     done = _previous(out, header)
     states = sample_states(system, settings.samples, settings.seed)
     horizon = system.horizon if settings.horizon is None else settings.horizon
-    union_values = None
-    if pairwise is not None:
-        union = load_value_function(pairwise, format="grid", system=system)
-        if union.kind != "pairwise":
-            raise ValueError(f"{pairwise}: not a two-car (relativepair) solution for {system.name}")
-        union_values = values_at(union.value_function, states, horizon)
+    union_values = None if pairwise is None else pairwise_union_values(pairwise, system, states, horizon)
     rows: list[dict[str, Any]] = []
     for path in tqdm(paths, desc="value functions", unit="vf", **({} if progress else {"disable": True})):
         fp = fingerprint(path)

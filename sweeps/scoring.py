@@ -81,7 +81,7 @@ class RolloutScorer:
         device: str = "cpu",
         pairwise: str | os.PathLike | None = None,
     ) -> None:
-        from safety.verify import VerifySettings, sample_states, values_at
+        from safety.verify import VerifySettings, sample_states
 
         self.settings = VerifySettings(samples=samples, certify_samples=certify_samples, seed=seed)
         self.states = sample_states(system, samples, seed)
@@ -89,12 +89,9 @@ class RolloutScorer:
         self.key = {"kind": "rollout", "system": system.config(), **self.settings.to_dict(), "pairwise": None}
         self.union_values = None
         if pairwise is not None:  # containment in the union of pairwise BRTs (a sound model misses none)
-            from safety.value_functions import load_value_function
+            from safety.evaluate import pairwise_union_values
 
-            union = load_value_function(pairwise, format="grid", system=system)
-            if union.kind != "pairwise":
-                raise ValueError(f"{pairwise}: not a two-car (relativepair) solution for {system.name}")
-            self.union_values = values_at(union.value_function, self.states, system.horizon)
+            self.union_values = pairwise_union_values(pairwise, system, self.states, system.horizon)
             self.key["pairwise"] = {"file": str(Path(pairwise).resolve()), "size": Path(pairwise).stat().st_size}
 
     def __call__(self, vf: ValueFunction) -> dict[str, float]:

@@ -153,14 +153,7 @@ def store_spec(spec: SweepSpec, out: str | os.PathLike) -> None:
     """Write ``OUT/sweep.json``, refusing a spec that is incomparable with the one stored there."""
     path = Path(out) / "sweep.json"
     if path.exists():
-        try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError as err:
-            raise ValueError(f"{path} is corrupt ({err}); move it away to start the sweep over") from err
-        if data.get("format") != FORMAT:
-            raise ValueError(f"{path} is not a reach sweep (format {FORMAT!r} expected)")
-        stored = SweepSpec.from_dict(data["spec"])
-        diff = spec.differences(stored)
+        diff = spec.differences(load_spec(out))
         if diff:
             raise ValueError(
                 f"{path} holds a sweep with other settings ({'; '.join(diff)}); only layouts and seeds may "
@@ -176,7 +169,7 @@ def load_spec(out: str | os.PathLike) -> SweepSpec:
     try:
         data = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as err:
-        raise ValueError(f"{path}: not a readable sweep ({err})") from err
+        raise ValueError(f"{path} is corrupt or unreadable ({err}); move it away to start the sweep over") from err
     if data.get("format") != FORMAT:
         raise ValueError(f"{path} is not a reach sweep (format {FORMAT!r} expected)")
     return SweepSpec.from_dict(data["spec"])

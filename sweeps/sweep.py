@@ -117,7 +117,7 @@ def run_sweep(
         _write_rows(out, spec, rows_by_task, failed)
         bar.update(1)
     bar.close()
-    rows = [r for layout, seed in spec.tasks() for r in rows_by_task.get((layout, seed), [])]
+    rows = _in_task_order(spec, rows_by_task)
     if backend == "ray":
         execution = f"Ray tasks ({'cluster ' + address if address else 'local Ray instance'}), one CPU each"
     else:
@@ -127,10 +127,15 @@ def run_sweep(
     return report, failed
 
 
+def _in_task_order(spec: SweepSpec, rows_by_task: dict) -> list[dict[str, Any]]:
+    """The finished tasks' rows, layouts then seeds in the spec's order (not the order they finished)."""
+    return [r for layout, seed in spec.tasks() for r in rows_by_task.get((layout, seed), [])]
+
+
 def _write_rows(out: Path, spec: SweepSpec, rows_by_task: dict, failed: list) -> None:
     from safety.results_io import write_results
 
-    rows = [r for layout, seed in spec.tasks() for r in rows_by_task.get((layout, seed), [])]
+    rows = _in_task_order(spec, rows_by_task)
     header = {"format": RESULTS_FORMAT, "spec": spec.to_dict(), "failed": failed}
     table = summary_table(rows, headline(spec, rows)) if rows else "(no results yet)"
     write_results(out / "results", header, rows, table)

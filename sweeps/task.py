@@ -5,9 +5,10 @@ Ray workers run the very same code. A task's files live in ``OUT/runs/<layout>-s
 
 * the training run (``config.json``, ``checkpoint.pt``, ``metrics.jsonl``, ``snapshots/NNN.pt``),
   continued with :meth:`training.Trainer.resume` when a previous sweep was interrupted;
-* ``scores.json``: the score of every evaluated snapshot, keyed by the snapshot file's size and
-  modification time and by the scorer's settings, rewritten atomically after each snapshot, so a
-  task interrupted during evaluation keeps what it had scored.
+* ``scores.json``: the score of every evaluated snapshot, keyed by the snapshot file's
+  :func:`safety.evaluate.fingerprint` (path, size, modification time) and by the scorer's
+  settings, rewritten atomically after each snapshot, so a task interrupted during evaluation
+  keeps what it had scored.
 """
 
 from __future__ import annotations
@@ -81,6 +82,7 @@ def run_task(
     """
     import torch
 
+    from safety.evaluate import fingerprint
     from safety.value_functions import load_value_function
     from sweeps.spec import SweepSpec
 
@@ -100,14 +102,13 @@ def run_task(
         if not path.exists() or not spec.rolled_out(index):
             continue
         meta = json.loads(path.with_suffix(".json").read_text())
-        st = path.stat()
-        fingerprint = [st.st_size, st.st_mtime_ns]
+        version = fingerprint(str(path))
         cached = scores.get(path.name)
-        if cached is None or cached.get("fingerprint") != fingerprint:
+        if cached is None or cached.get("fingerprint") != version:
             start = time.perf_counter()
             vf = load_value_function(path, device=spec.device).value_function
             metrics = scorer(vf)
-            cached = {"fingerprint": fingerprint, "metrics": metrics, "eval_seconds": time.perf_counter() - start}
+            cached = {"fingerprint": version, "metrics": metrics, "eval_seconds": time.perf_counter() - start}
             scores[path.name] = cached
             with atomic_path(scores_path) as tmp:
                 Path(tmp).write_text(json.dumps({"scorer": scorer.key, "snapshots": scores}, indent=1, default=str))
