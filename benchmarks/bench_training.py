@@ -5,8 +5,14 @@ Run: ``python benchmarks/bench_training.py`` (``--quick`` for a smoke run).
 Configurations: DeepReach's (layout ssssl = 4 sine layers of 512, 65,000 points per step) on Air3D
 and on the 9D system, and the CPU default of ``reach train`` (ssssl, width 128, 8,192 points). Each
 is timed over a block of steps (5 for DeepReach's, 200 for the default) after 2 warm-up steps; a
-step is sampling, forward, the input gradient (autograd, create_graph), the Hamiltonian, the
-residual loss, backward and an Adam update.
+step is sampling, forward, the input gradient, the Hamiltonian, the residual loss, backward and an
+Adam update. Three ways of taking the step (``reach train --gradients/--compile``):
+
+* ``autograd``: input gradient by ``torch.autograd.grad(create_graph=True)``, then double backward
+  (DeepReach's way);
+* ``fused``: input gradient carried through the layers by hand in the forward pass, one backward;
+* ``fused + compile``: the same under ``torch.compile`` (compilation happens in the warm-up steps and
+  is not timed; the first step of a run pays it, 10-20 s on a 2-core CPU).
 """
 
 from __future__ import annotations
@@ -29,9 +35,12 @@ CONFIGS = [
     ("reach CPU default 4x128, 8192 points", "air3d", 128, 8192, 200),
     ("reach CPU default 4x128, 8192 points", "multivehicle9d", 128, 8192, 200),
 ]
+#: step implementations: label -> (gradients, compile)
+METHODS = {"autograd": ("autograd", False), "fused": ("fused", False), "fused + compile": ("fused", True)}
 
 
-def time_config(system: str, width: int, points: int, steps: int, device: str) -> float:
+def time_config(system: str, width: int, points: int, steps: int, device: str, method: str) -> float:
+    gradients, compile = METHODS[method]
     with tempfile.TemporaryDirectory() as run:
         config = TrainConfig(
             system=system,
@@ -39,6 +48,8 @@ def time_config(system: str, width: int, points: int, steps: int, device: str) -
             points=points,
             steps=2 + steps,
             device=device,
+            gradients=gradients,
+            compile=compile,
             log_every=10**9,
             checkpoint_every_s=1e9,
         )
@@ -60,18 +71,25 @@ def main() -> None:
     parser.add_argument("--scale-steps", type=float, default=1.0, help="multiply each config's timed steps")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument(
+        "--methods", nargs="+", choices=list(METHODS), default=list(METHODS), help="step implementations to time"
+    )
     args = parser.parse_args()
     configs = CONFIGS[2:] if args.quick else CONFIGS
     print(
         f"# Training step throughput on {args.device}: python {platform.python_version()}, torch {torch.__version__}, "
         f"{os.cpu_count()} CPUs, {torch.get_num_threads()} threads\n"
     )
-    print("| configuration | system | timed steps | s/step | steps/s | points/s |")
-    print("|---|---|---:|---:|---:|---:|")
+    print("| configuration | system | step | timed steps | s/step | steps/s | points/s | vs autograd |")
+    print("|---|---|---|---:|---:|---:|---:|---:|")
     for label, system, width, points, steps in configs:
         steps = 2 if args.quick else max(1, round(steps * args.scale_steps))
-        t = time_config(system, width, points, steps, args.device)
-        print(f"| {label} | {system} | {steps} | {t:.3f} | {1 / t:.2f} | {points / t:,.0f} |")
+        base = None
+        for method in args.methods:
+            t = time_config(system, width, points, steps, args.device, method)
+            base = t if method == "autograd" else base
+            ratio = f"{base / t:.2f}x" if base else "-"
+            print(f"| {label} | {system} | {method} | {steps} | {t:.3f} | {1 / t:.2f} | {points / t:,.0f} | {ratio} |")
 
 
 if __name__ == "__main__":

@@ -19,7 +19,6 @@ from __future__ import annotations
 import itertools
 import math
 import time
-import warnings
 from collections.abc import Callable, Sequence
 from typing import Literal
 
@@ -29,6 +28,7 @@ from tqdm.auto import tqdm
 from groundtruth.grid import Grid
 from groundtruth.solution import GridSolution
 from groundtruth.weno import derivatives
+from reach_envs.compiling import maybe_compile
 from reach_envs.systems.backend import TORCH
 from reach_envs.systems.base import ControlAffineSystem
 
@@ -128,7 +128,7 @@ def solve(
 
     floor = target if tube == "min_with_target" else None  # min_over_time: V_old (<= l) is the floor
 
-    step = _maybe_compile(rk3, compile, device)
+    step = maybe_compile(rk3, compile, "solving")
     values = []
     steps = 0
     t = 0.0
@@ -172,29 +172,3 @@ def solve(
             "wall_time_s": wall,
         },
     )
-
-
-def _maybe_compile(fn: Callable, compile: bool | None, device: torch.device | str) -> Callable:
-    """``torch.compile(fn)`` when asked (or by default), else ``fn``; falls back on compiler errors."""
-    if compile is False:
-        return fn
-    try:
-        compiled = torch.compile(fn, dynamic=False)
-    except Exception:  # pragma: no cover - torch without a working compiler stack
-        if compile:
-            raise
-        return fn
-
-    state = {"fn": compiled}
-
-    def run(v: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
-        try:
-            return state["fn"](v, h)
-        except Exception as err:
-            if compile:
-                raise
-            warnings.warn(f"torch.compile failed ({type(err).__name__}: {err}); solving in eager mode", stacklevel=2)
-            state["fn"] = fn  # no working C++ compiler: stay in eager mode
-            return fn(v, h)
-
-    return run

@@ -103,6 +103,21 @@ def _cmd_groundtruth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _given(**options: object) -> dict[str, object]:
+    """The options the user gave (not None): the rest keep :class:`TrainConfig`'s defaults."""
+    return {key: value for key, value in options.items() if value is not None}
+
+
+def _optional_float(text: str) -> float | str:
+    """A float, or ``"off"``."""
+    if text.strip().lower() == "off":
+        return "off"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number or 'off', got {text!r}") from None
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
     from training import TrainConfig, Trainer, TrainingDivergedError, parse_duration
     from training.evaluate import ReferenceEvaluator
@@ -122,18 +137,27 @@ def _cmd_train(args: argparse.Namespace) -> int:
     else:
         if not args.out:
             raise ValueError("give --out RUN_DIR for a new run (or --resume RUN_DIR)")
+        encoding_and_penalty = _given(
+            sincos=args.sincos,
+            sincos_radius=args.sincos_radius,
+            gradient_bound=args.gradient_bound,
+            gradient_weight=args.gradient_weight,
+        )
+        if encoding_and_penalty.get("gradient_bound") == "off":
+            encoding_and_penalty["gradient_bound"] = None
         config = TrainConfig(
             system=args.system,
             layout=args.layout,
             width=args.width,
             w0=args.w0,
             parameterisation=args.parameterisation,
-            sincos=args.sincos,
             points=args.points,
             lr=args.lr,
             lr_final=args.lr_final,
             schedule=args.schedule,
             loss=args.loss,
+            gradients=args.gradients,
+            compile={"auto": None, "on": True, "off": False}[args.compile],
             curriculum=args.curriculum,
             pretrain=args.pretrain,
             steps=args.steps,
@@ -146,6 +170,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
             eval_every_s=args.eval_every,
             snapshots=args.snapshots,
             tensorboard=args.tensorboard,
+            **encoding_and_penalty,
         )
         if (Path(args.out) / "checkpoint.pt").exists():
             raise ValueError(f"{args.out} already holds a run; use --resume {args.out} to continue it")
@@ -437,12 +462,45 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", type=int, default=128)
     p.add_argument("--w0", type=float, default=30.0, help="sine frequency")
     p.add_argument("--parameterisation", choices=["exact", "vanilla"], default="exact")
-    p.add_argument("--sincos", action="store_true", help="encode headings as (sin, cos)")
+    p.add_argument(
+        "--sincos",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="encode headings as (sin, cos) (the default; --no-sincos: heading / pi, with a seam at +-pi)",
+    )
+    p.add_argument(
+        "--sincos-radius",
+        type=float,
+        default=None,
+        help="scale of the (sin, cos) inputs (default 1/pi: a turn spans as much input as the plain encoding)",
+    )
     p.add_argument("--points", type=int, default=8192, help="points per step")
     p.add_argument("--lr", type=float, default=1e-4)
     p.add_argument("--lr-final", type=float, default=1e-5)
     p.add_argument("--schedule", choices=["cosine", "constant"], default="cosine")
     p.add_argument("--loss", choices=["l1", "l2"], default="l1")
+    p.add_argument(
+        "--gradient-bound",
+        type=_optional_float,
+        default=None,
+        help="penalise |dV/dx| above this many times l's steepest slope (normalised coordinates; removes "
+        "cliffs; default 3, 'off' to disable)",
+    )
+    p.add_argument(
+        "--gradient-weight", type=float, default=None, help="weight of the gradient-bound penalty (default 1)"
+    )
+    p.add_argument(
+        "--gradients",
+        choices=["fused", "autograd"],
+        default="fused",
+        help="input derivatives: carried through the layers by hand (one backward) or by autograd (double backward)",
+    )
+    p.add_argument(
+        "--compile",
+        choices=["auto", "on", "off"],
+        default="auto",
+        help="torch.compile the training step (auto: runs of 2 min or 2000 steps and more, eager if it fails)",
+    )
     p.add_argument("--curriculum", type=float, default=0.5, help="share of the run over which t grows to T")
     p.add_argument("--pretrain", type=float, default=0.0, help="vanilla: share of the run on the boundary only")
     p.add_argument("--steps", type=int, default=None)

@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -269,3 +270,108 @@ def test_tensorboard_logging_writes_the_metrics_and_resumes(tmp_path):
     assert [e.step for e in events.Scalars("loss")] == [5, 10, 15, 20]
     logged = [json.loads(line)["loss"] for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     assert [e.value for e in events.Scalars("loss")] == pytest.approx(logged, rel=1e-6)
+
+
+def _loss_and_grads(network: ValueNetwork, x: torch.Tensor, t: torch.Tensor, residual_fn=None):
+    from training.loss import training_loss
+
+    network.zero_grad(set_to_none=True)
+    loss, _ = training_loss(network, x.clone(), t.clone(), residual_fn=residual_fn)
+    loss.backward()
+    return float(loss.detach()), [p.grad.clone() for p in network.parameters()]
+
+
+@pytest.mark.parametrize(
+    ("system", "layout", "parameterisation", "sincos"),
+    [
+        (Air3D(), "srtl", "exact", False),
+        (Air3D(), "ssssl", "vanilla", False),
+        (Air3D(), "rsl", "exact", True),
+        (MultiVehicle9D(), "ssrsl", "exact", True),
+        (MultiVehicle9D(), "tsl", "vanilla", False),
+    ],
+)
+def test_fused_input_gradients_match_autograd_double_backward(system, layout, parameterisation, sincos):
+    """The hand-carried input gradient gives autograd's residual, loss and parameter gradients."""
+    from training.loss import hji_residual, residual_function
+
+    torch.manual_seed(3)
+    enc = Encoding.for_system(system, sincos=sincos, value_scale=0.7, sincos_radius=0.4)
+    network = ValueNetwork(system, layout, width=24, parameterisation=parameterisation, encoding=enc)
+    box = system.domain_tensor(torch.float32, "cpu")
+    x = box[:, 0] + torch.rand(300, system.state_dim) * (box[:, 1] - box[:, 0])
+    t = torch.rand(300) * system.horizon
+    r_auto, v_auto, p_auto = hji_residual(network, x.clone(), t.clone(), "autograd")
+    r_fused, v_fused, p_fused = hji_residual(network, x.clone(), t.clone(), "fused")
+    torch.testing.assert_close(v_fused, v_auto)
+    torch.testing.assert_close(p_fused, p_auto, atol=2e-5, rtol=1e-4)
+    torch.testing.assert_close(r_fused, r_auto, atol=2e-5, rtol=1e-4)
+    loss_auto, grads_auto = _loss_and_grads(network, x, t)
+    loss_fused, grads_fused = _loss_and_grads(network, x, t, residual_function(network, "fused", compile=False))
+    assert loss_fused == pytest.approx(loss_auto, rel=1e-5)
+    for a, b in zip(grads_auto, grads_fused):
+        torch.testing.assert_close(b, a, atol=1e-5 * float(a.abs().max()) + 1e-8, rtol=1e-3)
+
+
+def test_compiled_training_step_matches_eager():
+    """torch.compile of the fused residual (where a compiler works) gives the eager loss and gradients."""
+    from training.loss import residual_function
+
+    torch.manual_seed(0)
+    network = ValueNetwork(Air3D(), "ssrsl", width=16)
+    x = torch.rand(256, 3) * 2 - 1
+    t = torch.rand(256)
+    eager = _loss_and_grads(network, x, t, residual_function(network, "fused", compile=False))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        compiled = _loss_and_grads(network, x, t, residual_function(network, "fused", compile=None))
+    failed = [w for w in caught if "torch.compile failed" in str(w.message)]
+    if failed:
+        pytest.skip(f"no working torch.compile here: {failed[0].message}")
+    assert compiled[0] == pytest.approx(eager[0], rel=1e-5)
+    for a, b in zip(eager[1], compiled[1]):
+        torch.testing.assert_close(b, a, atol=1e-5 * float(a.abs().max()) + 1e-8, rtol=1e-3)
+
+
+def test_gradient_and_compile_settings():
+    with pytest.raises(ValueError, match="gradients must be"):
+        TrainConfig(steps=1, gradients="forward").validate()
+    with pytest.raises(ValueError, match="compile needs gradients='fused'"):
+        TrainConfig(steps=1, gradients="autograd", compile=True).validate()
+    assert TrainConfig(steps=10).compile_resolved() is False  # short runs stay eager
+    assert TrainConfig(budget_s=600).compile_resolved() is None  # long runs compile, eager if that fails
+    assert TrainConfig(steps=5000).compile_resolved() is None
+    assert TrainConfig(steps=10, compile=True).compile_resolved() is True
+    assert TrainConfig(budget_s=600, gradients="autograd").compile_resolved() is False
+
+
+def test_margin_slope_is_the_failure_margins_steepest_normalised_slope():
+    assert ValueNetwork(Air3D(), "sl", 8).margin_slope() == pytest.approx(1.0, abs=1e-5)  # |grad hypot| = 1
+    assert ValueNetwork(MultiVehicle9D(), "sl", 8).margin_slope() == pytest.approx(math.sqrt(2), abs=1e-5)
+
+
+def test_gradient_bound_penalises_only_slopes_above_it(tmp_path):
+    """A cliff (a steep wall in V) is charged by the gradient-bound term; a gentle network is not."""
+    from training.loss import residual_function, training_loss
+
+    torch.manual_seed(0)
+    network = ValueNetwork(Air3D(), "ssl", width=32)
+    x = torch.rand(512, 3) * 2 - 1
+    t = torch.rand(512)
+    fn = residual_function(network, "fused", compile=False)
+    _, v, dv_dx = fn(x, t)
+    slope = torch.linalg.vector_norm(dv_dx * network._scale, dim=-1)
+    loose, terms = training_loss(network, x, t, residual_fn=fn, gradient_bound=float(slope.max()) + 1)
+    assert terms["gradient"] == 0.0
+    bound = float(slope.median())
+    loss, terms = training_loss(network, x, t, residual_fn=fn, gradient_bound=bound, gradient_weight=2.0)
+    expected = torch.relu(slope - bound).mean()
+    assert terms["gradient"] == pytest.approx(float(expected), rel=1e-5)
+    assert float(loss) == pytest.approx(terms["pde"] + 2.0 * terms["gradient"], rel=1e-5)
+    trainer = Trainer(TrainConfig(steps=5, gradient_bound=0.5, **TINY), tmp_path / "run", progress=False)
+    assert trainer.gradient_bound == pytest.approx(0.5, abs=1e-5)  # x Air3D's margin slope of 1
+    trainer.train()
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert all("gradient" in row for row in rows)
+    with pytest.raises(ValueError, match="gradient_bound"):
+        TrainConfig(steps=1, gradient_bound=-1.0).validate()

@@ -26,6 +26,11 @@ def parse_duration(text: str | float | int) -> float:
     return seconds
 
 
+#: runs this long compile their step by default (:meth:`TrainConfig.compile_resolved`)
+COMPILE_MIN_STEPS = 2000
+COMPILE_MIN_BUDGET_S = 120.0
+
+
 @dataclass
 class TrainConfig:
     """A training run. At least one stop rule (``steps``, ``budget_s`` or ``target_loss``) is needed."""
@@ -36,13 +41,18 @@ class TrainConfig:
     width: int = 128
     w0: float = 30.0
     parameterisation: str = "exact"
-    sincos: bool = False  # encode periodic dimensions as (sin, cos)
+    sincos: bool = True  # encode periodic dimensions as (sin, cos): no seam at +-pi
+    sincos_radius: float = 1 / math.pi  # ... scaled by this: a turn spans as much input as the plain encoding
     value_scale: float = 1.0
     points: int = 8192
     lr: float = 1e-4
     lr_final: float = 1e-5  # cosine decay from lr to lr_final over the run
     schedule: str = "cosine"  # or "constant"
     loss: str = "l1"  # "l1" or "l2" on the HJI residual
+    gradient_bound: float | None = 3.0  # penalise |dV/dx| above this many times l's steepest slope: no cliffs
+    gradient_weight: float = 1.0
+    gradients: str = "fused"  # input derivatives: "fused" (hand-carried, one backward) or "autograd" (double backward)
+    compile: bool | None = None  # torch.compile the fused residual; None: when the run is long enough (see below)
     curriculum: float = 0.5  # share of the run over which the sampled time range grows to the horizon
     pretrain: float = 0.0  # vanilla only: share of the run spent on the boundary loss alone
     boundary_fraction: float = 0.15  # vanilla only: share of points sampled at t = 0
@@ -69,6 +79,9 @@ class TrainConfig:
             "lr_final": self.lr_final > 0,
             "w0": self.w0 > 0,
             "value_scale": self.value_scale > 0,
+            "sincos_radius": self.sincos_radius > 0,
+            "gradient_bound": self.gradient_bound is None or self.gradient_bound > 0,
+            "gradient_weight": self.gradient_weight >= 0,
             "curriculum": 0 <= self.curriculum <= 1,
             "pretrain": 0 <= self.pretrain < 1,
             "boundary_fraction": 0 < self.boundary_fraction < 1,
@@ -86,9 +99,25 @@ class TrainConfig:
             raise ValueError(f"parameterisation must be 'exact' or 'vanilla', got {self.parameterisation!r}")
         if self.schedule not in ("cosine", "constant"):
             raise ValueError(f"schedule must be 'cosine' or 'constant', got {self.schedule!r}")
+        if self.gradients not in ("fused", "autograd"):
+            raise ValueError(f"gradients must be 'fused' or 'autograd', got {self.gradients!r}")
+        if self.compile not in (None, True, False):
+            raise ValueError(f"compile must be true, false or null (auto), got {self.compile!r}")
+        if self.compile and self.gradients != "fused":
+            raise ValueError("compile needs gradients='fused' (torch.compile does not take double backward)")
         if self.loss not in ("l1", "l2"):
             raise ValueError(f"loss must be 'l1' or 'l2', got {self.loss!r}")
         return self
+
+    def compile_resolved(self) -> bool | None:
+        """Whether to compile: ``compile`` if given, else (``None``, auto) for fused runs of at least
+        :data:`COMPILE_MIN_STEPS` steps or :data:`COMPILE_MIN_BUDGET_S` seconds, where the one-off
+        compilation (10-20 s on a 2-core CPU) pays for itself; shorter runs (tests, smoke runs) stay
+        eager. Auto falls back to eager mode with a warning when compiling fails (returns ``None``)."""
+        if self.compile is not None or self.gradients != "fused":
+            return self.compile if self.gradients == "fused" else False
+        long_run = (self.steps or 0) >= COMPILE_MIN_STEPS or (self.budget_s or 0) >= COMPILE_MIN_BUDGET_S
+        return None if long_run else False
 
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self), indent=2, sort_keys=True)

@@ -60,8 +60,11 @@ class Encoding:
     """How ``(t, x)`` becomes network input and the output becomes ``V``.
 
     Input: ``((t - time_offset) / time_scale, (x - state_offset) / state_scale)``; periodic
-    dimensions listed in ``sincos_dims`` are replaced by ``(sin x_i, cos x_i)`` instead (a heading
-    encoding with no seam at +-pi). Output: ``value_scale * o + value_offset`` (vanilla) or
+    dimensions listed in ``sincos_dims`` are replaced by ``r (sin x_i, cos x_i)`` instead (a heading
+    encoding with no seam at +-pi), ``r = sincos_radius``. With ``r = 1/pi`` a full turn is a circle
+    of circumference 2 in input space, the same length as the [-1, 1] span of the plain encoding, so
+    a sine network's first layer sees the heading at the same spatial frequency either way (with
+    ``r = 1`` it sees it pi times faster). Output: ``value_scale * o + value_offset`` (vanilla) or
     ``l(x) + (t / horizon) * value_scale * o`` (exact).
     """
 
@@ -73,9 +76,12 @@ class Encoding:
     value_offset: float = 0.0
     horizon: float = 1.0
     sincos_dims: tuple[int, ...] = field(default_factory=tuple)
+    sincos_radius: float = 1.0
 
     @classmethod
-    def for_system(cls, system: ControlAffineSystem, sincos: bool = False, value_scale: float = 1.0) -> Encoding:
+    def for_system(
+        cls, system: ControlAffineSystem, sincos: bool = False, value_scale: float = 1.0, sincos_radius: float = 1.0
+    ) -> Encoding:
         """Domain box mapped to [-1, 1], time-to-go [0, T] to [-1, 1]."""
         lo = [a for a, _ in system.domain]
         hi = [b for _, b in system.domain]
@@ -88,6 +94,7 @@ class Encoding:
             value_offset=0.0,
             horizon=system.horizon,
             sincos_dims=tuple(system.periodic_dims) if sincos else (),
+            sincos_radius=sincos_radius,
         )
 
     @classmethod
@@ -221,7 +228,8 @@ class ValueNetwork(nn.Module):
         if enc.sincos_dims:
             keep = [i for i in range(x.shape[-1]) if i not in enc.sincos_dims]
             angles = x[..., list(enc.sincos_dims)]
-            parts = [parts[0], xs[..., keep], torch.sin(angles), torch.cos(angles)]
+            r = enc.sincos_radius
+            parts = [parts[0], xs[..., keep], r * torch.sin(angles), r * torch.cos(angles)]
         return torch.cat(parts, dim=-1)
 
     def raw(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
@@ -231,26 +239,19 @@ class ValueNetwork(nn.Module):
             h = act(layer(h))
         return self.output(h).squeeze(-1)
 
-    @torch.no_grad()
-    def value_and_gradient(
-        self, x: torch.Tensor, t: torch.Tensor, matmul_dtype: torch.dtype | None = None
+    def _raw_and_input_gradient(
+        self, h: torch.Tensor, matmul_dtype: torch.dtype | None = None, inplace: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``V(x, t)`` and ``dV/dx`` in one pass, without building an autograd graph of the network.
+        """Output ``o`` and ``do/dh`` for encoded inputs ``h`` in one forward pass plus one product per layer.
 
         The input gradient of an MLP is ``W_1^T diag(a_1') ... W_L^T diag(a_L') w_out``: the forward
         pass keeps each activation's derivative (``w0 cos(w0 z)`` for sine, ``z > 0`` for ReLU,
         ``1 - h^2`` for tanh) and one matrix product per layer carries the gradient back. That is the
-        same arithmetic autograd does, minus its bookkeeping and the weight-gradient graph, and the
-        rollout engine calls it once per state and step. Only ``l(x)``'s small graph (exact
-        parameterisation) uses autograd. Agrees with ``torch.autograd.grad`` of :meth:`forward` (tested).
-
-        ``matmul_dtype`` (e.g. ``torch.bfloat16``) runs the hidden-to-hidden products, forward and
-        back, in that precision (inputs and weights rounded, fp32 accumulation on CPUs with bf16
-        dot products): several times faster where the hardware has them, at a measured accuracy cost
-        (see the rollout benchmark). The first layer, activations and output stay in float32.
+        arithmetic reverse-mode autograd does for an input gradient, minus its bookkeeping. With
+        ``inplace`` (inference only) buffers are reused; without it every operation is an ordinary
+        differentiable one, so autograd can take parameter gradients *of* this input gradient with a
+        first-order backward pass (no ``create_graph`` double backward), which is what training uses.
         """
-        enc = self.encoding
-        h = self.encode(x, t)
         slopes = []
         weights = []
         for index, (layer, letter) in enumerate(zip(self.layers, self.layout[:-1])):
@@ -265,7 +266,7 @@ class ValueNetwork(nn.Module):
             weights.append(w)
             if letter == "s":
                 h = torch.sin(z)
-                slopes.append(z.cos_())  # in place: z is not needed any more
+                slopes.append(z.cos_() if inplace else torch.cos(z))
             elif letter == "r":
                 h = torch.relu(z)
                 slopes.append((z > 0).to(z.dtype))
@@ -273,32 +274,98 @@ class ValueNetwork(nn.Module):
                 h = torch.tanh(z)
                 slopes.append(1.0 - h * h)
         o = self.output(h).squeeze(-1)
-        g = self.output.weight[0].to(h.dtype).expand(h.shape)
+        g = self.output.weight[0].to(h.dtype)
         for w, slope in zip(reversed(weights), reversed(slopes)):
-            g = slope.mul_(g)  # in place: each slope is used once
+            g = slope.mul_(g) if inplace else slope * g
             g = (g.to(w.dtype) @ w).to(slope.dtype) if w.dtype != slope.dtype else g @ w
+        return o, g
+
+    def _state_gradient(self, g: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """``do/dx`` from ``do/d(encoded input)`` (time input dropped), through the state encoding."""
+        enc = self.encoding
         g = g[..., 1:]  # drop the time input
         state_scale = self._scale.to(x.dtype)
-        if enc.sincos_dims:
-            n = x.shape[-1]
-            keep = [i for i in range(n) if i not in enc.sincos_dims]
-            k, m = len(keep), len(enc.sincos_dims)
-            angles = x[..., list(enc.sincos_dims)]
-            grad = torch.empty_like(x)
-            grad[..., keep] = g[..., :k] / state_scale[keep]
-            grad[..., list(enc.sincos_dims)] = g[..., k : k + m] * torch.cos(angles) - g[..., k + m :] * torch.sin(
-                angles
-            )
-        else:
-            grad = g / state_scale
+        if not enc.sincos_dims:
+            return g / state_scale
+        n = x.shape[-1]
+        keep = [i for i in range(n) if i not in enc.sincos_dims]
+        k, m = len(keep), len(enc.sincos_dims)
+        angles = x[..., list(enc.sincos_dims)]
+        parts = torch.empty_like(x)
+        parts[..., keep] = g[..., :k] / state_scale[keep]
+        r = enc.sincos_radius
+        d_sin, d_cos = g[..., k : k + m], g[..., k + m :]
+        parts[..., list(enc.sincos_dims)] = r * (d_sin * torch.cos(angles) - d_cos * torch.sin(angles))
+        return parts
+
+    @torch.no_grad()
+    def value_and_gradient(
+        self, x: torch.Tensor, t: torch.Tensor, matmul_dtype: torch.dtype | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``V(x, t)`` and ``dV/dx`` in one pass, without building an autograd graph of the network.
+
+        See :meth:`_raw_and_input_gradient`; the rollout engine calls this once per state and step.
+        Only ``l(x)``'s small graph (exact parameterisation) uses autograd. Agrees with
+        ``torch.autograd.grad`` of :meth:`forward` (tested).
+
+        ``matmul_dtype`` (e.g. ``torch.bfloat16``) runs the hidden-to-hidden products, forward and
+        back, in that precision (inputs and weights rounded, fp32 accumulation on CPUs with bf16
+        dot products): several times faster where the hardware has them, at a measured accuracy cost
+        (see the rollout benchmark). The first layer, activations and output stay in float32.
+        """
+        enc = self.encoding
+        o, g = self._raw_and_input_gradient(self.encode(x, t), matmul_dtype, inplace=True)
+        grad = self._state_gradient(g, x)
         if self.parameterisation == "vanilla":
             return enc.value_scale * o + enc.value_offset, enc.value_scale * grad
         factor = (t / enc.horizon) * enc.value_scale
+        margin, dl = self.failure_margin_and_gradient(x)
+        return margin + factor * o, dl + factor.unsqueeze(-1) * grad
+
+    def failure_margin_and_gradient(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``l(x)`` and ``dl/dx`` (autograd on the margin alone; neither depends on the parameters)."""
         with torch.enable_grad():
             xg = x.detach().requires_grad_(True)
             margin = self.system.failure_margin(xg)
             (dl,) = torch.autograd.grad(margin.sum(), xg)
-        return margin.detach() + factor * o, dl + factor.unsqueeze(-1) * grad
+        return margin.detach(), dl
+
+    def margin_slope(self, samples: int = 65536, seed: int = 0) -> float:
+        """The failure margin's steepest slope in the network's normalised coordinates: the largest
+        ``|dl/dx * s|`` (2-norm, ``s`` the state scales) over ``samples`` uniform domain states.
+
+        A yardstick for how steep the value may be: ``V`` starts as ``l`` and, for the games here,
+        stays within a few times ``l``'s slope (Air3D: 1 for ``l``, at most 1.7 for ``V`` at t = 1.1
+        by the grid ground truth). Training's gradient bound is a multiple of it."""
+        generator = torch.Generator().manual_seed(seed)
+        p = next(self.parameters())
+        x = self.system.sample_states(samples, generator=generator).to(device=p.device, dtype=p.dtype)
+        _, dl = self.failure_margin_and_gradient(x)
+        return float(torch.linalg.vector_norm(dl * self._scale.to(dl.dtype), dim=-1).max())
+
+    def value_and_derivatives(
+        self, x: torch.Tensor, t: torch.Tensor, margin: torch.Tensor | None = None, dmargin: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(V, dV/dx, dV/dt)``, differentiable with respect to the parameters (for training).
+
+        The input derivatives come from :meth:`_raw_and_input_gradient`, so a training step needs one
+        ordinary backward pass instead of autograd's double backward, and the whole step is a plain
+        first-order graph that ``torch.compile`` can fuse. ``margin`` and ``dmargin`` (``l(x)`` and
+        ``dl/dx``, exact parameterisation) may be passed in when computed outside a compiled region.
+        Agrees with autograd's ``create_graph`` input gradients to float32 round-off (tested).
+        """
+        enc = self.encoding
+        o, g = self._raw_and_input_gradient(self.encode(x, t))
+        do_dx = self._state_gradient(g, x)
+        do_dt = g[..., 0] / enc.time_scale
+        if self.parameterisation == "vanilla":
+            s = enc.value_scale
+            return s * o + enc.value_offset, s * do_dx, s * do_dt
+        if margin is None or dmargin is None:
+            margin, dmargin = self.failure_margin_and_gradient(x)
+        s = enc.value_scale / enc.horizon
+        v = margin + s * t * o
+        return v, dmargin + (s * t).unsqueeze(-1) * do_dx, s * (o + t * do_dt)
 
     def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """``V(x, t)`` for states ``(..., n)`` and times ``(...)``."""

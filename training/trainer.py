@@ -32,7 +32,7 @@ from reach_envs.atomic import atomic_path
 from reach_envs.systems import make_system
 from training.checkpoint import load_network, read_checkpoint, save_checkpoint
 from training.config import TrainConfig
-from training.loss import training_loss
+from training.loss import residual_function, training_loss
 from training.network import Encoding, NeuralValueFunction, ValueNetwork
 
 
@@ -48,7 +48,9 @@ def build_network(config: TrainConfig) -> ValueNetwork:
     depends on what the process did before: runs of one sweep in one process would differ from the
     same runs in fresh processes)."""
     system = make_system(config.system, **config.system_parameters)
-    encoding = Encoding.for_system(system, sincos=config.sincos, value_scale=config.value_scale)
+    encoding = Encoding.for_system(
+        system, sincos=config.sincos, value_scale=config.value_scale, sincos_radius=config.sincos_radius
+    )
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)
         return ValueNetwork(system, config.layout, config.width, config.parameterisation, config.w0, encoding)
@@ -85,6 +87,11 @@ class Trainer:
         self.network = build_network(config).to(self.device)
         self.system = self.network.system
         self.optimizer = torch.optim.Adam(self.network.parameters(), lr=config.lr)
+        self.residual_fn = residual_function(self.network, config.gradients, config.compile_resolved())
+        #: the gradient bound in the network's normalised coordinates (``gradient_bound`` x l's steepest slope)
+        self.gradient_bound = (
+            None if config.gradient_bound is None else config.gradient_bound * self.network.margin_slope()
+        )
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(config.seed)
         self.step = 0
@@ -263,7 +270,16 @@ class Trainer:
                 x, t, mask = self._sample(tmax)
                 pde = not (c.parameterisation == "vanilla" and frac < c.pretrain)
                 loss, terms = training_loss(
-                    self.network, x, t, norm=c.loss, boundary_mask=mask, boundary_weight=c.boundary_weight, pde=pde
+                    self.network,
+                    x,
+                    t,
+                    norm=c.loss,
+                    boundary_mask=mask,
+                    boundary_weight=c.boundary_weight,
+                    pde=pde,
+                    residual_fn=self.residual_fn,
+                    gradient_bound=self.gradient_bound,
+                    gradient_weight=c.gradient_weight,
                 )
                 if not math.isfinite(terms["loss"]):
                     raise TrainingDivergedError(

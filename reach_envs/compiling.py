@@ -1,0 +1,50 @@
+"""``torch.compile`` where it works, eager mode where it does not, one rule for the whole package.
+
+``torch.compile`` fuses chains of elementwise operations into single kernels (the grid solver's
+right-hand side, a training step's sine layers and their derivatives), but on CPU it needs a working
+C++ compiler, and a failure shows only on the first call. :func:`maybe_compile` wraps a function so
+that the first call compiles it and, if that fails, warns once and stays in eager mode, unless the
+caller insisted on compiling.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+
+def maybe_compile(fn: Callable[..., Any], compile: bool | None, what: str = "running") -> Callable[..., Any]:
+    """``fn`` compiled by ``torch.compile`` (``compile`` True or None) or as it is (False).
+
+    ``None`` falls back to eager mode with a warning when compiling fails; ``True`` raises instead.
+    ``what`` names the job in the warning (``"training in eager mode"``). Shapes are compiled static:
+    pass changing scalars as tensors so that they do not trigger recompiles.
+    """
+    if compile is False:
+        return fn
+    try:
+        compiled = torch.compile(fn, dynamic=False)
+    except Exception:  # pragma: no cover - torch without a working compiler stack
+        if compile:
+            raise
+        return fn
+    state = {"fn": compiled, "tried": False}
+
+    def run(*args: Any, **kwargs: Any) -> Any:
+        if state["tried"]:
+            return state["fn"](*args, **kwargs)
+        try:
+            out = state["fn"](*args, **kwargs)
+        except Exception as err:
+            if compile:
+                raise
+            warnings.warn(f"torch.compile failed ({type(err).__name__}: {err}); {what} in eager mode", stacklevel=2)
+            state["fn"] = fn  # e.g. no working C++ compiler: stay in eager mode
+            out = fn(*args, **kwargs)
+        state["tried"] = True
+        return out
+
+    return run
