@@ -59,6 +59,21 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
     fig.savefig(path)
 
 
+def score_deepreach(path: Path, gt: Path) -> str:
+    """The volume and slice metrics of an imported DeepReach Air3D model at t = 1.0, as a table row."""
+    from groundtruth import GridSolution
+    from reach_envs.systems import make_system
+    from training import NeuralValueFunction, load_deepreach
+    from training.evaluate import ReferenceEvaluator
+
+    network = load_deepreach(path, make_system("air3d"), "ssssl")
+    m = ReferenceEvaluator(GridSolution.load(gt, outside="clamp"), 1.0)(NeuralValueFunction(network))
+    return (
+        f"\nDeepReach checkpoint {path.name}: IoU volume {m['iou_volume']:.4f}, MSE volume {m['mse_volume']:.3e}, "
+        f"IoU slice {m['iou_slice']:.4f}, MSE slice {m['mse_slice']:.3e}\n"
+    )
+
+
 def main() -> int:
     argv = sys.argv[1:]
     extra = argv[argv.index("--") + 1 :] if "--" in argv else []
@@ -67,12 +82,20 @@ def main() -> int:
     parser.add_argument("--out", required=True, help="run directory")
     parser.add_argument("--budget", default="10m")
     parser.add_argument("--gt", default="runs/air3d_gt_101_t1.npz", help="ground-truth cache")
+    parser.add_argument(
+        "--also-deepreach",
+        default=None,
+        metavar="PTH",
+        help="also score this DeepReach Air3D checkpoint (ssssl) with the same evaluator, as a yardstick",
+    )
     args = parser.parse_args(argv)
     gt = Path(args.gt)
     if not gt.exists():
         code = reach_main(["groundtruth", "air3d", "--grid", "101", "--horizon", "1.0", "--out", str(gt)])
         if code:
             return code
+    if args.also_deepreach:
+        print(score_deepreach(Path(args.also_deepreach), gt))
     code = reach_main(
         [
             "train",

@@ -35,6 +35,10 @@ from training.config import TrainConfig
 from training.loss import residual_function, training_loss
 from training.network import Encoding, NeuralValueFunction, ValueNetwork
 
+#: values for keys that a stored config.json predates: the behaviour such runs were trained with
+#: (resuming them must not switch on a later default such as the gradient bound)
+LEGACY_DEFAULTS: dict[str, Any] = {"gradient_bound": None, "sincos_radius": 1.0}
+
 
 class TrainingDivergedError(RuntimeError):
     """The loss became NaN or inf; the last good checkpoint is kept."""
@@ -130,12 +134,17 @@ class Trainer:
         cfg_path = run_dir / "config.json"
         if not cfg_path.exists():
             raise ValueError(f"{run_dir}: no config.json; not a training run directory")
-        data = json.loads(cfg_path.read_text())
+        data = {**LEGACY_DEFAULTS, **json.loads(cfg_path.read_text())}
         data.update({k: v for k, v in overrides.items() if v is not None})
         trainer = cls(TrainConfig.from_dict(data), run_dir, evaluator, progress)
         if trainer.checkpoint_path.exists():
             payload = read_checkpoint(trainer.checkpoint_path)
             net = load_network(trainer.checkpoint_path, system=trainer.system, layout=trainer.config.layout)
+            if net.architecture() != trainer.network.architecture():
+                raise ValueError(
+                    f"{trainer.checkpoint_path}: network {net.architecture()} does not match the run's "
+                    f"config.json, which builds {trainer.network.architecture()}"
+                )
             trainer.network.load_state_dict(net.state_dict())
             trainer.optimizer.load_state_dict(payload["optimizer"])
             trainer.generator.set_state(payload["generator"])
