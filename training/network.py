@@ -245,7 +245,7 @@ class ValueNetwork(nn.Module):
         """Output ``o`` and ``do/dh`` for encoded inputs ``h`` in one forward pass plus one product per layer.
 
         The input gradient of an MLP is ``W_1^T diag(a_1') ... W_L^T diag(a_L') w_out``: the forward
-        pass keeps each activation's derivative (``w0 cos(w0 z)`` for sine, ``z > 0`` for ReLU,
+        pass keeps each activation's derivative (``w0 cos(w0 z)`` for sine, 1 where ``z > 0`` for ReLU,
         ``1 - h^2`` for tanh) and one matrix product per layer carries the gradient back. That is the
         arithmetic reverse-mode autograd does for an input gradient, minus its bookkeeping. With
         ``inplace`` (inference only) buffers are reused; without it every operation is an ordinary
@@ -269,7 +269,10 @@ class ValueNetwork(nn.Module):
                 slopes.append(z.cos_() if inplace else torch.cos(z))
             elif letter == "r":
                 h = torch.relu(z)
-                slopes.append((z > 0).to(z.dtype))
+                # 1 where z > 0, else 0, computed in float from h: a bool mask (z > 0) made torch.compile's
+                # CPU kernels store and reload byte masks, which cost more than the layer's matmul
+                # (rrrrl step 122 ms compiled vs 73 ms this way, 1 thread)
+                slopes.append(torch.sign(h))
             else:
                 h = torch.tanh(z)
                 slopes.append(1.0 - h * h)
