@@ -13,6 +13,9 @@ Adam update. Three ways of taking the step (``reach train --gradients/--compile`
 * ``fused``: input gradient carried through the layers by hand in the forward pass, one backward;
 * ``fused + compile``: the same under ``torch.compile`` (compilation happens in the warm-up steps and
   is not timed; the first step of a run pays it, 10-20 s on a 2-core CPU).
+
+``--layouts rrrrl,ssrsl`` adds the CPU default on Air3D with those activation layouts (what a ReLU
+layer costs against a sine layer, per step).
 """
 
 from __future__ import annotations
@@ -39,11 +42,15 @@ CONFIGS = [
 METHODS = {"autograd": ("autograd", False), "fused": ("fused", False), "fused + compile": ("fused", True)}
 
 
-def time_config(system: str, width: int, points: int, steps: int, device: str, method: str) -> float:
+def time_config(
+    system: str, width: int, points: int, steps: int, device: str, method: str, layout: str = "ssssl"
+) -> float:
+    """Seconds per training step of ``reach train``'s loop, timed after 2 warm-up steps."""
     gradients, compile = METHODS[method]
     with tempfile.TemporaryDirectory() as run:
         config = TrainConfig(
             system=system,
+            layout=layout,
             width=width,
             points=points,
             steps=2 + steps,
@@ -74,19 +81,25 @@ def main() -> None:
     parser.add_argument(
         "--methods", nargs="+", choices=list(METHODS), default=list(METHODS), help="step implementations to time"
     )
+    parser.add_argument(
+        "--layouts", default="", help="comma-separated layouts to time beside ssssl (CPU default, Air3D)"
+    )
     args = parser.parse_args()
-    configs = CONFIGS[2:] if args.quick else CONFIGS
+    configs = [(*config, "ssssl") for config in (CONFIGS[2:] if args.quick else CONFIGS)]
+    default = CONFIGS[2]
+    for layout in filter(None, args.layouts.split(",")):
+        configs.append((f"reach CPU default, layout {layout}", *default[1:], layout))
     print(
         f"# Training step throughput on {args.device}: python {platform.python_version()}, torch {torch.__version__}, "
         f"{os.cpu_count()} CPUs, {torch.get_num_threads()} threads\n"
     )
     print("| configuration | system | step | timed steps | s/step | steps/s | points/s | vs autograd |")
     print("|---|---|---|---:|---:|---:|---:|---:|")
-    for label, system, width, points, steps in configs:
+    for label, system, width, points, steps, layout in configs:
         steps = 2 if args.quick else max(1, round(steps * args.scale_steps))
         base = None
         for method in args.methods:
-            t = time_config(system, width, points, steps, args.device, method)
+            t = time_config(system, width, points, steps, args.device, method, layout)
             base = t if method == "autograd" else base
             ratio = f"{base / t:.2f}x" if base else "-"
             print(f"| {label} | {system} | {method} | {steps} | {t:.3f} | {1 / t:.2f} | {points / t:,.0f} | {ratio} |")
