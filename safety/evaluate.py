@@ -40,7 +40,7 @@ TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("false_safe_rate", "false safe %", "pct"),
     ("false_unsafe_rate", "false unsafe %", "pct"),
     ("collision_rate", "collision %", "pct"),
-    ("delta", "delta", "{:.3f}"),
+    ("delta", "delta", "{:.3g}"),  # 3 significant digits: small deltas are the point
     ("eps", "eps", "{:.2e}"),
     ("certified_volume", "certified vol.", "{:.3f}"),
     ("iou_volume", "IoU vol.", "{:.3f}"),
