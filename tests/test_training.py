@@ -333,6 +333,31 @@ def test_compiled_training_step_matches_eager():
         torch.testing.assert_close(b, a, atol=1e-5 * float(a.abs().max()) + 1e-8, rtol=1e-3)
 
 
+def test_each_network_gets_its_own_compiled_residual(monkeypatch):
+    """A process that trains many networks compiles each one: none falls back to eager mode because
+    dynamo's recompile limit counted the earlier networks' residuals (a sweep worker's ninth run did).
+    The limit is lowered to 1 so that the second network would already hit it."""
+    import torch._dynamo
+    from torch._dynamo.utils import counters
+
+    from training.loss import residual_function
+
+    monkeypatch.setattr(torch._dynamo.config, "recompile_limit", 1)
+    x = torch.rand(64, 3) * 2 - 1
+    t = torch.rand(64)
+    compiled_before = counters["frames"]["ok"]
+    for seed in range(3):
+        torch.manual_seed(seed)
+        network = ValueNetwork(Air3D(), "ssrsl", width=8)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            residual_function(network, "fused", compile=None)(x, t)
+        failed = [w for w in caught if "torch.compile failed" in str(w.message)]
+        if failed:
+            pytest.skip(f"no working torch.compile here: {failed[0].message}")
+        assert counters["frames"]["ok"] == compiled_before + seed + 1, f"network {seed} was not compiled"
+
+
 def test_gradient_and_compile_settings():
     with pytest.raises(ValueError, match="gradients must be"):
         TrainConfig(steps=1, gradients="forward").validate()
