@@ -17,17 +17,22 @@ from typing import Any
 import torch
 
 
-def maybe_compile(fn: Callable[..., Any], compile: bool | None, what: str = "running") -> Callable[..., Any]:
+def maybe_compile(
+    fn: Callable[..., Any], compile: bool | None, what: str = "running", own_cache: bool = False
+) -> Callable[..., Any]:
     """``fn`` compiled by ``torch.compile`` (``compile`` True or None) or as it is (False).
 
     ``None`` falls back to eager mode with a warning when compiling fails; ``True`` raises instead.
     ``what`` names the job in the warning (``"training in eager mode"``). Shapes are compiled static:
-    pass changing scalars as tensors so that they do not trigger recompiles.
+    pass changing scalars as tensors so that they do not trigger recompiles. ``own_cache`` compiles
+    a private copy of ``fn``'s code (see :func:`_own_code`): for closures over an object that differs
+    from call to call (a network), whose compiled graphs no later call can reuse. Without it, calls
+    that close over equal things (the grid solver's step on the same grid) share compiled code.
     """
     if compile is False:
         return fn
     try:
-        compiled = torch.compile(_own_code(fn), dynamic=False)
+        compiled = torch.compile(_own_code(fn) if own_cache else fn, dynamic=False)
     except Exception:  # pragma: no cover - torch without a working compiler stack
         if compile:
             raise

@@ -85,7 +85,7 @@ def residual_function(
         v, dv_dx, dv_dt = network.value_and_derivatives(x, t, margin, dmargin)
         return _residual(network, x, v, dv_dx, dv_dt, margin), v, dv_dx
 
-    body = maybe_compile(fused, compile, "training")
+    body = maybe_compile(fused, compile, "training", own_cache=True)  # guards on this network fail for the next one
 
     def residual_fn(x: torch.Tensor, t: torch.Tensor) -> Terms:
         margin, dmargin = network.failure_margin_and_gradient(x)  # autograd on l alone, outside the compiled graph
