@@ -62,7 +62,7 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
 def score_deepreach(path: Path, gt: Path) -> str:
     """The volume and slice metrics of an imported DeepReach Air3D model at t = 1.0, as a table row."""
     from groundtruth import GridSolution
-    from reach_envs.systems import make_system
+    from reach.systems import make_system
     from training import NeuralValueFunction, load_deepreach
     from training.evaluate import ReferenceEvaluator
 

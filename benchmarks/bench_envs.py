@@ -20,7 +20,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-import reach_envs
+import reach
 
 CARS = {"Air3D-v0": 2, "MultiVehicle6D-v0": 2, "MultiVehicle9D-v0": 3}
 
@@ -84,7 +84,7 @@ def main() -> None:
     if args.quick:
         args.steps, args.vector_steps, args.repeats, args.num_envs = 500, 5, 1, [16]
 
-    print(f"# reach_envs {reach_envs.__version__} environment benchmark")
+    print(f"# reach {reach.__version__} environment benchmark")
     print(
         f"python {platform.python_version()}, numpy {np.__version__}, gymnasium {gym.__version__}, "
         f"torch {torch.__version__}, {os.cpu_count()} CPUs ({platform.processor() or platform.machine()}); "

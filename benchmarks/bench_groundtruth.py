@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from groundtruth import solve
-from reach_envs.systems import Air3D
+from reach.systems import Air3D
 
 REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference" / "air3d_levelset_slice.npz"
 

@@ -32,7 +32,7 @@ import time
 
 import torch
 
-from reach_envs.systems import make_system
+from reach.systems import make_system
 from safety.rollout import num_steps, rollout
 from training import NeuralValueFunction, ValueNetwork
 

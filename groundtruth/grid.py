@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from reach_envs.systems.base import ControlAffineSystem
+from reach.systems.base import ControlAffineSystem
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ state in the union of the pairwise BRTs lies in the true multi-vehicle BRT. The 
 *outer* check of a learned value (a learned BRT that misses part of the union is provably wrong
 there) and a decomposition safety filter in its own right.
 
-Each pair's value comes from a 3D grid solution of :class:`~reach_envs.systems.RelativePair` (car 2's
+Each pair's value comes from a 3D grid solution of :class:`~reach.systems.RelativePair` (car 2's
 role = car j's role; car i is always a control car). Gradients on the full state are the pair
 gradient pulled back through the relative-coordinate map (autograd on that small map only).
 """
@@ -20,7 +20,7 @@ import torch
 
 from groundtruth.solution import GridSolution
 from groundtruth.solver import solve
-from reach_envs.systems import MultiVehicle, RelativePair, system_from_config
+from reach.systems import MultiVehicle, RelativePair, system_from_config
 
 
 def pair_system(system: MultiVehicle, i: int, j: int, half_width: float = 1.6) -> RelativePair:

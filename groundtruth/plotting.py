@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from groundtruth.solution import GridSolution
-from reach_envs.atomic import atomic_path
+from reach.atomic import atomic_path
 
 
 def default_slice_values(solution: GridSolution) -> list[float]:

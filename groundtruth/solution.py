@@ -19,9 +19,9 @@ import numpy as np
 import torch
 
 from groundtruth.grid import Grid
-from reach_envs.atomic import atomic_path
-from reach_envs.provenance import package_versions
-from reach_envs.systems import ControlAffineSystem, system_from_config
+from reach.atomic import atomic_path
+from reach.provenance import package_versions
+from reach.systems import ControlAffineSystem, system_from_config
 
 FORMAT = "reach.groundtruth.v1"
 

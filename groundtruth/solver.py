@@ -28,9 +28,9 @@ from tqdm.auto import tqdm
 from groundtruth.grid import Grid
 from groundtruth.solution import GridSolution
 from groundtruth.weno import derivatives
-from reach_envs.compiling import maybe_compile
-from reach_envs.systems.backend import TORCH
-from reach_envs.systems.base import ControlAffineSystem
+from reach.compiling import maybe_compile
+from reach.systems.backend import TORCH
+from reach.systems.base import ControlAffineSystem
 
 MAX_DIM = 4
 #: Above this CFL number TVD-RK3 with WENO5 is not guaranteed stable (the scheme's linear limit is ~1).

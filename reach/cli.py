@@ -71,7 +71,7 @@ def _cmd_groundtruth(args: argparse.Namespace) -> int:
 
     from groundtruth import solve
     from groundtruth.plotting import plot_zero_level_slices
-    from reach_envs.systems import make_system
+    from reach.systems import make_system
 
     system = make_system(args.system)
     horizon = args.horizon if args.horizon is not None else system.horizon

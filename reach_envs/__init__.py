@@ -1,15 +1,13 @@
-"""reach_envs: dynamical systems, scenes and Gymnasium / PettingZoo environments for HJ reachability.
+"""reach_envs: scenes and Gymnasium / PettingZoo environments for the systems of :mod:`reach.systems`.
 
 Importing the package registers ``Air3D-v0``, ``MultiVehicle6D-v0`` and ``MultiVehicle9D-v0`` with
 Gymnasium (also reachable as ``gym.make("reach_envs:Air3D-v0")``). Registration is by entry-point
-string, so importing :mod:`reach_envs.systems` alone loads no environment code.
+string, so importing this package loads no environment module until an env is made.
 """
 
 from __future__ import annotations
 
 from gymnasium.envs.registration import register, registry
-
-__version__ = "0.1.0"
 
 #: Gymnasium id -> named scene it runs.
 ENV_SCENES = {
@@ -33,4 +31,4 @@ def _register() -> None:
 
 _register()
 
-__all__ = ["ENV_SCENES", "__version__"]
+__all__ = ["ENV_SCENES"]

@@ -7,9 +7,9 @@ import math
 import numpy as np
 from gymnasium import spaces
 
+from reach.systems.base import ControlAffineSystem
 from reach_envs.rendering import SceneRenderer
 from reach_envs.scenes import Scene
-from reach_envs.systems.base import ControlAffineSystem
 
 
 def observation_space(system: ControlAffineSystem) -> spaces.Box:

@@ -10,7 +10,7 @@ testbed, and reward shaping belongs in a wrapper.
 ``info`` holds ``margin`` (``l(x)``), ``collision``, ``out_of_arena``, ``control`` and
 ``disturbance`` (inputs actually applied, physical units, after clipping) and ``time`` (seconds).
 
-A single step runs on Python floats (see :mod:`reach_envs.systems.backend`): at one state, array
+A single step runs on Python floats (see :mod:`reach.systems.backend`): at one state, array
 libraries' per-call overhead would cost more than the arithmetic.
 """
 
@@ -21,10 +21,10 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from reach.systems.backend import FLOAT
 from reach_envs.common import action_space, check_action, check_state, make_renderer, observation_space
 from reach_envs.scenes import Scene, make_scene
 from reach_envs.simulator import SceneSimulator
-from reach_envs.systems.backend import FLOAT
 
 
 class ReachEnv(gym.Env[np.ndarray, np.ndarray]):

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-from reach_envs.systems.backend import Backend, Column
-from reach_envs.systems.base import ControlAffineSystem
+from reach.systems.backend import Backend, Column
+from reach.systems.base import ControlAffineSystem
 
 INTEGRATORS = ("rk4", "euler")
 

@@ -18,11 +18,11 @@ from gymnasium import spaces
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
+from reach.systems.backend import FLOAT
+from reach.systems.multivehicle import MultiVehicle
 from reach_envs.common import action_space, check_action, check_state, make_renderer, observation_space
 from reach_envs.scenes import Scene, make_scene
 from reach_envs.simulator import SceneSimulator
-from reach_envs.systems.backend import FLOAT
-from reach_envs.systems.multivehicle import MultiVehicle
 
 
 class MultiVehicleParallelEnv(ParallelEnv):

@@ -13,8 +13,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from reach_envs.systems.backend import FLOAT, Backend, Column
-from reach_envs.systems.base import ControlAffineSystem
+from reach.systems.backend import FLOAT, Backend, Column
+from reach.systems.base import ControlAffineSystem
 
 
 class DisturbancePolicy(Protocol):

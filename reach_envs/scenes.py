@@ -20,9 +20,9 @@ from typing import Any
 
 import numpy as np
 
+from reach.systems import Air3D, Car, ControlAffineSystem, MultiVehicle, MultiVehicle6D, MultiVehicle9D
 from reach_envs.integrators import INTEGRATORS
 from reach_envs.policies import DISTURBANCE_KINDS, make_disturbance_policy
-from reach_envs.systems import Air3D, Car, ControlAffineSystem, MultiVehicle, MultiVehicle6D, MultiVehicle9D
 
 
 # ---------------------------------------------------------------------- initial states

@@ -14,10 +14,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from reach.systems.backend import FLOAT, Backend, Column
 from reach_envs.integrators import make_stepper
 from reach_envs.policies import make_disturbance_policy
 from reach_envs.scenes import Scene
-from reach_envs.systems.backend import FLOAT, Backend, Column
 
 
 class SceneSimulator:

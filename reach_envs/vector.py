@@ -20,10 +20,10 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from reach.systems.backend import NUMPY
 from reach_envs.common import action_space, check_action, check_state, make_renderer, observation_space
 from reach_envs.scenes import Scene, make_scene
 from reach_envs.simulator import SceneSimulator
-from reach_envs.systems.backend import NUMPY
 
 
 class ReachVectorEnv(VectorEnv):

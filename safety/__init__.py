@@ -1,6 +1,6 @@
 """Safety: optimal policies from grad V, a least-restrictive filter, rollouts and verification.
 
-Everything here takes a :class:`~reach_envs.systems.value_function.ValueFunction` (a trained
+Everything here takes a :class:`~reach.value_function.ValueFunction` (a trained
 network, a DeepReach import or a grid solution; :func:`load_value_function` loads any of them):
 
 * :class:`OptimalPolicy` - ``u*``, ``d*`` from the gradient through the system's derived functions;

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from reach_envs.atomic import atomic_path
+from reach.atomic import atomic_path
 
 
 def run_demo(
@@ -31,7 +31,7 @@ def run_demo(
     """Run the Air3D demo into ``out``; returns the report's path."""
     from groundtruth.solution import GridSolution
     from groundtruth.solver import solve
-    from reach_envs.systems import Air3D
+    from reach.systems import Air3D
     from safety.evaluate import evaluate_many, markdown_table
     from safety.filter_eval import (
         FilterConfig,

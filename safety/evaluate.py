@@ -22,7 +22,7 @@ from typing import Any
 from tqdm.auto import tqdm
 
 from groundtruth.solution import GridSolution
-from reach_envs.systems import ControlAffineSystem, make_system
+from reach.systems import ControlAffineSystem, make_system
 from safety.metrics import containment_statistics
 from safety.results_io import write_results
 from safety.value_functions import load_value_function, resolve_checkpoint

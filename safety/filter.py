@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
-from reach_envs.systems.value_function import ValueFunction
+from reach.value_function import ValueFunction
 from safety.policy import OptimalPolicy, check_states
 
 

@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
+from reach.value_function import ValueFunction
 from reach_envs.scenes import Scene, make_scene
-from reach_envs.systems.value_function import ValueFunction
 from reach_envs.vector import ReachVectorEnv
 from safety.metrics import wilson_interval
 from safety.results_io import write_results

@@ -16,9 +16,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from reach_envs.atomic import atomic_path
-from reach_envs.systems import ControlAffineSystem
-from reach_envs.systems.value_function import ValueFunction
+from reach.atomic import atomic_path
+from reach.systems import ControlAffineSystem
+from reach.value_function import ValueFunction
 
 #: A second 9D slice (ours): cars 2 and 3 head-on across the x axis, car 1 heading east.
 SECOND_9D_SLICE = (0.0, 0.0, 0.0, 0.5, 0.0, -0.5, 0.0, -math.pi / 2, math.pi / 2)

@@ -1,7 +1,7 @@
 """Optimal control and disturbance from a value function's gradient.
 
 ``u*(x, t)`` and ``d*(x, t)`` come from ``p = grad V(x, t)`` through the system's derived
-:meth:`~reach_envs.systems.base.ControlAffineSystem.optimal_control` and ``optimal_disturbance``, so
+:meth:`~reach.systems.base.ControlAffineSystem.optimal_control` and ``optimal_disturbance``, so
 the sign conventions live in one place (the system), whatever produced ``V``.
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from reach_envs.systems.value_function import ValueFunction
+from reach.value_function import ValueFunction
 from safety.value_functions import value_and_gradient
 
 

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from reach_envs.atomic import atomic_path
+from reach.atomic import atomic_path
 
 
 def write_results(

@@ -9,7 +9,7 @@ of a step constant and integrates the dynamics with RK4 instead.
 It simulates only what is still undecided:
 
 * a trajectory that has collided is finished (and states already in collision never start);
-* where the system declares :meth:`~reach_envs.systems.base.ControlAffineSystem.margin_rate_bound`
+* where the system declares :meth:`~reach.systems.base.ControlAffineSystem.margin_rate_bound`
   (``|dl/dt| <= c``), a trajectory with ``l(x) > c * (time_left + dt)`` can no longer reach the
   failure set under *any* inputs, so its outcome (no collision) is decided and it stops too. Exact
   for Euler (each step moves ``l`` by at most ``c dt``); the extra ``dt`` covers RK4's truncation.
@@ -30,7 +30,7 @@ from typing import Literal
 import torch
 from tqdm.auto import tqdm
 
-from reach_envs.systems.value_function import ValueFunction
+from reach.value_function import ValueFunction
 from safety.policy import check_states
 
 DisturbanceSpec = Literal["optimal", "none"] | Callable[[torch.Tensor, torch.Tensor], torch.Tensor]

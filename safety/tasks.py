@@ -20,7 +20,7 @@ from abc import ABC, abstractmethod
 
 import numpy as np
 
-from reach_envs.systems import ControlAffineSystem, MultiVehicle, RelativePair
+from reach.systems import ControlAffineSystem, MultiVehicle, RelativePair
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:

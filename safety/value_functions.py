@@ -1,6 +1,6 @@
 """Loading any value function (our checkpoints, DeepReach state dicts, grid solutions) by path.
 
-Everything in :mod:`safety` takes a :class:`~reach_envs.systems.value_function.ValueFunction`;
+Everything in :mod:`safety` takes a :class:`~reach.value_function.ValueFunction`;
 this module turns what users have on disk into one, and gives the one call the rollout engine and
 the filter need per step, :func:`value_and_gradient`, which uses a fused implementation where the
 value function has one (neural networks) and falls back to two calls otherwise (grid solutions).
@@ -17,8 +17,8 @@ import torch
 
 from groundtruth.pairwise import PairwiseUnion
 from groundtruth.solution import GridSolution
-from reach_envs.systems import ControlAffineSystem, MultiVehicle, RelativePair, make_system
-from reach_envs.systems.value_function import ValueFunction
+from reach.systems import ControlAffineSystem, MultiVehicle, RelativePair, make_system
+from reach.value_function import ValueFunction
 from training.checkpoint import load_network
 from training.deepreach import load_deepreach
 from training.network import NeuralValueFunction

@@ -15,8 +15,8 @@ from typing import Any
 
 import torch
 
-from reach_envs.systems import ControlAffineSystem
-from reach_envs.systems.value_function import ValueFunction
+from reach.systems import ControlAffineSystem
+from reach.value_function import ValueFunction
 from safety.metrics import scenario_epsilon, violation_statistics, wilson_interval
 from safety.rollout import rollout
 

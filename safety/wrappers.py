@@ -30,7 +30,7 @@ import torch
 from gymnasium.vector import VectorWrapper
 from pettingzoo.utils.wrappers import BaseParallelWrapper
 
-from reach_envs.systems.value_function import ValueFunction
+from reach.value_function import ValueFunction
 from safety.filter import FilterInfo, SafetyFilter
 from safety.value_functions import load_value_function
 

@@ -10,8 +10,8 @@ import os
 from pathlib import Path
 from typing import Any, Protocol
 
-from reach_envs.systems import ControlAffineSystem
-from reach_envs.systems.value_function import ValueFunction
+from reach.systems import ControlAffineSystem
+from reach.value_function import ValueFunction
 
 
 class Scorer(Protocol):

@@ -15,8 +15,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from reach_envs.atomic import atomic_path
-from reach_envs.systems import make_system
+from reach.atomic import atomic_path
+from reach.systems import make_system
 from training.config import TrainConfig
 from training.network import parse_layout
 

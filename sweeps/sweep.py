@@ -25,7 +25,7 @@ from typing import Any
 
 from tqdm.auto import tqdm
 
-from reach_envs.atomic import atomic_path
+from reach.atomic import atomic_path
 from sweeps.report import claims_table, final_rows, plot_pareto, rank_layouts, summary_table
 from sweeps.scoring import headline_of
 from sweeps.spec import SweepSpec, store_spec
@@ -45,7 +45,7 @@ def _ground_truth(spec: SweepSpec, out: Path, progress: bool, log: Callable[[str
     path = out / "groundtruth.npz"
     if not path.exists():
         from groundtruth.solver import solve
-        from reach_envs.systems import make_system
+        from reach.systems import make_system
 
         system = make_system(spec.system, **spec.system_parameters)
         t = system.horizon if spec.eval_time is None else spec.eval_time

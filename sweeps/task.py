@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from reach_envs.atomic import atomic_path
+from reach.atomic import atomic_path
 
 _SCORERS: dict[str, Any] = {}  # one scorer per worker process and settings (ground truths are large)
 
@@ -29,7 +29,7 @@ def run_dir(out: str | os.PathLike, layout: str, seed: int) -> Path:
 
 
 def _scorer(spec: Any, groundtruth: str | None) -> Any:
-    from reach_envs.systems import make_system
+    from reach.systems import make_system
     from sweeps.scoring import GroundTruthScorer, RolloutScorer
 
     ident = json.dumps([spec.to_dict(), groundtruth], sort_keys=True, default=str)

@@ -13,7 +13,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import reach_envs
-from reach_envs.systems import Air3D
+from reach.systems import FLOAT, Air3D
 
 ENV_IDS = list(reach_envs.ENV_SCENES)
 
@@ -118,7 +118,7 @@ def test_env_step_follows_system_dynamics_with_rk4_and_euler():
     x0 = np.array([0.6, -0.3, 1.0])
     ref = x0.copy()  # fine Euler reference over one 0.02 s step
     for _ in range(20000):
-        ref = ref + 1e-6 * np.array(system.xdot_columns(ref.tolist(), [1.2], [0.0], reach_envs.systems.FLOAT))
+        ref = ref + 1e-6 * np.array(system.xdot_columns(ref.tolist(), [1.2], [0.0], FLOAT))
     results = {}
     for integrator in ("rk4", "euler"):
         env = gym.make("Air3D-v0", disturbance=None, integrator=integrator).unwrapped

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from reach.cli import main
-from reach_envs.systems import Air3D, MultiVehicle9D
+from reach.systems import Air3D, MultiVehicle9D
 from safety.evaluate import load_results
 from training import ValueNetwork, save_checkpoint
 

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from reach.cli import main
-from reach_envs.systems import MultiVehicle9D
+from reach.systems import MultiVehicle9D
 from safety.filter_eval import (
     FilterConfig,
     evaluate_filter_parallel,
@@ -73,7 +73,7 @@ def test_tasks_steer_toward_goals():
     task.reset(x, np.random.default_rng(0))
     assert np.allclose(task.goals[0, 0], [1.0, 0.0]) and np.allclose(task.goals[0, 1], [0.5, 1.5])
     assert np.allclose(task.nominal_actions(x), 0.0)  # already pointing at their goals
-    from reach_envs.systems import Air3D
+    from reach.systems import Air3D
 
     evader = EvaderGoalTask(Air3D(), spread=0.0)
     evader.reset(np.zeros((2, 3)), np.random.default_rng(0))

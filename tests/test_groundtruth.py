@@ -12,7 +12,7 @@ import torch
 from groundtruth import Grid, GridSolution, solve
 from groundtruth.plotting import plot_zero_level_slices
 from reach.cli import main
-from reach_envs.systems import Air3D, MultiVehicle9D
+from reach.systems import Air3D, MultiVehicle9D
 
 REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference" / "air3d_levelset_slice.npz"
 
@@ -125,7 +125,7 @@ def test_interpolation_reproduces_nodes_and_is_periodic(air3d_coarse):
 
 
 def test_grid_solution_is_a_value_function(air3d_coarse):
-    from reach_envs.systems import ValueFunction
+    from reach.systems import ValueFunction
 
     assert isinstance(air3d_coarse, ValueFunction)
 

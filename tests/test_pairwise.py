@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from groundtruth.pairwise import PairwiseUnion, pair_system
-from reach_envs.systems import Car, MultiVehicle, MultiVehicle9D
+from reach.systems import Car, MultiVehicle, MultiVehicle9D
 from safety import rollout
 from safety.value_functions import load_value_function
 

@@ -12,8 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import reach_envs  # noqa: F401 - registers the envs
+from reach.systems import Air3D, MultiVehicle9D
 from reach_envs.parallel import parallel_env
-from reach_envs.systems import Air3D, MultiVehicle9D
 from reach_envs.vector import ReachVectorEnv
 from safety import (
     OptimalPolicy,

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 import reach_envs  # noqa: F401
+from reach.systems import Air3D, MultiVehicle9D
 from reach_envs.env import ReachEnv
 from reach_envs.policies import PursuitPolicy
 from reach_envs.scenes import SCENES, Car, FixedState, Scene, make_scene
-from reach_envs.systems import Air3D, MultiVehicle9D
 
 
 def _bit_state(env):
@@ -167,7 +167,7 @@ def test_uniform_safe_initial_states_are_outside_the_failure_set():
 
 
 def test_pursuit_targets_the_nearest_control_car_on_every_backend():
-    from reach_envs.systems import FLOAT, NUMPY
+    from reach.systems import FLOAT, NUMPY
 
     system = Scene.from_cars([Car(0.5, 1.0, "control"), Car(0.5, 1.0, "control"), Car(0.5, 2.0, "disturbance")]).system
     policy = PursuitPolicy(system)

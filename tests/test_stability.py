@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from reach_envs.systems import Air3D, MultiVehicle9D
+from reach.systems import Air3D, MultiVehicle9D
 from safety import SafetyFilter, rollout
 from training import Encoding, NeuralValueFunction, ValueNetwork
 

@@ -11,8 +11,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from reach_envs.integrators import make_stepper
-from reach_envs.systems import (
+from reach.systems import (
     FLOAT,
     NUMPY,
     TORCH,
@@ -24,6 +23,7 @@ from reach_envs.systems import (
     make_system,
     system_from_config,
 )
+from reach_envs.integrators import make_stepper
 
 SYSTEMS = [
     Air3D(),

@@ -17,7 +17,7 @@ import pytest
 import torch
 
 from reach.cli import main
-from reach_envs.systems import Air3D, MultiVehicle9D, ValueFunction
+from reach.systems import Air3D, MultiVehicle9D, ValueFunction
 from training import (
     Encoding,
     NeuralValueFunction,

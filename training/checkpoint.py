@@ -9,9 +9,9 @@ from typing import Any
 
 import torch
 
-from reach_envs.atomic import atomic_path
-from reach_envs.provenance import package_versions
-from reach_envs.systems import ControlAffineSystem, system_from_config
+from reach.atomic import atomic_path
+from reach.provenance import package_versions
+from reach.systems import ControlAffineSystem, system_from_config
 from training.network import Encoding, ValueNetwork
 
 FORMAT = "reach.checkpoint.v1"

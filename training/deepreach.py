@@ -12,7 +12,7 @@ import re
 
 import torch
 
-from reach_envs.systems import ControlAffineSystem
+from reach.systems import ControlAffineSystem
 from training.network import Encoding, ValueNetwork, parse_layout
 
 _KEY = re.compile(r"^net\.net\.(\d+)\.0\.(weight|bias)$")

@@ -21,7 +21,7 @@ from collections.abc import Callable
 
 import torch
 
-from reach_envs.compiling import maybe_compile
+from reach.compiling import maybe_compile
 from training.network import ValueNetwork
 
 GRADIENTS = ("fused", "autograd")

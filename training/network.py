@@ -30,7 +30,7 @@ from typing import Any, Literal
 import torch
 from torch import nn
 
-from reach_envs.systems import ControlAffineSystem
+from reach.systems import ControlAffineSystem
 
 #: Activation letters and their names.
 ACTIVATIONS = {"s": "sine", "r": "relu", "t": "tanh"}

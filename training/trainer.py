@@ -28,8 +28,8 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
-from reach_envs.atomic import atomic_path
-from reach_envs.systems import make_system
+from reach.atomic import atomic_path
+from reach.systems import make_system
 from training.checkpoint import load_network, read_checkpoint, save_checkpoint
 from training.config import TrainConfig
 from training.loss import residual_function, training_loss

@@ -10,10 +10,10 @@ import torch
 
 def package_versions() -> dict[str, str]:
     """Versions of reach, torch, numpy and Python, for file metadata."""
-    import reach_envs
+    import reach
 
     return {
-        "reach": reach_envs.__version__,
+        "reach": reach.__version__,
         "torch": torch.__version__,
         "numpy": np.__version__,
         "python": platform.python_version(),

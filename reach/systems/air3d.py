@@ -20,8 +20,8 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-from reach_envs.systems.backend import Backend, Column
-from reach_envs.systems.base import NO_INPUT, Box, ControlAffineSystem, DeepReachNormalisation, InputMatrix
+from reach.systems.backend import Backend, Column
+from reach.systems.base import NO_INPUT, Box, ControlAffineSystem, DeepReachNormalisation, InputMatrix
 
 ROLES = ("control", "disturbance")
 

@@ -10,7 +10,7 @@ from typing import Protocol, runtime_checkable
 
 import torch
 
-from reach_envs.systems.base import ControlAffineSystem
+from reach.systems.base import ControlAffineSystem
 
 
 @runtime_checkable

@@ -20,8 +20,8 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from reach_envs.systems.backend import Backend, Column
-from reach_envs.systems.base import Box, ControlAffineSystem, DeepReachNormalisation, InputMatrix
+from reach.systems.backend import Backend, Column
+from reach.systems.base import Box, ControlAffineSystem, DeepReachNormalisation, InputMatrix
 
 ROLES = ("control", "disturbance")
 

@@ -7,11 +7,11 @@ from __future__ import annotations
 
 from typing import Any
 
-from reach_envs.systems.air3d import Air3D, RelativePair
-from reach_envs.systems.backend import FLOAT, NUMPY, TORCH
-from reach_envs.systems.base import Box, ControlAffineSystem, DeepReachNormalisation
-from reach_envs.systems.multivehicle import Car, MultiVehicle, MultiVehicle6D, MultiVehicle9D
-from reach_envs.systems.value_function import ValueFunction
+from reach.systems.air3d import Air3D, RelativePair
+from reach.systems.backend import FLOAT, NUMPY, TORCH
+from reach.systems.base import Box, ControlAffineSystem, DeepReachNormalisation
+from reach.systems.multivehicle import Car, MultiVehicle, MultiVehicle6D, MultiVehicle9D
+from reach.value_function import ValueFunction
 
 #: Systems by registry name.
 SYSTEMS: dict[str, type[ControlAffineSystem]] = {

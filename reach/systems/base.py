@@ -10,7 +10,7 @@ library needs is derived here, once, generically:
 * the per-dimension bound on ``|dH/dp_i|`` used as Lax-Friedrichs dissipation by the grid solver,
 * batched dynamics, failure margin and heading wrapping.
 
-Physics methods work on *columns* with a backend (:mod:`reach_envs.systems.backend`), so the same
+Physics methods work on *columns* with a backend (:mod:`reach.systems.backend`), so the same
 lines run on Python floats (single environment), NumPy (vector environments) and torch (solver,
 training, safety; any dtype and device, differentiable). Public batched methods take torch
 tensors shaped ``(..., n)``.
@@ -37,7 +37,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 import torch
 
-from reach_envs.systems.backend import FLOAT, TORCH, Backend, Column
+from reach.systems.backend import FLOAT, TORCH, Backend, Column
 
 Objective = Literal["max", "min"]
 #: Sparse input matrix: {(state index, input index): entry}; absent entries are zero.
