@@ -102,6 +102,11 @@ class PairwiseUnion:
         config["parameters"] = {**config["parameters"], "horizon": horizon}
         self.system = system_from_config(config) if "horizon" in system.parameters() else system
 
+    @property
+    def time_range(self) -> tuple[float, float]:
+        """The times-to-go every pair solution stores."""
+        return (max(s.time_range[0] for s in self._solutions), min(s.time_range[1] for s in self._solutions))
+
     def relative_states(self, x: torch.Tensor) -> torch.Tensor:
         """``(..., pairs, 3)``: car j relative to car i, in i's frame, for each failure pair."""
         n = self.system.num_cars

@@ -22,6 +22,7 @@ from groundtruth.grid import Grid
 from reach.atomic import atomic_path
 from reach.provenance import package_versions
 from reach.systems import ControlAffineSystem, system_from_config
+from reach.value_function import check_time
 
 FORMAT = "reach.groundtruth.v1"
 
@@ -44,6 +45,11 @@ class GridSolution:
             raise ValueError("GridSolution: values contain NaN or inf")
         self._gradients: torch.Tensor | None = None
         self._cache: dict[tuple[str, torch.dtype, torch.device], torch.Tensor] = {}
+
+    @property
+    def time_range(self) -> tuple[float, float]:
+        """The stored times-to-go: values between them are interpolated, others refused."""
+        return (float(self.times[0]), float(self.times[-1]))
 
     # ------------------------------------------------------------------ slices
     def at(self, t: float) -> torch.Tensor:
@@ -89,12 +95,14 @@ class GridSolution:
             raise ValueError(f"states contain NaN or inf, e.g. {bad}")
         batch = x.shape[:-1]
         xf = x.reshape(-1, n).to(table.dtype)
+        if not torch.isfinite(xf).all():  # a float64 state can overflow a float32 table
+            bad = x.reshape(-1, n)[~torch.isfinite(xf).all(-1)][0].tolist()
+            raise ValueError(f"states overflow {table.dtype}, e.g. {bad}")
         m = xf.shape[0]
         tt = torch.as_tensor(t, dtype=torch.float64, device=x.device)
         tt = torch.broadcast_to(tt, batch).reshape(-1) if tt.ndim else tt.expand(m)
         times = self.times.to(x.device)
-        if not torch.isfinite(tt).all() or (tt < times[0] - 1e-9).any() or (tt > times[-1] + 1e-9).any():
-            raise ValueError(f"t must lie in the stored range [{times[0].item()}, {times[-1].item()}], got {t}")
+        check_time(tt, *self.time_range)
         # time bracket
         # one bracket for a scalar time (the common case); searchsorted over an expanded tensor is slow
         lookup = tt[:1].contiguous() if (isinstance(t, (int, float)) or torch.as_tensor(t).ndim == 0) else tt

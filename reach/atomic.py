@@ -1,6 +1,8 @@
 """Atomic file writes: write to a temporary file beside the target, then rename over it.
 
-An interrupted write leaves the previous file (or none), never a truncated one.
+An interrupted write leaves the previous file (or none), never a truncated one. The file gets the
+permissions an ordinary ``open(path, "w")`` would give (``0o666`` less the process umask), not the
+owner-only mode of a temporary file, so results on shared storage stay readable by the group.
 """
 
 from __future__ import annotations
@@ -20,8 +22,16 @@ def atomic_path(path: str | os.PathLike) -> Iterator[str]:
     fd, tmp = tempfile.mkstemp(suffix=path.suffix, dir=path.parent, prefix=f".{path.stem}-")
     os.close(fd)
     try:
+        os.chmod(tmp, 0o666 & ~_umask())
         yield tmp
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _umask() -> int:
+    """The process umask (read by setting and restoring it: there is no getter)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask

@@ -14,7 +14,7 @@ def package_versions() -> dict[str, str]:
 
     return {
         "reach": reach.__version__,
-        "torch": torch.__version__,
+        "torch": str(torch.__version__),  # a plain str: TorchVersion would need an unpickling allowance
         "numpy": np.__version__,
         "python": platform.python_version(),
     }

@@ -52,7 +52,9 @@ class SafetyFilter:
         """Filtered inputs ``(..., m_u)`` for states ``(..., n)`` and nominal inputs ``(..., m_u)``.
 
         Nominal inputs are physical units; where kept they are returned bit for bit, where
-        replaced the result is exactly ``u*``. NaN/inf in states or nominal inputs raise ``ValueError``.
+        replaced the result is exactly ``u*``. NaN/inf in states or nominal inputs, a time-to-go the value
+        function does not cover, and a non-finite value or ``u*`` raise ``ValueError``: the filter
+        never passes the nominal input on a value it cannot trust.
         """
         system = self.system
         check_states(x, system.state_dim)
@@ -62,7 +64,16 @@ class SafetyFilter:
         if not bool(torch.isfinite(u_nominal).all()):
             raise ValueError(f"u_nominal contains NaN or inf: {u_nominal[~torch.isfinite(u_nominal)][:4].tolist()}")
         value, u_star, _ = self.policy.inputs(x, t)
-        intervene = value <= self.threshold
+        # fail closed: a NaN value compares False with everything, so "not above the threshold" (never
+        # "at or below it") decides; and an untrustworthy value or input is refused outright
+        intervene = ~(value > self.threshold)
+        untrusted = ~torch.isfinite(value) | ~torch.isfinite(u_star).all(-1)
+        if bool(untrusted.any()):
+            bad = x[untrusted][0].tolist()
+            raise ValueError(
+                f"value function returned a non-finite value or optimal input at state {bad} (t = {t}); "
+                "the filter does not trust it and keeps no nominal input"
+            )
         u_nominal = u_nominal.to(u_star.dtype)
         applied = torch.where(intervene.unsqueeze(-1), u_star, u_nominal)
         return applied, FilterInfo(value=value, nominal=u_nominal, applied=applied, intervened=intervene)

@@ -30,7 +30,7 @@ from typing import Literal
 import torch
 from tqdm.auto import tqdm
 
-from reach.value_function import ValueFunction
+from reach.value_function import ValueFunction, check_time_coverage
 from safety.policy import check_states
 
 DisturbanceSpec = Literal["optimal", "none"] | Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -119,6 +119,7 @@ def rollout(
         raise ValueError(f"disturbance must be 'optimal', 'none' or a callable, got {disturbance!r}")
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
         raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
+    check_time_coverage(value_function, 0.0, horizon, f"a rollout from time-to-go {horizon:g}")
     if matmul_precision == "bfloat16":
         if not hasattr(value_function, "with_matmul_dtype"):
             kind = type(value_function).__name__

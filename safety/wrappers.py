@@ -30,7 +30,7 @@ import torch
 from gymnasium.vector import VectorWrapper
 from pettingzoo.utils.wrappers import BaseParallelWrapper
 
-from reach.value_function import ValueFunction
+from reach.value_function import ValueFunction, check_time_coverage
 from safety.filter import FilterInfo, SafetyFilter
 from safety.value_functions import load_value_function
 
@@ -54,7 +54,9 @@ def _resolve_value_function(value_function: ValueFunction | str, system: Any, de
 def _check_time_to_go(time_to_go: float | str | None) -> None:
     if time_to_go is None or time_to_go == "remaining":
         return
-    if isinstance(time_to_go, str) or not (math.isfinite(time_to_go) and time_to_go >= 0):
+    if isinstance(time_to_go, (str, bool)) or not isinstance(time_to_go, (int, float)) or not (
+        math.isfinite(time_to_go) and time_to_go >= 0
+    ):
         raise ValueError(f"time_to_go must be None, 'remaining' or a number >= 0, got {time_to_go!r}")
 
 
@@ -82,6 +84,13 @@ class _Adapter:
             threshold = default_threshold(system, scene.dt)
         vf = _resolve_value_function(value_function, system, device)
         self.filter = SafetyFilter(vf, threshold)
+        # the times the filter will ask for, checked now rather than mid-episode
+        if time_to_go is None:
+            check_time_coverage(vf, vf.system.horizon, vf.system.horizon, "the filter (time_to_go=None)")
+        elif time_to_go == "remaining":
+            check_time_coverage(vf, 0.0, episode_horizon, "the filter (time_to_go='remaining')")
+        else:
+            check_time_coverage(vf, float(time_to_go), float(time_to_go), f"the filter (time_to_go={time_to_go})")
         self.time_to_go = time_to_go
         self.episode_horizon = episode_horizon
         self.centre = np.array(system.control_bounds.center)

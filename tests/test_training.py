@@ -333,7 +333,7 @@ def test_compiled_training_step_matches_eager():
         torch.testing.assert_close(b, a, atol=1e-5 * float(a.abs().max()) + 1e-8, rtol=1e-3)
 
 
-def test_each_network_gets_its_own_compiled_residual(monkeypatch):
+def test_each_network_gets_its_own_compiled_residual(request):
     """A process that trains many networks compiles each one: none falls back to eager mode because
     dynamo's recompile limit counted the earlier networks' residuals (a sweep worker's ninth run did).
     The limit is lowered to 1 so that the second network would already hit it."""
@@ -342,7 +342,11 @@ def test_each_network_gets_its_own_compiled_residual(monkeypatch):
 
     from training.loss import residual_function
 
-    monkeypatch.setattr(torch._dynamo.config, "recompile_limit", 1)
+    # config.patch, not monkeypatch.setattr: undoing a setattr deletes the config entry (dynamo's config
+    # module keeps no attribute in __dict__), and every later compile in the process then failed
+    limit = torch._dynamo.config.patch(recompile_limit=1)
+    limit.__enter__()
+    request.addfinalizer(lambda: limit.__exit__(None, None, None))
     x = torch.rand(64, 3) * 2 - 1
     t = torch.rand(64)
     compiled_before = counters["frames"]["ok"]

@@ -31,6 +31,7 @@ import torch
 from torch import nn
 
 from reach.systems import ControlAffineSystem
+from reach.value_function import check_time
 
 #: Activation letters and their names.
 ACTIVATIONS = {"s": "sine", "r": "relu", "t": "tanh"}
@@ -392,17 +393,28 @@ class NeuralValueFunction:
         """The same network whose fused value-and-gradient pass multiplies in ``dtype``."""
         return NeuralValueFunction(self.network, dtype)
 
+    @property
+    def time_range(self) -> tuple[float, float]:
+        """The network is trained on times-to-go ``[0, horizon]``; it refuses others (no extrapolation)."""
+        return (0.0, float(self.system.horizon))
+
     def _inputs(self, x: torch.Tensor, t: float | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        if x.shape[-1] != self.system.state_dim:
-            raise ValueError(f"states must have shape (..., {self.system.state_dim}), got {tuple(x.shape)}")
-        if not torch.isfinite(x).all():
-            raise ValueError("states contain NaN or inf")
+        if not isinstance(x, torch.Tensor) or x.ndim == 0 or x.shape[-1] != self.system.state_dim:
+            shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
+            raise ValueError(f"states must have shape (..., {self.system.state_dim}), got {shape}")
+        check_time(t, *self.time_range)
         p = next(self.network.parameters())
+        # checked after the cast: a float64 state of 1e300 is finite, but inf in the network's float32
+        xc = x.to(device=p.device, dtype=p.dtype)
+        finite = torch.isfinite(xc).all(-1)
+        if not bool(finite.all()):
+            bad = x[~finite.to(x.device)][0].tolist()
+            raise ValueError(f"states contain NaN or inf (or overflow {p.dtype}), e.g. {bad}")
         # headings are wrapped first: the network was trained on [-pi, pi), and V must not depend
         # on which multiple of 2 pi a caller's heading carries
-        x = self.system.wrap(x.to(device=p.device, dtype=p.dtype))
-        tt = torch.broadcast_to(torch.as_tensor(t, dtype=p.dtype, device=p.device), x.shape[:-1])
-        return x, tt
+        xc = self.system.wrap(xc)
+        tt = torch.broadcast_to(torch.as_tensor(t, dtype=p.dtype, device=p.device), xc.shape[:-1])
+        return xc, tt
 
     @torch.no_grad()
     def value(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:

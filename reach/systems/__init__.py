@@ -24,7 +24,10 @@ def make_system(name: str, **parameters: Any) -> ControlAffineSystem:
     key = name.lower().replace("-", "").replace("_", "")
     if key not in SYSTEMS:
         raise ValueError(f"unknown system {name!r}; known systems: {sorted(SYSTEMS)}")
-    return SYSTEMS[key](**parameters)
+    try:
+        return SYSTEMS[key](**parameters)
+    except TypeError as err:  # unknown or missing parameters
+        raise ValueError(f"system {name!r}: bad parameters {parameters} ({err})") from None
 
 
 def system_from_config(config: dict[str, Any]) -> ControlAffineSystem:

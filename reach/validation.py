@@ -1,0 +1,181 @@
+"""Checks of user-given values, shared by the library and the command line.
+
+Every check raises :class:`ValueError` naming the bad value, so that the CLI's error boundary turns
+it into one line, and every check is cheap, so that it runs before any expensive work (a grid solve,
+a training run, a rollout). The ``*_arg`` helpers are ``argparse`` types built from the same checks.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import torch
+
+#: largest seed NumPy's and torch's generators take
+MAX_SEED = 2**32 - 1
+
+
+def check_int(name: str, value: Any, low: int | None = None, high: int | None = None) -> int:
+    """``value`` as an int within ``[low, high]``; bools and non-integers are refused."""
+    if isinstance(value, bool) or (not isinstance(value, (int,)) and not (
+        isinstance(value, float) and value.is_integer()
+    )):
+        raise ValueError(f"{name} must be an integer, got {value!r}")
+    value = int(value)
+    if (low is not None and value < low) or (high is not None and value > high):
+        bounds = f">= {low}" if high is None else (f"<= {high}" if low is None else f"in [{low}, {high}]")
+        raise ValueError(f"{name} must be {bounds}, got {value}")
+    return value
+
+
+def check_float(
+    name: str,
+    value: Any,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    high_open: bool = False,
+) -> float:
+    """``value`` as a finite float within the given bounds (open where ``*_open``); NaN and inf are refused."""
+    if isinstance(value, bool):
+        raise ValueError(f"{name} must be a number, got {value!r}")
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(out):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    too_low = low is not None and (out <= low if low_open else out < low)
+    too_high = high is not None and (out >= high if high_open else out > high)
+    if too_low or too_high:
+        lo = "" if low is None else ("(" if low_open else "[") + f"{low:g}"
+        hi = "" if high is None else f"{high:g}" + (")" if high_open else "]")
+        if low is not None and high is not None:
+            rule = f"in {lo}, {hi}"
+        elif low is not None:
+            rule = f"{'>' if low_open else '>='} {low:g}"
+        else:
+            rule = f"{'<' if high_open else '<='} {high:g}"
+        raise ValueError(f"{name} must be {rule}, got {value!r}")
+    return out
+
+
+def check_seed(name: str, value: Any) -> int:
+    """A seed for NumPy and torch generators: an integer in ``[0, 2**32 - 1]``."""
+    return check_int(name, value, 0, MAX_SEED)
+
+
+def check_device(device: str | torch.device) -> torch.device:
+    """A torch device that exists on this machine (``cpu``, ``cuda``, ``cuda:1``, ``mps``)."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise ValueError(f"unknown device {str(device)!r} (expected cpu, cuda, cuda:N or mps)") from None
+    if dev.type == "cpu":
+        return dev
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {str(device)!r}: this torch build sees no CUDA GPU (torch {torch.__version__})")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"device {str(device)!r}: only {torch.cuda.device_count()} CUDA device(s) here")
+        return dev
+    if dev.type == "mps":
+        if not torch.backends.mps.is_available():
+            raise ValueError(f"device {str(device)!r}: MPS is not available on this machine")
+        return dev
+    raise ValueError(f"device {str(device)!r} is not supported (expected cpu, cuda, cuda:N or mps)")
+
+
+def check_output_path(path: str | os.PathLike, what: str = "output") -> Path:
+    """A file path that can be written: not a directory, and its folder exists or can be created
+    and is writable. Checked before the work whose result goes there."""
+    p = Path(path)
+    if str(path) == "" or p.name in ("", ".", ".."):
+        raise ValueError(f"{what} path {str(path)!r} is not a file name")
+    if p.is_dir():
+        raise ValueError(f"{what} path {str(p)!r} is a directory, not a file")
+    parent = p.parent
+    existing = parent
+    while not existing.exists():
+        if existing.parent == existing:
+            break
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ValueError(f"{what} path {str(p)!r}: {str(existing)!r} is a file, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ValueError(f"{what} path {str(p)!r}: folder {str(existing)!r} is not writable")
+    return p
+
+
+def check_output_dir(path: str | os.PathLike, what: str = "output") -> Path:
+    """A directory that exists and is writable, or can be created."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ValueError(f"{what} directory {str(p)!r} is a file")
+    existing = p
+    while not existing.exists():
+        if existing.parent == existing:
+            break
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ValueError(f"{what} directory {str(p)!r}: {str(existing)!r} is a file, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ValueError(f"{what} directory {str(p)!r}: {str(existing)!r} is not writable")
+    return p
+
+
+# ---------------------------------------------------------------------- argparse types
+def _arg_type(check: Callable[[str, Any], Any], parse: Callable[[str], Any], label: str) -> Callable[[str], Any]:
+    def convert(text: str) -> Any:
+        try:
+            value = parse(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {label}, got {text!r}") from None
+        try:
+            return check(label, value)
+        except ValueError as err:
+            raise argparse.ArgumentTypeError(str(err)) from None
+
+    convert.__name__ = label.replace(" ", "_")
+    return convert
+
+
+positive_int_arg = _arg_type(lambda n, v: check_int(n, v, 1), int, "a positive integer")
+nonnegative_int_arg = _arg_type(lambda n, v: check_int(n, v, 0), int, "an integer >= 0")
+seed_arg = _arg_type(check_seed, int, "a seed (an integer in [0, 2**32 - 1])")
+positive_float_arg = _arg_type(lambda n, v: check_float(n, v, 0, low_open=True), float, "a positive number")
+nonnegative_float_arg = _arg_type(lambda n, v: check_float(n, v, 0), float, "a number >= 0")
+finite_float_arg = _arg_type(check_float, float, "a finite number")
+unit_interval_arg = _arg_type(lambda n, v: check_float(n, v, 0, 1), float, "a number in [0, 1]")
+probability_arg = _arg_type(
+    lambda n, v: check_float(n, v, 0, 1, low_open=True, high_open=True), float, "a number in (0, 1)"
+)
+
+
+def device_arg(text: str) -> str:
+    """argparse type: a device that exists here (see :func:`check_device`)."""
+    try:
+        check_device(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return text
+
+
+def csv_floats(name: str, text: str, check: Callable[[str, Any], float] = check_float) -> list[float]:
+    """Comma-separated finite numbers (``"0,0.03,0.1"``), each checked by ``check``."""
+    items = [v.strip() for v in str(text).split(",") if v.strip()]
+    if not items:
+        raise ValueError(f"{name} must list at least one number, got {text!r}")
+    out = []
+    for item in items:
+        try:
+            value = float(item)
+        except ValueError:
+            raise ValueError(f"{name} must be comma-separated numbers, got {item!r} in {text!r}") from None
+        out.append(check(name, value))
+    return out
