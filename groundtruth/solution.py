@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -194,10 +195,13 @@ class GridSolution:
                 )
                 values = torch.from_numpy(data["values"].copy())
                 times = torch.from_numpy(data["times"].copy())
-        except (OSError, KeyError, ValueError, json.JSONDecodeError) as err:
-            raise ValueError(f"{path}: not a readable reach ground-truth file ({err})") from err
-        if meta.get("format") != FORMAT:
-            raise ValueError(f"{path}: format {meta.get('format')!r}, expected {FORMAT!r}")
+        except (OSError, EOFError, KeyError, ValueError, TypeError, zipfile.BadZipFile) as err:
+            raise ValueError(f"{path}: not a readable reach ground-truth file ({type(err).__name__}: {err})") from err
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+            found = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
+            raise ValueError(f"{path}: format {found!r}, expected {FORMAT!r}")
+        if "system" not in meta:
+            raise ValueError(f"{path}: ground-truth metadata names no system")
         system = system_from_config(meta.pop("system"))
         meta.pop("format", None)
         return cls(system=system, grid=grid, times=times, values=values, metadata=meta, outside=outside)

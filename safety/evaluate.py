@@ -22,7 +22,9 @@ from typing import Any
 from tqdm.auto import tqdm
 
 from groundtruth.solution import GridSolution
+from reach.locking import exclusive_lock
 from reach.systems import ControlAffineSystem, make_system
+from reach.validation import check_output_path
 from safety.metrics import containment_statistics
 from safety.results_io import write_results
 from safety.value_functions import load_value_function, resolve_checkpoint
@@ -73,7 +75,7 @@ def fingerprint(path: str) -> dict[str, Any]:
     try:
         p = resolve_checkpoint(path)
     except ValueError:
-        return {"file": str(Path(path).resolve()), "size": None, "mtime_ns": None}
+        return {"file": os.path.abspath(path), "size": None, "mtime_ns": None}
     st = p.stat()
     return {"file": str(p.resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
 
@@ -99,11 +101,24 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def _write_outputs(out: Path, header: dict[str, Any], rows: list[dict[str, Any]]) -> None:
-    write_results(out, header, rows, markdown_table(rows))
+def _write_outputs(out: Path, header: dict[str, Any], rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Merge ``rows`` into the table on disk and rewrite it; returns the merged rows.
+
+    Rows of other sources already in the table are kept (a rerun with fewer sources, or another
+    process evaluating other sources into the same ``out``, loses nothing); a row for the same
+    source replaces the old one. The read-merge-write runs under a lock on ``out.lock``, so
+    concurrent writers serialise instead of overwriting each other's rows."""
+    with exclusive_lock(out.with_suffix(".lock"), f"results {out}", wait=True):
+        mine = {r["source"]: r for r in rows}
+        on_disk = _previous(out, header, keep_errors=True)
+        merged = [mine.pop(source, row) for source, row in on_disk.items()] + list(mine.values())
+        write_results(out, header, merged, markdown_table(merged))
+    return merged
 
 
-def _previous(out: Path, header: dict[str, Any]) -> dict[str, dict[str, Any]]:
+def _previous(out: Path, header: dict[str, Any], keep_errors: bool = False) -> dict[str, dict[str, Any]]:
+    """Rows already in ``out`` by source (error rows only with ``keep_errors``); a table written with
+    other settings raises, since its rows would not be comparable."""
     path = out.with_suffix(".json")
     if not path.exists():
         return {}
@@ -121,7 +136,7 @@ def _previous(out: Path, header: dict[str, Any]) -> dict[str, dict[str, Any]]:
             f"{path} holds results for other settings ({data.get('settings')}, system {data.get('system')}); "
             "use another --out or delete it"
         )
-    return {r["source"]: r for r in data.get("results", []) if not r.get("error")}
+    return {r["source"]: r for r in data.get("results", []) if keep_errors or not r.get("error")}
 
 
 def pairwise_union_values(pairwise: str | os.PathLike, system: ControlAffineSystem, states: Any, horizon: float) -> Any:
@@ -148,7 +163,7 @@ def evaluate_many(
 ) -> list[dict[str, Any]]:
     """Evaluate every source on the same states; returns the rows (also written to ``out``)."""
     paths = expand_sources(sources)
-    out = Path(out)
+    out = check_output_path(out, "results")
     out.parent.mkdir(parents=True, exist_ok=True)
     if isinstance(system, str):
         system = make_system(system)
@@ -199,8 +214,9 @@ def evaluate_many(
             if union_values is not None:
                 learned = values_at(loaded.value_function, states, horizon)
                 row.update(containment_statistics(union_values, learned))
-        except (ValueError, RuntimeError) as err:
-            row["error"] = str(err).splitlines()[0][:300]
+        except (ValueError, RuntimeError, OSError, KeyError, TypeError, EOFError) as err:
+            # a corrupt or foreign source is one error row; the others go on
+            row["error"] = f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"[:300]
         rows.append(row)
         _write_outputs(out, header, rows)
     _write_outputs(out, header, rows)

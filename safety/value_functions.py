@@ -9,6 +9,7 @@ value function has one (neural networks) and falls back to two calls otherwise (
 from __future__ import annotations
 
 import os
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -51,6 +52,8 @@ class LoadedValueFunction:
 def resolve_checkpoint(path: str | os.PathLike) -> Path:
     """A run directory means its ``checkpoint.pt``; files are returned as they are."""
     p = Path(path)
+    if p.is_symlink() and not p.exists():
+        raise ValueError(f"{p}: a broken symbolic link or a link loop")
     if p.is_dir():
         ckpt = p / "checkpoint.pt"
         if not ckpt.exists():
@@ -99,6 +102,21 @@ def load_value_function(
     if isinstance(system, str):
         system = make_system(system)
     p = resolve_checkpoint(path)
+    try:
+        return _load(p, format, system, layout, device, label)
+    except (OSError, EOFError, KeyError, TypeError, RuntimeError, zipfile.BadZipFile) as err:
+        # whatever a damaged or foreign file raises, the caller gets one ValueError naming the file
+        raise ValueError(f"{p}: cannot be loaded as a value function ({type(err).__name__}: {err})") from err
+
+
+def _load(
+    p: Path,
+    format: Format,
+    system: ControlAffineSystem | None,
+    layout: str | None,
+    device: str | torch.device,
+    label: str | None,
+) -> LoadedValueFunction:
     kind = detect_format(p) if format == "auto" else format
     name = label or (p.parent.name if p.name == "checkpoint.pt" else p.stem)
     if kind == "grid":

@@ -93,6 +93,19 @@ class SweepSpec:
         owned = _SWEEP_OWNED & set(self.train)
         if owned:
             raise ValueError(f"training options {sorted(owned)} are set by the sweep itself, not through `train`")
+        known = {f.name for f in dataclasses.fields(TrainConfig)}
+        unknown = sorted(set(self.train) - known)
+        if unknown:
+            raise ValueError(f"unknown training options {unknown} (known: {sorted(known - _SWEEP_OWNED)})")
+        if self.groundtruth is not None:
+            from groundtruth.solution import GridSolution
+
+            reference = GridSolution.load(self.groundtruth)
+            wanted = make_system(self.system, **self.system_parameters)
+            if reference.system.physics_config() != wanted.physics_config():
+                raise ValueError(
+                    f"ground truth {self.groundtruth} is for {reference.system.config()}, not {wanted.config()}"
+                )
         system = make_system(self.system, **self.system_parameters)
         if self.evaluation == "auto":
             self.evaluation = "groundtruth" if system.state_dim <= 3 else "rollout"

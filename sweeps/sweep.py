@@ -26,6 +26,8 @@ from typing import Any
 from tqdm.auto import tqdm
 
 from reach.atomic import atomic_path
+from reach.locking import run_lock
+from reach.validation import check_int, check_output_dir
 from sweeps.report import claims_table, final_rows, plot_pareto, rank_layouts, summary_table
 from sweeps.scoring import headline_of
 from sweeps.spec import SweepSpec, store_spec
@@ -86,23 +88,37 @@ def run_sweep(
 ) -> tuple[Path, list[tuple[str, int, str]]]:
     """Run (or continue) the sweep into ``out``; returns the report's path and the failed tasks
     as ``(layout, seed, error)``."""
+    spec.validate()
+    if backend not in ("local", "ray"):
+        raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
+    check_int("workers", workers, 1)
+    if threads is not None:
+        check_int("threads", threads, 1)
+    out = check_output_dir(out, "sweep")
+    out.mkdir(parents=True, exist_ok=True)
+    with run_lock(out):
+        return _run_locked(spec, out, backend, workers, threads, address, progress, log)
+
+
+def _run_locked(
+    spec: SweepSpec,
+    out: Path,
+    backend: str,
+    workers: int,
+    threads: int | None,
+    address: str | None,
+    progress: bool,
+    log: Callable[[str], Any],
+) -> tuple[Path, list[tuple[str, int, str]]]:
     from sweeps.backends import run_local, run_ray
 
-    spec.validate()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     store_spec(spec, out)
     groundtruth = _ground_truth(spec, out, progress, log)
     if threads is None and backend == "local" and workers > 1:
         threads = max(1, (os.cpu_count() or 1) // workers)  # workers share the cores instead of fighting
     spec_dict = spec.to_dict()
     tasks = [(str(out), spec_dict, layout, seed, groundtruth, threads) for layout, seed in spec.tasks()]
-    if backend == "local":
-        outcomes = run_local(tasks, workers)
-    elif backend == "ray":
-        outcomes = run_ray(tasks, address)
-    else:
-        raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
+    outcomes = run_local(tasks, workers) if backend == "local" else run_ray(tasks, address)
     rows_by_task: dict[tuple[str, int], list[dict[str, Any]]] = {}
     failed: list[tuple[str, int, str]] = []
     start = time.perf_counter()

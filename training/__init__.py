@@ -9,7 +9,7 @@ from training.checkpoint import load_network, save_checkpoint
 from training.config import TrainConfig, parse_duration
 from training.deepreach import load_deepreach
 from training.network import ACTIVATIONS, Encoding, NeuralValueFunction, ValueNetwork, parse_layout
-from training.trainer import Trainer, TrainingDivergedError
+from training.trainer import Trainer, TrainingDivergedError, TrainingInterrupted
 
 __all__ = [
     "ACTIVATIONS",
@@ -18,6 +18,7 @@ __all__ = [
     "TrainConfig",
     "Trainer",
     "TrainingDivergedError",
+    "TrainingInterrupted",
     "ValueNetwork",
     "load_deepreach",
     "load_network",

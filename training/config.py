@@ -9,6 +9,8 @@ import re
 from dataclasses import dataclass, field
 from typing import Any
 
+from reach.systems import make_system
+from reach.validation import check_device, check_float, check_int, check_seed
 from training.network import parse_layout
 
 
@@ -89,10 +91,41 @@ class TrainConfig:
             "budget_s": self.budget_s is None or self.budget_s > 0,
             "log_every": self.log_every >= 1,
             "snapshots": isinstance(self.snapshots, int) and self.snapshots >= 0,
+            # a non-positive or NaN target is never reached: as the only stop rule it would train forever
+            "target_loss": self.target_loss is None or self.target_loss > 0,
+            "checkpoint_every_s": self.checkpoint_every_s >= 0,
+            "eval_every_s": self.eval_every_s >= 0,
         }
+        for name in (
+            "lr",
+            "lr_final",
+            "w0",
+            "value_scale",
+            "sincos_radius",
+            "gradient_bound",
+            "gradient_weight",
+            "curriculum",
+            "pretrain",
+            "boundary_fraction",
+            "budget_s",
+            "target_loss",
+            "checkpoint_every_s",
+            "eval_every_s",
+            "boundary_weight",
+        ):
+            value = getattr(self, name)
+            if value is not None:
+                check_float(name, value)  # numbers, finite: NaN passes every comparison-free check
+        for name in ("width", "points", "log_every", "snapshots", "steps"):
+            value = getattr(self, name)
+            if value is not None:
+                check_int(name, value)
+        check_seed("seed", self.seed)
         for name, ok in checks.items():
             if not ok:
                 raise ValueError(f"invalid {name}: {getattr(self, name)!r}")
+        check_device(self.device)
+        make_system(self.system, **self.system_parameters)  # an unknown system or parameter fails here
         if self.snapshots and self.steps is None and self.budget_s is None:
             raise ValueError("snapshots are spaced over steps or budget_s; give one of them")
         if self.parameterisation not in ("exact", "vanilla"):

@@ -43,6 +43,8 @@ class ReferenceEvaluator:
         slice_values: torch.Tensor | None = None,
     ) -> None:
         self.t = float(t)
+        #: the reference's system: a trainer or evaluation refuses a candidate of other physics
+        self.system = getattr(reference, "system", None)
         pts = reference.grid.points(torch.float32)
         self.volume_states = pts.reshape(-1, pts.shape[-1])
         self.volume_values = reference.value(self.volume_states, self.t)
@@ -54,6 +56,8 @@ class ReferenceEvaluator:
         self.slice_states, self.slice_values = slice_states.float(), slice_values.float()
 
     def __call__(self, candidate: Any) -> dict[str, float]:
+        if self.system is not None and candidate.system.physics_config() != self.system.physics_config():
+            raise ValueError(f"reference is for {self.system.config()}, candidate for {candidate.system.config()}")
         with torch.no_grad():
             vol = compare(candidate, self.volume_values, self.volume_states, self.t)
             sl = compare(candidate, self.slice_values, self.slice_states, self.t)

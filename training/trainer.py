@@ -17,11 +17,14 @@ where its last checkpoint stood and its metrics continue without duplicates.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
+import signal
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +32,9 @@ import torch
 from tqdm.auto import tqdm
 
 from reach.atomic import atomic_path
+from reach.locking import run_lock
 from reach.systems import make_system
+from reach.validation import check_output_dir
 from training.checkpoint import load_network, read_checkpoint, save_checkpoint
 from training.config import TrainConfig
 from training.loss import residual_function, training_loss
@@ -40,11 +45,52 @@ from training.network import Encoding, NeuralValueFunction, ValueNetwork
 LEGACY_DEFAULTS: dict[str, Any] = {"gradient_bound": None, "sincos_radius": 1.0}
 
 
+#: files whose presence means a directory already holds a run
+RUN_FILES = ("config.json", "checkpoint.pt", "metrics.jsonl")
+
+#: what ``resume`` may change: stop rules, logging and the device; anything else would make the
+#: resumed run a different run than its checkpoint and metrics say
+RESUME_OVERRIDABLE = frozenset(
+    {"steps", "budget_s", "target_loss", "device", "log_every", "checkpoint_every_s", "eval_every_s", "tensorboard"}
+)
+
+
 class TrainingDivergedError(RuntimeError):
     """The loss became NaN or inf; the last good checkpoint is kept."""
 
 
+class TrainingInterrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM stopped the run; it was checkpointed first, so ``resume`` loses nothing."""
+
+
 Evaluator = Callable[[NeuralValueFunction], dict[str, float]]
+
+
+@contextlib.contextmanager
+def _deferred_signals() -> Iterator[dict[str, int]]:
+    """Catch SIGINT and SIGTERM for the ``with`` block: the yielded dict gets ``{"signal": n}`` and
+    the loop stops at the end of its step. A second signal of the same kind acts as usual (a user who
+    presses Ctrl-C twice means it). Only the main thread can install handlers; elsewhere this is a no-op."""
+    stop: dict[str, int] = {}
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def handler(signum: int, frame: Any) -> None:
+        if stop:  # second signal: restore and re-deliver
+            signal.signal(signum, previous[signum])
+            signal.raise_signal(signum)
+            return
+        stop["signal"] = signum
+
+    for sig in previous:
+        signal.signal(sig, handler)
+    try:
+        yield stop
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
 
 
 def build_network(config: TrainConfig) -> ValueNetwork:
@@ -81,10 +127,31 @@ class Trainer:
     """Runs one training run in ``run_dir`` (see the module docstring)."""
 
     def __init__(
-        self, config: TrainConfig, run_dir: str | os.PathLike, evaluator: Evaluator | None = None, progress: bool = True
+        self,
+        config: TrainConfig,
+        run_dir: str | os.PathLike,
+        evaluator: Evaluator | None = None,
+        progress: bool = True,
+        *,
+        _resuming: bool = False,
     ) -> None:
         self.config = config.validate()
         self.run_dir = Path(run_dir)
+        if not _resuming:
+            check_output_dir(self.run_dir, "run")
+            existing = [name for name in RUN_FILES if (self.run_dir / name).exists()]
+            if existing:
+                raise ValueError(
+                    f"{self.run_dir} already holds a run ({', '.join(existing)}); continue it with "
+                    f"`reach train --resume {self.run_dir}` (Trainer.resume) or choose another directory"
+                )
+        if evaluator is not None and getattr(evaluator, "system", None) is not None:
+            wanted = make_system(config.system, **config.system_parameters)
+            if evaluator.system.physics_config() != wanted.physics_config():
+                raise ValueError(
+                    f"the evaluation ground truth is for {evaluator.system.config()}, but the run trains "
+                    f"{wanted.config()}"
+                )
         self.evaluator = evaluator
         self.progress = progress
         self.device = torch.device(config.device)
@@ -134,9 +201,20 @@ class Trainer:
         cfg_path = run_dir / "config.json"
         if not cfg_path.exists():
             raise ValueError(f"{run_dir}: no config.json; not a training run directory")
-        data = {**LEGACY_DEFAULTS, **json.loads(cfg_path.read_text())}
-        data.update({k: v for k, v in overrides.items() if v is not None})
-        trainer = cls(TrainConfig.from_dict(data), run_dir, evaluator, progress)
+        try:
+            data = {**LEGACY_DEFAULTS, **json.loads(cfg_path.read_text())}
+        except (OSError, json.JSONDecodeError) as err:
+            raise ValueError(f"{cfg_path}: unreadable run configuration ({err})") from err
+        given = {k: v for k, v in overrides.items() if v is not None}
+        fixed = {k: v for k, v in given.items() if k not in RESUME_OVERRIDABLE and data.get(k) != v}
+        if fixed:
+            stored = ", ".join(f"{k}={data.get(k)!r}" for k in sorted(fixed))
+            raise ValueError(
+                f"{run_dir} was trained with {stored}; a resumed run keeps its configuration (only "
+                f"{', '.join(sorted(RESUME_OVERRIDABLE))} may change): start a new run to change {sorted(fixed)}"
+            )
+        data.update(given)
+        trainer = cls(TrainConfig.from_dict(data), run_dir, evaluator, progress, _resuming=True)
         if trainer.checkpoint_path.exists():
             payload = read_checkpoint(trainer.checkpoint_path)
             net = load_network(trainer.checkpoint_path, system=trainer.system, layout=trainer.config.layout)
@@ -246,9 +324,18 @@ class Trainer:
         return None
 
     def train(self) -> dict[str, Any]:
-        """Train until a stop rule holds; returns a summary. Raises :class:`TrainingDivergedError` on NaN."""
-        c = self.config
+        """Train until a stop rule holds; returns a summary.
+
+        The run directory is locked for the whole call (a second process training into it gets a
+        ``ValueError`` naming this one). SIGINT (Ctrl-C) and SIGTERM finish the current step, save a
+        checkpoint and raise :class:`TrainingInterrupted`; :meth:`resume` continues from there.
+        Raises :class:`TrainingDivergedError` when the loss becomes NaN or inf."""
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        with run_lock(self.run_dir), _deferred_signals() as stop:
+            return self._train(stop)
+
+    def _train(self, stop: dict[str, int]) -> dict[str, Any]:
+        c = self.config
         cfg_path = self.run_dir / "config.json"
         with atomic_path(cfg_path) as tmp:
             Path(tmp).write_text(c.to_json())
@@ -338,6 +425,13 @@ class Trainer:
                 if time.perf_counter() - last_ckpt >= c.checkpoint_every_s:
                     self._save()
                     last_ckpt = time.perf_counter()
+                if stop:
+                    self._save()
+                    name = signal.Signals(stop["signal"]).name
+                    raise TrainingInterrupted(
+                        f"{name} at step {self.step}: saved {self.checkpoint_path}; continue with "
+                        f"`reach train --resume {self.run_dir}`"
+                    )
                 reason = self.stop_reason()
             if c.snapshots and not (self.snapshot_dir / f"{c.snapshots:03d}.pt").exists():
                 self._snapshot(c.snapshots)  # a run stopped early (target loss): its end is the last snapshot
