@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 from gymnasium import spaces
@@ -38,6 +39,30 @@ def check_action(action: object, shape: tuple[int, ...]) -> np.ndarray:
     if not (all(map(math.isfinite, a.tolist())) if a.ndim == 1 and a.size <= 8 else np.isfinite(a).all()):
         raise ValueError(f"action contains a non-finite value (NaN or inf): {action!r}")
     return a
+
+
+def check_reset_options(options: object, allowed: tuple[str, ...], unknown_keys: str = "raise") -> dict:
+    """``reset`` options as a dict; unknown keys raise ``ValueError`` (a misspelt ``"sate"`` would
+    otherwise start from a random state without a word), or with ``unknown_keys="warn"`` warn.
+
+    The PettingZoo env warns instead of raising: PettingZoo's own API test resets with the made-up
+    ``options={"options": 1}`` to check that ``options`` is accepted, and an env must pass that test."""
+    if options is None:
+        return {}
+    if not isinstance(options, dict):
+        raise ValueError(f"reset options must be a dict, got {type(options).__name__}")
+    unknown = sorted(map(str, set(options) - set(allowed)))
+    if unknown:
+        message = f"unknown reset option(s) {unknown}; this environment takes {list(allowed)}"
+        if unknown_keys == "warn":
+            warnings.warn(message + " (ignored)", UserWarning, stacklevel=3)
+        else:
+            raise ValueError(message)
+    return options
+
+
+class EpisodeOverError(RuntimeError):
+    """``step`` was called before ``reset`` or after the episode ended (terminated or truncated)."""
 
 
 def check_state(state: object, system: ControlAffineSystem) -> np.ndarray:

@@ -7,6 +7,9 @@ collision (``l(x) <= 0``, if the scene says so) or on leaving the arena, and is 
 horizon. The reward is -1 on a step that ends in collision and 0 otherwise: the env is a safety
 testbed, and reward shaping belongs in a wrapper.
 
+Stepping before ``reset`` or after the episode ended raises
+:class:`~reach_envs.common.EpisodeOverError`, and unknown ``reset`` options raise ``ValueError``.
+
 ``info`` holds ``margin`` (``l(x)``), ``collision``, ``out_of_arena``, ``control`` and
 ``disturbance`` (inputs actually applied, physical units, after clipping) and ``time`` (seconds).
 
@@ -22,7 +25,15 @@ import gymnasium as gym
 import numpy as np
 
 from reach.systems.backend import FLOAT
-from reach_envs.common import action_space, check_action, check_state, make_renderer, observation_space
+from reach_envs.common import (
+    EpisodeOverError,
+    action_space,
+    check_action,
+    check_reset_options,
+    check_state,
+    make_renderer,
+    observation_space,
+)
 from reach_envs.scenes import Scene, make_scene
 from reach_envs.simulator import SceneSimulator
 
@@ -62,12 +73,15 @@ class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
         self._steps = 0
         self._trails: list[list[tuple[float, float]]] = []
         self._crashed = False
+        #: why step() is refused (before the first reset, after the episode ended), else None
+        self._over: str | None = "before reset()"
 
     # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         """Start an episode; ``options={"state": x}`` starts from a given state instead of sampling."""
+        options = check_reset_options(options, ("state",))
         super().reset(seed=seed)
-        if options and options.get("state") is not None:
+        if options.get("state") is not None:
             x = check_state(options["state"], self.system)
         else:
             x = check_state(self._sampler.sample(self.system, self.np_random), self.system)
@@ -75,6 +89,7 @@ class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
         self._time = 0.0
         self._steps = 0
         self._crashed = False
+        self._over = None
         if self._record_trails:
             self._trails = [[(float(px), float(py))] for px, py, _ in self.system.car_poses(self._state, FLOAT)]
         margin = self.sim.margin(self._state)
@@ -82,6 +97,11 @@ class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
         return np.array(self._state, dtype=np.float32), info
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        if self._over is not None:
+            raise EpisodeOverError(
+                f"step() called {self._over}; call reset() to start an episode (simulating on would run "
+                "inside the failure set or past the horizon)"
+            )
         a = check_action(action, self._action_shape).tolist()
         u = [
             c + h * (-1.0 if v < -1.0 else (1.0 if v > 1.0 else v)) for v, c, h in zip(a, self._u_centre, self._u_half)
@@ -97,6 +117,8 @@ class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
         out = sim.out_of_arena(x)
         terminated = bool((collision and self._terminate_on_collision) or out)
         truncated = not terminated and self._steps >= self._max_steps
+        if terminated or truncated:
+            self._over = "after the episode was " + ("terminated" if terminated else "truncated")
         self._crashed = collision
         if self._record_trails:
             for trail, (px, py, _) in zip(self._trails, self.system.car_poses(x, FLOAT)):

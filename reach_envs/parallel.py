@@ -20,7 +20,14 @@ from pettingzoo import ParallelEnv
 
 from reach.systems.backend import FLOAT
 from reach.systems.multivehicle import MultiVehicle
-from reach_envs.common import action_space, check_action, check_state, make_renderer, observation_space
+from reach_envs.common import (
+    action_space,
+    check_action,
+    check_reset_options,
+    check_state,
+    make_renderer,
+    observation_space,
+)
 from reach_envs.scenes import Scene, make_scene
 from reach_envs.simulator import SceneSimulator
 
@@ -83,7 +90,8 @@ class MultiVehicleParallelEnv(ParallelEnv):
     def reset(self, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[dict, dict]:
         if seed is not None:
             self._rng, _ = seeding.np_random(seed)
-        if options and options.get("state") is not None:
+        options = check_reset_options(options, ("state",), unknown_keys="warn")
+        if options.get("state") is not None:
             x = check_state(options["state"], self.system)
         else:
             x = check_state(self._sampler.sample(self.system, self._rng), self.system)
@@ -94,7 +102,10 @@ class MultiVehicleParallelEnv(ParallelEnv):
         if self._record_trails:
             self._trails = [[(px, py)] for px, py, _ in self.system.car_poses(self._state, FLOAT)]
         margins = self._car_margins()
-        infos = {a: {"margin": margins[self._agent_car[a]], "collision": False, "time": 0.0} for a in self.agents}
+        infos = {
+            a: {"margin": margins[self._agent_car[a]], "collision": margins[self._agent_car[a]] <= 0.0, "time": 0.0}
+            for a in self.agents
+        }
         return self._observations(), infos
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:

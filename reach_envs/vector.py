@@ -21,7 +21,14 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from reach.systems.backend import NUMPY
-from reach_envs.common import action_space, check_action, check_state, make_renderer, observation_space
+from reach_envs.common import (
+    action_space,
+    check_action,
+    check_reset_options,
+    check_state,
+    make_renderer,
+    observation_space,
+)
 from reach_envs.scenes import Scene, make_scene
 from reach_envs.simulator import SceneSimulator
 
@@ -85,6 +92,7 @@ class ReachVectorEnv(VectorEnv):
         self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict]:
         """Reset sub-environments; ``options`` may hold ``reset_mask`` (bool ``(N,)``) and ``state`` (``(N, n)``)."""
+        options = check_reset_options(options, ("reset_mask", "state"))
         n = self.num_envs
         if seed is None:
             seeds: list[int | None] = [None] * n
