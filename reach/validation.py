@@ -137,9 +137,9 @@ def _arg_type(check: Callable[[str, Any], Any], parse: Callable[[str], Any], lab
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected {label}, got {text!r}") from None
         try:
-            return check(label, value)
-        except ValueError as err:
-            raise argparse.ArgumentTypeError(str(err)) from None
+            return check("value", value)
+        except ValueError as err:  # argparse names the option: "argument --seed: must be ..."
+            raise argparse.ArgumentTypeError(str(err).removeprefix("value ")) from None
 
     convert.__name__ = label.replace(" ", "_")
     return convert

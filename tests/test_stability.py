@@ -27,8 +27,9 @@ def test_long_horizon_and_large_steps_keep_states_finite():
     system = MultiVehicle9D()
     vf = _tiny(system)
     x = system.sample_states(100, generator=torch.Generator().manual_seed(0))
-    # 100x the default horizon (bang-bang inputs all the way), and a step 200x DeepReach's
-    long = rollout(vf, x, horizon=100.0, dt=0.05, record=True, progress=False)
+    # 100x the default horizon (bang-bang inputs all the way), and a step 200x DeepReach's; the
+    # network is built for that horizon, since networks refuse times-to-go beyond their own
+    long = rollout(_tiny(MultiVehicle9D(horizon=100.0)), x, horizon=100.0, dt=0.05, record=True, progress=False)
     assert torch.isfinite(long.trajectories).all()
     for integrator in ("euler", "rk4"):
         coarse = rollout(vf, x, dt=0.5, integrator=integrator, record=True, progress=False)

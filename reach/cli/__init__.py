@@ -1,0 +1,83 @@
+"""``reach``: the command line of the reach toolkit.
+
+Each subcommand is one module of this package holding its parser beside its handler: ``envs``
+(list environments and scenes), ``record`` (an episode as a GIF), ``groundtruth`` (grid BRT solve),
+``train`` (value networks), ``evaluate`` (rollout verification across checkpoints), ``filter-eval``
+(what a safety filter changes in episodes of a task), ``plot`` (BRT slices, union overlays,
+violation bars, filtered-episode GIFs), ``sweep`` (layouts x seeds on a budget, with a report) and
+``demo`` (all of it on Air3D).
+
+Handlers only parse and call library functions. Options that mirror a library setting default to
+``None`` and fall back to the library's dataclass, so every default has one source; ``--help``
+prints those defaults. Every value is checked by the option's type or by the library's own
+validation before any expensive work starts.
+
+Errors: any expected failure (a bad value, a missing or unreadable file, a locked run directory) is
+printed as one line naming the bad value, with exit status 2; ``--debug`` shows the traceback
+instead. An interrupted command (Ctrl-C, SIGTERM) exits with 130 after saving what it can.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from reach.cli import demo, envs, evaluate, filter_eval, groundtruth, plot, record, sweep, train
+from reach.cli.common import OneLineParser, common_options, finish_namespace
+
+#: subcommand modules, in the order ``reach --help`` lists them
+COMMANDS = (envs, record, groundtruth, train, evaluate, filter_eval, plot, sweep, demo)
+
+#: exit status of an expected failure (bad input, unreadable file), as argparse uses for usage errors
+EXIT_USAGE = 2
+#: exit status after SIGINT/SIGTERM (128 + SIGINT), as shells report it
+EXIT_INTERRUPTED = 130
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = OneLineParser(
+        prog="reach", description="Neural Hamilton-Jacobi reachability toolkit.", parents=[common_options()]
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=OneLineParser)
+    sub.required = True
+    for module in COMMANDS:
+        module.add_parser(sub)
+    return parser
+
+
+def _one_line(err: BaseException) -> str:
+    text = " ".join(str(err).split()) or type(err).__name__
+    return text if len(text) <= 600 else text[:597] + "..."
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = finish_namespace(build_parser().parse_args(argv))
+    command = f"reach {args.command}"
+    if args.debug:
+        return _run(args)
+    try:
+        return _run(args)
+    except KeyboardInterrupt as err:  # TrainingInterrupted says what was saved
+        print(f"{command}: interrupted{': ' + _one_line(err) if str(err) else ''}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except (ValueError, OSError) as err:
+        print(f"{command}: error: {_one_line(err)}", file=sys.stderr)
+        return EXIT_USAGE
+    except Exception as err:  # a bug, not bad input: still one line, with the way to the traceback
+        print(
+            f"{command}: internal error: {type(err).__name__}: {_one_line(err)} (rerun with --debug for the traceback)",
+            file=sys.stderr,
+        )
+        return 1
+
+
+def _run(args: argparse.Namespace) -> int:
+    if args.threads is not None:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    return int(args.func(args))
+
+
+__all__ = ["build_parser", "main"]

@@ -1,0 +1,146 @@
+"""``reach filter-eval``: episodes of a goal-seeking task with and without the safety filter."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from reach.cli.common import add_subparser
+from reach.validation import (
+    check_float,
+    check_output_path,
+    csv_floats,
+    nonnegative_float_arg,
+    positive_int_arg,
+    seed_arg,
+)
+
+
+def add_parser(sub: Any) -> None:
+    p = add_subparser(
+        sub, "filter-eval", help="episodes of a goal-seeking task with and without the safety filter: safety vs task"
+    )
+    p.add_argument("value_functions", nargs="*", help="value functions to filter with (runs, .pt, .pth, .npz)")
+    p.add_argument("--scene", default="air3d", help="named scene (air3d, three-car-merge, three-car-crossing, ...)")
+    p.add_argument("--episodes", type=positive_int_arg, default=1000)
+    p.add_argument("--seed", type=seed_arg, default=0)
+    p.add_argument(
+        "--thresholds", default=None, help="comma-separated filter thresholds >= 0 (default: 2 x rate bound x dt)"
+    )
+    p.add_argument("--time-to-go", default=None, help="None (value function horizon), a number, or 'remaining'")
+    p.add_argument("--pursuer", choices=["scene", "pursue", "random", "worst-case"], default="scene")
+    p.add_argument("--adversary", default=None, help="value function whose d* the worst-case pursuer plays")
+    p.add_argument("--start-outside", default=None, help="value function: start only from {V > margin}")
+    p.add_argument("--start-margin", type=nonnegative_float_arg, default=0.1)
+    p.add_argument("--format", choices=["auto", "reach", "deepreach", "grid"], default="auto")
+    p.add_argument("--layout", default=None, help="layout (needed for DeepReach files)")
+    p.add_argument("--pettingzoo", action="store_true", help="run through the PettingZoo parallel env instead")
+    p.add_argument("--gif", default=None, help="also write a side-by-side GIF (nominal | filtered) of 3 episodes")
+    p.add_argument("--out", default="filter.csv", help="results path; .csv, .json and .md are written")
+    p.set_defaults(func=run)
+
+
+def parse_time_to_go(text: str | None) -> float | str | None:
+    """``None`` (the value function's horizon), ``"remaining"``, or a number >= 0."""
+    if text is None or text == "remaining":
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"--time-to-go must be a number or 'remaining', got {text!r}") from None
+    return check_float("--time-to-go", value, 0)
+
+
+def run(args: argparse.Namespace) -> int:
+    from reach_envs.scenes import make_scene
+    from safety.evaluate import expand_sources
+    from safety.filter_eval import (
+        FilterConfig,
+        evaluate_filter_parallel,
+        evaluate_filters,
+        filter_table,
+        outside_states,
+        record_side_by_side,
+        worst_case_disturbance,
+        write_filter_results,
+    )
+    from safety.plots import plot_filter_tradeoff
+    from safety.value_functions import load_value_function
+
+    # checks first: scene, numbers, output paths, then the value functions (their time ranges too)
+    scene = make_scene(args.scene)
+    system = scene.system
+    ttg = parse_time_to_go(args.time_to_go)
+    thresholds = (
+        csv_floats("--thresholds", args.thresholds, lambda n, v: check_float(n, v, 0)) if args.thresholds else [None]
+    )
+    out = check_output_path(args.out, "--out")
+    if args.gif:
+        check_output_path(args.gif, "--gif")
+    loaded = [
+        load_value_function(p, format=args.format, system=system, layout=args.layout)
+        for p in (expand_sources(args.value_functions) if args.value_functions else [])
+    ]
+    overrides: dict = {}
+    if args.pursuer != "scene":
+        if not system.disturbance_dim:
+            raise ValueError(f"--pursuer {args.pursuer}: scene {args.scene} has no disturbance input")
+        if args.pursuer == "worst-case":
+            source = args.adversary or (str(loaded[0].path) if loaded else None)
+            if source is None:
+                raise ValueError("--pursuer worst-case needs --adversary VF (or a value function to filter with)")
+            adversary = load_value_function(source, system=system).value_function
+            overrides["disturbance"] = worst_case_disturbance(adversary)
+        else:
+            overrides["disturbance"] = args.pursuer
+    initial = None
+    if args.start_outside:
+        reference = load_value_function(args.start_outside, system=system).value_function
+        initial = outside_states(reference, args.episodes, args.start_margin, args.seed)
+    configs = [FilterConfig("nominal")]
+    for lv in loaded:
+        configs += [FilterConfig(lv.label, lv.value_function, th) for th in thresholds]
+    if args.pettingzoo:
+        rows = [
+            evaluate_filter_parallel(scene, c, args.episodes, args.seed, ttg, scene_overrides=overrides)
+            for c in configs
+        ]
+    else:
+        rows = evaluate_filters(
+            scene, configs, args.episodes, args.seed, ttg, scene_overrides=overrides, initial_states=initial
+        )
+    header = {
+        "format": "reach.filter-eval.v1",
+        "scene": args.scene,
+        "episodes": args.episodes,
+        "seed": args.seed,
+        "pursuer": args.pursuer,
+        "time_to_go": args.time_to_go or "value function horizon",
+        "start_outside": args.start_outside,
+        "start_margin": args.start_margin if args.start_outside else None,
+        "path": "pettingzoo" if args.pettingzoo else "vector",
+    }
+    write_filter_results(rows, out, header)
+    print(filter_table(rows))
+    print(f"\nwrote {out.with_suffix('.csv')}, {out.with_suffix('.json')}, {out.with_suffix('.md')}")
+    print(f"wrote {plot_filter_tradeoff(rows, out.with_name(out.stem + '_tradeoff.png'), title=args.scene)}")
+    if args.gif and loaded:
+        # show episodes in which the nominal policy crashed (else the first three)
+        picks = list(dict.fromkeys([*rows[0]["collided_episodes"][:3], 0, 1, 2]))[:3]
+        starts = initial[picks] if initial is not None else None
+        gif = record_side_by_side(
+            scene,
+            loaded[0].value_function,
+            args.gif,
+            thresholds[0],
+            [args.seed + i for i in picks],
+            ttg,
+            scene_overrides=overrides,
+            initial_states=starts,
+        )
+        print(f"wrote {gif} (left: nominal, right: filtered by {loaded[0].label})")
+    return 0
+
+
+__all__ = ["Path", "add_parser", "run"]

@@ -1,0 +1,166 @@
+"""``reach train``: train a value network of any activation layout, or resume a run.
+
+Every option that sets a :class:`~training.config.TrainConfig` field defaults to ``None`` and falls
+back to the dataclass, whose defaults ``--help`` prints. ``--resume RUN`` continues a run with its
+stored configuration: it takes new stop rules (``--steps``, ``--budget``, ``--target-loss``), logging
+options and ``--device``; any other training option is refused rather than silently ignored.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from reach.cli.common import add_subparser, default
+from reach.validation import (
+    device_arg,
+    finite_float_arg,
+    nonnegative_float_arg,
+    nonnegative_int_arg,
+    positive_float_arg,
+    positive_int_arg,
+    seed_arg,
+    unit_interval_arg,
+)
+
+
+def _optional_float(text: str) -> float | str:
+    """A positive number, or ``"off"``."""
+    if text.strip().lower() == "off":
+        return "off"
+    return positive_float_arg(text)
+
+
+#: (option, TrainConfig field, argparse keywords, help): the options that set a training field
+TRAIN_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
+    ("--system", "system", {}, "system name"),
+    ("--layout", "layout", {}, "one letter per activated layer (s sine, r ReLU, t tanh, g GELU) and a final l"),
+    ("--width", "width", {"type": positive_int_arg}, "hidden width"),
+    ("--w0", "w0", {"type": positive_float_arg}, "sine frequency"),
+    ("--parameterisation", "parameterisation", {"choices": ["exact", "vanilla"]}, "exact: V(x, 0) = l(x) by design"),
+    (
+        "--sincos",
+        "sincos",
+        {"action": argparse.BooleanOptionalAction},
+        "encode headings as (sin, cos) (--no-sincos: heading / pi, with a seam at +-pi)",
+    ),
+    ("--sincos-radius", "sincos_radius", {"type": positive_float_arg}, "scale of the (sin, cos) inputs"),
+    ("--points", "points", {"type": positive_int_arg}, "points per step"),
+    ("--lr", "lr", {"type": positive_float_arg}, "learning rate"),
+    ("--lr-final", "lr_final", {"type": positive_float_arg}, "final learning rate of the cosine schedule"),
+    ("--schedule", "schedule", {"choices": ["cosine", "constant"]}, "learning-rate schedule"),
+    ("--loss", "loss", {"choices": ["l1", "l2"]}, "norm of the HJI residual"),
+    (
+        "--gradient-bound",
+        "gradient_bound",
+        {"type": _optional_float},
+        "penalise |dV/dx| above this many times l's steepest slope (normalised coordinates; removes cliffs; "
+        "'off' disables)",
+    ),
+    ("--gradient-weight", "gradient_weight", {"type": nonnegative_float_arg}, "weight of the gradient-bound penalty"),
+    (
+        "--gradients",
+        "gradients",
+        {"choices": ["fused", "autograd"]},
+        "input derivatives: carried through the layers by hand (one backward) or by autograd (double backward)",
+    ),
+    ("--curriculum", "curriculum", {"type": unit_interval_arg}, "share of the run over which t grows to T"),
+    ("--pretrain", "pretrain", {"type": unit_interval_arg}, "vanilla: share of the run on the boundary only"),
+    ("--steps", "steps", {"type": positive_int_arg}, "stop after this many steps"),
+    ("--target-loss", "target_loss", {"type": positive_float_arg}, "stop when the loss average falls to this"),
+    ("--seed", "seed", {"type": seed_arg}, "seed of the network's initialisation and the sampling"),
+    ("--device", "device", {"type": device_arg}, "cpu or cuda"),
+    ("--log-every", "log_every", {"type": positive_int_arg}, "steps between metric lines"),
+    ("--checkpoint-every", "checkpoint_every_s", {"type": nonnegative_float_arg}, "seconds between checkpoints"),
+    ("--eval-every", "eval_every_s", {"type": nonnegative_float_arg}, "seconds between evaluations"),
+    ("--snapshots", "snapshots", {"type": nonnegative_int_arg}, "save the network after every 1/N of the run"),
+)
+
+#: options a resumed run accepts (its stop rules, logging and device); the rest are fixed by its config
+RESUMABLE = {"steps", "budget_s", "target_loss", "device", "log_every", "checkpoint_every_s", "eval_every_s"}
+
+
+def add_parser(sub: Any) -> None:
+    from training import TrainConfig
+
+    p = add_subparser(sub, "train", help="train a value network of any activation layout")
+    for option, field, kwargs, text in TRAIN_OPTIONS:
+        value = default(TrainConfig, field)
+        p.add_argument(option, dest=field, default=None, help=f"{text} (default: {value})", **kwargs)
+    p.add_argument("--budget", default=None, help="wall-clock budget, e.g. 90s, 10m, 1h (default: none)")
+    p.add_argument(
+        "--compile",
+        choices=["auto", "on", "off"],
+        default=None,
+        help="torch.compile the training step (auto, the default: runs of 2 min or 2000 steps and more, eager if "
+        "compiling fails)",
+    )
+    p.add_argument(
+        "--tensorboard", action="store_true", default=None, help="also log metrics for TensorBoard in RUN/tensorboard"
+    )
+    p.add_argument("--groundtruth", default=None, help="grid solution .npz to evaluate against while training")
+    p.add_argument("--eval-time", type=finite_float_arg, default=None, help="time of evaluation (default: last stored)")
+    p.add_argument("--out", default=None, help="run directory for a new run")
+    p.add_argument("--resume", default=None, metavar="RUN_DIR", help="continue the run in RUN_DIR")
+    p.set_defaults(func=run)
+
+
+def _config_fields(args: argparse.Namespace) -> dict[str, Any]:
+    """The TrainConfig fields the user set on the command line."""
+    from training import parse_duration
+
+    fields = {field: getattr(args, field) for _, field, _, _ in TRAIN_OPTIONS if getattr(args, field) is not None}
+    if fields.get("gradient_bound") == "off":
+        fields["gradient_bound"] = None
+    if args.budget is not None:
+        fields["budget_s"] = parse_duration(args.budget)
+    if args.compile is not None:
+        fields["compile"] = {"auto": None, "on": True, "off": False}[args.compile]
+    if args.tensorboard:
+        fields["tensorboard"] = True
+    return fields
+
+
+def _evaluator(args: argparse.Namespace) -> Any:
+    if not args.groundtruth:
+        return None
+    from groundtruth import GridSolution
+    from training.evaluate import ReferenceEvaluator
+
+    reference = GridSolution.load(args.groundtruth, outside="clamp")
+    t_eval = args.eval_time if args.eval_time is not None else float(reference.times[-1])
+    return ReferenceEvaluator(reference, t_eval)
+
+
+def run(args: argparse.Namespace) -> int:
+    from training import TrainConfig, Trainer, TrainingDivergedError
+
+    fields = _config_fields(args)
+    if args.resume:
+        if args.out:
+            raise ValueError(f"give --out for a new run or --resume for an old one, not both (--out {args.out})")
+        fixed = sorted(set(fields) - RESUMABLE - {"tensorboard"})
+        if fixed:
+            option = {field: flag for flag, field, _, _ in TRAIN_OPTIONS} | {
+                "budget_s": "--budget",
+                "compile": "--compile",
+            }
+            names = ", ".join(option.get(name, name) for name in fixed)
+            raise ValueError(
+                f"--resume continues {args.resume} with its stored configuration; {names} cannot change "
+                "(start a new run with --out to train with other settings)"
+            )
+        trainer = Trainer.resume(args.resume, evaluator=_evaluator(args), **fields)
+    else:
+        if not args.out:
+            raise ValueError("give --out RUN_DIR for a new run (or --resume RUN_DIR)")
+        config = TrainConfig(**fields).validate()  # before loading a ground truth or building anything
+        trainer = Trainer(config, args.out, evaluator=_evaluator(args))
+    try:
+        summary = trainer.train()
+    except TrainingDivergedError as err:
+        print(f"reach train: {err}", file=sys.stderr)
+        return 3
+    print(f"{summary['run_dir']}: {summary['steps']} steps in {summary['wall_time_s']:.1f} s ({summary['stopped']})")
+    return 0
