@@ -13,14 +13,13 @@ gradient pulled back through the relative-coordinate map (autograd on that small
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import torch
 
 from groundtruth.solution import GridSolution
 from groundtruth.solver import solve
-from reach.systems import MultiVehicle, RelativePair, system_from_config
+from reach.systems import TORCH, MultiVehicle, RelativePair, system_from_config
 
 
 def pair_system(system: MultiVehicle, i: int, j: int, half_width: float = 1.6) -> RelativePair:
@@ -116,7 +115,7 @@ class PairwiseUnion:
             dy = x[..., 2 * j + 1] - x[..., 2 * i + 1]
             th = x[..., 2 * n + i]
             c, s = torch.cos(th), torch.sin(th)
-            rel_th = torch.remainder(x[..., 2 * n + j] - th + math.pi, 2 * math.pi) - math.pi
+            rel_th = TORCH.wrap_angle(x[..., 2 * n + j] - th)
             out.append(torch.stack([c * dx + s * dy, -s * dx + c * dy, rel_th], dim=-1))
         return torch.stack(out, dim=-2)
 

@@ -127,7 +127,8 @@ def solve(
         dissipation: ``"local"`` (default) uses each node's own bound on ``|dH/dp_i|`` over the
             whole input box; ``"global"`` uses the largest bound over the grid everywhere (more
             diffusive: on Air3D at 101^3 it is 6e-3 away from the MATLAB toolbox slice, local 1.4e-4).
-        dtype, device: where the computation runs (float32 by default, float64 for references).
+        dtype: precision of the computation (float32 by default, float64 for references).
+        device: where the computation runs.
         compile: fuse the right-hand side with ``torch.compile`` (default: on CPU and CUDA when a
             compiler works; falls back to eager mode otherwise).
         progress: show a tqdm bar over simulated time.

@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from reach.integrators import INTEGRATORS
 from reach.systems import Air3D, Car, ControlAffineSystem, MultiVehicle, MultiVehicle6D, MultiVehicle9D
-from reach_envs.integrators import INTEGRATORS
 from reach_envs.policies import DISTURBANCE_KINDS, make_disturbance_policy
 
 

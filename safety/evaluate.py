@@ -179,8 +179,7 @@ def evaluate_many(
     reference = None
     if ground_truth is not None:
         gt = GridSolution.load(ground_truth, outside="clamp")
-        if gt.system != system:
-            raise ValueError(f"ground truth {ground_truth} is for {gt.system.config()}, not {system.config()}")
+        system.require_same_physics(gt.system, f"ground truth {ground_truth}")
         t_ref = float(gt.times[-1]) if gt_time is None else gt_time
         reference = ReferenceEvaluator(gt, t_ref, slice_value=gt_slice)
     header = {

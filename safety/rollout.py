@@ -30,6 +30,8 @@ from typing import Literal
 import torch
 from tqdm.auto import tqdm
 
+from reach.integrators import check_integrator, make_stepper
+from reach.systems.backend import TORCH
 from reach.value_function import ValueFunction, check_time_coverage
 from safety.policy import check_states
 
@@ -100,7 +102,8 @@ def rollout(
         chunk_size: states simulated together (memory is about ``chunk_size x width x layers``).
         early_exit: stop trajectories whose outcome is decided (see the module docstring).
         record: keep every state (small ``N`` only; turns the margin-bound exit off).
-        device, dtype: where and in which precision to simulate (default: the states' device, float32).
+        device: where to simulate (default: the states' device).
+        dtype: precision of the simulation (default float32).
         matmul_precision: ``"bfloat16"`` runs a network's hidden products in bfloat16 (neural value
             functions only): faster on CPUs and GPUs with bf16 units, and not exact: outcomes can
             differ from float32 near the BRT boundary (measured in ``benchmarks/bench_rollouts.py``).
@@ -113,8 +116,7 @@ def rollout(
     for name, value in (("horizon", horizon), ("dt", dt)):
         if not (math.isfinite(value) and value > 0):
             raise ValueError(f"{name} must be positive and finite, got {value!r}")
-    if integrator not in ("euler", "rk4"):
-        raise ValueError(f"integrator must be 'euler' or 'rk4', got {integrator!r}")
+    check_integrator(integrator)
     if not (disturbance in ("optimal", "none") or callable(disturbance)):
         raise ValueError(f"disturbance must be 'optimal', 'none' or a callable, got {disturbance!r}")
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
@@ -134,6 +136,8 @@ def rollout(
     bound = system.margin_rate_bound() if (early_exit and not record) else None
     use_disturbance = system.disturbance_dim > 0 and disturbance != "none"
 
+    advance = make_stepper(system, dt, integrator, TORCH)
+
     def step(x: torch.Tensor, t: float) -> torch.Tensor:
         p = value_function.gradient(x, t)  # networks fuse it with the value; grids interpolate it alone
         u = system.optimal_control(x, p)
@@ -143,15 +147,10 @@ def rollout(
             d = system.optimal_disturbance(x, p)
         else:
             d = disturbance(x, torch.full(x.shape[:-1], t, dtype=x.dtype, device=x.device))
-        if integrator == "euler":
-            x = x + dt * system.dynamics(x, u, d)
-        else:
-            k1 = system.dynamics(x, u, d)
-            k2 = system.dynamics(x + 0.5 * dt * k1, u, d)
-            k3 = system.dynamics(x + 0.5 * dt * k2, u, d)
-            k4 = system.dynamics(x + dt * k3, u, d)
-            x = x + (dt / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
-        return system.wrap(x)
+        cols = TORCH.unbind(x)
+        uc = system.input_columns(u, system.control_bounds, "u")
+        dc = system.input_columns(d, system.disturbance_bounds, "d")
+        return TORCH.stack(advance(cols, uc, dc), like=cols[0])  # integrates and wraps headings
 
     n = states.shape[0]
     initial_value = torch.empty(n, dtype=dtype)

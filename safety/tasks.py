@@ -20,11 +20,9 @@ from abc import ABC, abstractmethod
 
 import numpy as np
 
-from reach.systems import ControlAffineSystem, MultiVehicle, RelativePair
+from reach.systems import NUMPY, ControlAffineSystem, MultiVehicle, RelativePair
 
-
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return np.remainder(a + math.pi, 2 * math.pi) - math.pi
+_wrap = NUMPY.wrap_angle  # the package's one angle wrap, on NumPy arrays
 
 
 class GoalTask(ABC):

@@ -125,15 +125,13 @@ def _load(
         if isinstance(sol.system, RelativePair) and isinstance(system, MultiVehicle):
             # a two-car solution evaluated on a multi-vehicle state: the union of pairwise BRTs
             return LoadedValueFunction(PairwiseUnion(system, sol), p, "pairwise", "pairwise union", name)
-        if system is not None and sol.system.physics_config() != system.physics_config():
-            raise ValueError(f"{p}: grid solution is for {sol.system.config()}, not {system.config()}")
+        if system is not None:
+            system.require_same_physics(sol.system, f"{p}: grid solution")
         return LoadedValueFunction(sol, p, "grid", "grid", name)
     if kind == "deepreach":
         if system is None or layout is None:
             raise ValueError(f"{p}: a DeepReach state dict stores neither system nor layout; give both")
         net = load_deepreach(p, system, layout).to(device)
         return LoadedValueFunction(NeuralValueFunction(net), p, "deepreach", layout, name)
-    net = load_network(p, layout=layout, device=device)
-    if system is not None and net.system.physics_config() != system.physics_config():
-        raise ValueError(f"{p}: checkpoint is for system {net.system.config()}, not {system.config()}")
+    net = load_network(p, system=system, layout=layout, device=device)
     return LoadedValueFunction(NeuralValueFunction(net), p, "reach", net.layout, name)

@@ -43,11 +43,7 @@ def _resolve_value_function(value_function: ValueFunction | str, system: Any, de
     )
     if not isinstance(vf, ValueFunction):
         raise ValueError(f"value_function must be a ValueFunction or a path, got {type(value_function).__name__}")
-    if vf.system.physics_config() != system.physics_config():
-        raise ValueError(
-            f"value function is for system {vf.system.physics_config()}, "
-            f"but the environment simulates {system.physics_config()}"
-        )
+    system.require_same_physics(vf.system, "value function (the environment simulates another system)")
     return vf
 
 

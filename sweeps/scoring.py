@@ -32,8 +32,7 @@ class GroundTruthScorer:
         from training.evaluate import ReferenceEvaluator
 
         solution = GridSolution.load(path, outside="clamp")
-        if solution.system != system:
-            raise ValueError(f"ground truth {path} is for {solution.system.config()}, not {system.config()}")
+        system.require_same_physics(solution.system, f"ground truth {path}")
         t = float(solution.times[-1]) if t is None else float(t)
         if not float(solution.times[0]) <= t <= float(solution.times[-1]) + 1e-9:
             raise ValueError(f"eval time {t} lies outside the ground truth's times [0, {float(solution.times[-1])}]")

@@ -102,10 +102,7 @@ class SweepSpec:
 
             reference = GridSolution.load(self.groundtruth)
             wanted = make_system(self.system, **self.system_parameters)
-            if reference.system.physics_config() != wanted.physics_config():
-                raise ValueError(
-                    f"ground truth {self.groundtruth} is for {reference.system.config()}, not {wanted.config()}"
-                )
+            wanted.require_same_physics(reference.system, f"ground truth {self.groundtruth}")
         system = make_system(self.system, **self.system_parameters)
         if self.evaluation == "auto":
             self.evaluation = "groundtruth" if system.state_dim <= 3 else "rollout"

@@ -11,6 +11,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from reach.integrators import make_stepper
 from reach.systems import (
     FLOAT,
     NUMPY,
@@ -23,7 +24,6 @@ from reach.systems import (
     make_system,
     system_from_config,
 )
-from reach_envs.integrators import make_stepper
 
 SYSTEMS = [
     Air3D(),

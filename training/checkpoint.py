@@ -123,8 +123,8 @@ def load_network(
     check_integrity(path, payload)
     meta = payload["metadata"]
     stored = system_from_config(meta["system"])
-    if system is not None and stored != system:
-        raise ValueError(f"{path}: checkpoint is for system {stored.config()}, not {system.config()}")
+    if system is not None:
+        system.require_same_physics(stored, f"{path}: checkpoint")
     if layout is not None and meta["layout"] != layout:
         raise ValueError(f"{path}: checkpoint has layout {meta['layout']!r}, not {layout!r}")
     try:

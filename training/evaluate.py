@@ -56,8 +56,8 @@ class ReferenceEvaluator:
         self.slice_states, self.slice_values = slice_states.float(), slice_values.float()
 
     def __call__(self, candidate: Any) -> dict[str, float]:
-        if self.system is not None and candidate.system.physics_config() != self.system.physics_config():
-            raise ValueError(f"reference is for {self.system.config()}, candidate for {candidate.system.config()}")
+        if self.system is not None:
+            self.system.require_same_physics(candidate.system, "the evaluated value function")
         with torch.no_grad():
             vol = compare(candidate, self.volume_values, self.volume_states, self.t)
             sl = compare(candidate, self.slice_values, self.slice_states, self.t)

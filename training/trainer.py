@@ -147,11 +147,7 @@ class Trainer:
                 )
         if evaluator is not None and getattr(evaluator, "system", None) is not None:
             wanted = make_system(config.system, **config.system_parameters)
-            if evaluator.system.physics_config() != wanted.physics_config():
-                raise ValueError(
-                    f"the evaluation ground truth is for {evaluator.system.config()}, but the run trains "
-                    f"{wanted.config()}"
-                )
+            wanted.require_same_physics(evaluator.system, "the evaluation ground truth")
         self.evaluator = evaluator
         self.progress = progress
         self.device = torch.device(config.device)

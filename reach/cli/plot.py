@@ -60,10 +60,7 @@ def run(args: argparse.Namespace) -> int:
     vfs = [(lv.label, lv.value_function) for lv in loaded]
     system = vfs[0][1].system
     for label, vf in vfs[1:]:
-        if vf.system.physics_config() != system.physics_config():
-            raise ValueError(
-                f"{label} is for {vf.system.config()}, {vfs[0][0]} for {system.config()}: one system per plot"
-            )
+        system.require_same_physics(vf.system, f"{label} (one system a plot)")
     t = system.horizon if args.t is None else args.t
     for label, vf in vfs:
         check_time_coverage(vf, t, t, f"--t {t:g} ({label})")

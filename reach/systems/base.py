@@ -150,6 +150,17 @@ class ControlAffineSystem(ABC):
         params = {k: v for k, v in self.parameters().items() if k not in ("horizon", "half_width")}
         return {"name": self.name, "parameters": params}
 
+    def same_physics(self, other: ControlAffineSystem) -> bool:
+        """The package's one compatibility rule: a value function of ``other`` may serve ``self``
+        when their physics agree (:meth:`physics_config`); horizons are checked where times are used."""
+        return isinstance(other, ControlAffineSystem) and self.physics_config() == other.physics_config()
+
+    def require_same_physics(self, other: ControlAffineSystem, what: str) -> None:
+        """Raise ``ValueError`` saying ``what`` is for ``other`` unless :meth:`same_physics` holds."""
+        if not self.same_physics(other):
+            found = other.config() if isinstance(other, ControlAffineSystem) else type(other).__name__
+            raise ValueError(f"{what} is for {found}, not {self.config()}")
+
     # ------------------------------------------------------------------ description
     @property
     def state_dim(self) -> int:
@@ -281,7 +292,8 @@ class ControlAffineSystem(ABC):
         if t.ndim == 0 or t.shape[-1] != dim:
             raise ValueError(f"{self.name}: {name} must have shape (..., {dim}), got {tuple(t.shape)}")
 
-    def _inputs_or_centre(self, v: torch.Tensor | None, box: Box, name: str) -> Sequence[Column]:
+    def input_columns(self, v: torch.Tensor | None, box: Box, name: str) -> Sequence[Column]:
+        """Columns of a batch of inputs ``(..., box.dim)`` (checked), or the box centre for None."""
         if v is None:
             return box.center
         self._check(name, v, box.dim)
@@ -294,8 +306,8 @@ class ControlAffineSystem(ABC):
         """
         self._check("x", x, self.state_dim)
         cols = TORCH.unbind(x)
-        uc = self._inputs_or_centre(u, self.control_bounds, "u")
-        dc = self._inputs_or_centre(d, self.disturbance_bounds, "d")
+        uc = self.input_columns(u, self.control_bounds, "u")
+        dc = self.input_columns(d, self.disturbance_bounds, "d")
         return TORCH.stack(self.xdot_columns(cols, uc, dc, TORCH), like=cols[0])
 
     def hamiltonian(self, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:

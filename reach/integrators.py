@@ -1,7 +1,9 @@
 """Fixed-step integrators on columns, shared by every backend (floats, NumPy, torch).
 
-Inputs are held constant over a step (zero-order hold), as a digital controller applies them.
-Periodic dimensions are wrapped after the step, not inside it, so RK4 stages see continuous angles.
+The one implementation of explicit Euler and RK4 in the package: environments step with it on
+Python floats or NumPy columns, and the rollout engine on torch columns. Inputs are held constant
+over a step (zero-order hold), as a digital controller applies them. Periodic dimensions are
+wrapped after the step, not inside it, so RK4 stages see continuous angles.
 """
 
 from __future__ import annotations
@@ -16,13 +18,19 @@ INTEGRATORS = ("rk4", "euler")
 Stepper = Callable[[Sequence[Column], Sequence[Column], Sequence[Column]], list[Column]]
 
 
+def check_integrator(integrator: str) -> str:
+    """``integrator`` if it is one of :data:`INTEGRATORS`, else ``ValueError`` naming it."""
+    if integrator not in INTEGRATORS:
+        raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
+    return integrator
+
+
 def make_stepper(system: ControlAffineSystem, dt: float, integrator: str, xp: Backend) -> Stepper:
     """A function ``(x, u, d) -> x_next`` advancing ``dt`` seconds and wrapping headings.
 
     ``x``, ``u`` and ``d`` are column sequences of the backend ``xp``.
     """
-    if integrator not in INTEGRATORS:
-        raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
+    check_integrator(integrator)
     xdot = system.xdot_columns
     wrap = system.wrap_columns
     if integrator == "euler":

@@ -1,0 +1,51 @@
+"""One source for every default: CLI options that mirror a library setting carry no literal of their own."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from reach.cli import build_parser
+from reach.cli import evaluate as evaluate_command
+from reach.cli import sweep as sweep_command
+from reach.cli import train as train_command
+from safety.verify import VerifySettings
+from sweeps.spec import SweepSpec
+from training import TrainConfig
+
+
+def _subparser(name):
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
+    return sub.choices[name]
+
+
+@pytest.mark.parametrize(
+    ("command", "table", "cls"),
+    [
+        ("train", train_command.TRAIN_OPTIONS, TrainConfig),
+        ("evaluate", evaluate_command.VERIFY_OPTIONS, VerifySettings),
+        ("sweep", sweep_command.SPEC_OPTIONS, SweepSpec),
+    ],
+)
+def test_options_default_to_none_and_help_shows_the_dataclass_default(command, table, cls):
+    parser = _subparser(command)
+    actions = {a.dest: a for a in parser._actions}
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    help_text = parser.format_help().replace("\n", " ")
+    help_text = " ".join(help_text.split())
+    for option, field, _, _ in table:
+        assert field in fields, f"{option} sets no {cls.__name__} field"
+        assert actions[field].default is None, f"{option} carries its own default {actions[field].default!r}"
+        expected = fields[field].default
+        assert f"(default: {expected})" in help_text, f"{option}: help lacks the default {expected!r}"
+
+
+def test_parsed_defaults_reach_the_library_unchanged(tmp_path):
+    from reach.cli.train import _config_fields
+
+    args = build_parser().parse_args(["train", "--out", str(tmp_path / "r")])
+    assert _config_fields(args) == {}  # nothing given: TrainConfig's own defaults apply
+    config = TrainConfig(**_config_fields(args))
+    assert config == TrainConfig()
