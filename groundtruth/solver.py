@@ -5,7 +5,7 @@ Lax-Friedrichs numerical Hamiltonian with the system's derived dissipation bound
 with a CFL-limited step that lands exactly on every requested output time, and the backward
 reachable tube as the variational inequality ``V <- min(V, l)`` after each full step.
 
-Conventions (REFERENCE.md section 1): ``t`` is time-to-go and ``V(x, 0) = l(x)``. The value solves
+Conventions (docs/concepts.md): ``t`` is time-to-go and ``V(x, 0) = l(x)``. The value solves
 ``max(dV/dt - H(x, grad V), V - l) = 0``, so the semi-discrete right-hand side is::
 
     dV/dt = H(x, (p+ + p-) / 2) + sum_i alpha_i (p+_i - p-_i) / 2

@@ -72,7 +72,7 @@ def run_demo(
     rows = evaluate_many(
         [str(gt_path), str(run)],
         results,
-        VerifySettings(samples=samples, seed=seed),
+        VerifySettings(samples=samples, seed=seed, robust_samples=0),  # robust needs ~1M rollouts
         system=system,
         ground_truth=gt_path,
         gt_time=1.0,

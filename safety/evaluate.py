@@ -45,6 +45,8 @@ TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("delta", "delta", "{:.3g}"),  # 3 significant digits: small deltas are the point
     ("eps", "eps", "{:.2e}"),
     ("certified_volume", "certified vol.", "{:.3f}"),
+    ("robust_eps", "robust eps", "{:.2e}"),
+    ("robust_certified_volume", "robust vol.", "{:.3f}"),
     ("iou_volume", "IoU vol.", "{:.3f}"),
     ("mse_volume", "MSE vol.", "{:.2e}"),
     ("iou_slice", "IoU slice", "{:.3f}"),

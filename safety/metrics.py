@@ -1,7 +1,7 @@
 """Verification statistics: violations, delta-level, the scenario guarantee, confidence intervals.
 
-Definitions follow ../shared/REFERENCE.md section 4 (the seed paper, DeepReach's verification code,
-and Lin & Bansal's scenario optimisation):
+Definitions follow docs/concepts.md, "Measuring a learned value function" (the seed paper,
+DeepReach's verification code, and Lin & Bansal's scenario optimisation):
 
 * violation kind 1 ("false safe"): ``V(x, T) > 0`` but the rollout collides;
 * violation kind 2 ("false unsafe"): ``V(x, T) <= 0`` but the rollout never collides;
@@ -11,7 +11,10 @@ and Lin & Bansal's scenario optimisation):
   (``{V > 0}`` is the least a value function claims safe); ``delta_raw`` keeps the unfloored value;
 * scenario guarantee: with ``k`` failures among ``N`` fresh states from ``{V > delta}``, with
   confidence ``1 - beta`` the unsafe fraction of that set is at most ``eps``, the ``1 - beta``
-  quantile of ``Beta(k + 1, N - k)``.
+  quantile of ``Beta(k + 1, N - k)``;
+* robust scenario level (Lin & Bansal, L4DC 2024, Thm 2): the same bound with failures allowed. For a
+  target ``eps``, the lowest level (largest set ``{V > level}``) whose sampled states, ``n`` of them
+  with ``k`` failures, keep ``P(Bin(n, eps) <= k) <= beta`` (:func:`robust_level_search`).
 """
 
 from __future__ import annotations
@@ -55,6 +58,58 @@ def scenario_epsilon(k: int, n: int, beta: float = 1e-16) -> float:
         if hi - lo < 1e-13:
             break
     return math.exp(hi)
+
+
+def binomial_bound_holds(k: int, n: int, eps: float, beta: float) -> bool:
+    """Whether ``k`` failures among ``n`` samples certify ``eps`` at confidence ``1 - beta``:
+    ``P(Bin(n, eps) <= k) <= beta`` (equivalently ``scenario_epsilon(k, n, beta) <= eps``)."""
+    if n < 1 or k >= n:
+        return False
+    return float(_log_binomial_cdf(k, n, torch.tensor(eps, dtype=torch.float64))) <= math.log(beta)
+
+
+def robust_level_search(
+    values: torch.Tensor, failed: torch.Tensor, target_eps: float, beta: float, candidates: int = 256
+) -> tuple[float, int, int] | None:
+    """The lowest level whose superlevel set ``{V > level}`` the samples certify at ``target_eps``.
+
+    ``values`` and ``failed`` are ``V(x, T)`` and rollout outcomes of states drawn uniformly from
+    the domain, so those in ``{V > level}`` are uniform on that set. Among candidate levels (the
+    sampled values themselves, on a coarse grid of ``candidates`` set sizes, then refined between the
+    two best), returns ``(level, n, k)`` for the largest set where :func:`binomial_bound_holds`, or
+    None when no set qualifies (too few samples for ``target_eps``: ``k = 0`` needs
+    ``n >= ln(1 / beta) / target_eps``). A level found by this search must be certified on a fresh
+    sample before it means anything (:func:`safety.verify.verify` does).
+    """
+    if not (0.0 < target_eps < 1.0):
+        raise ValueError(f"target_eps must lie in (0, 1), got {target_eps!r}")
+    order = torch.argsort(values.double(), descending=True)
+    v = values.double()[order]
+    fails = torch.cumsum(failed[order].long(), 0)
+    total = v.numel()
+
+    def set_at(i: int) -> tuple[float, int, int]:
+        """The set of the ``i`` highest values: its level (the next value down) and its n, k."""
+        level = float(v[i]) if i < total else -math.inf
+        n = int(torch.searchsorted(-v, -torch.tensor(level, dtype=torch.float64), right=False))  # #{V > level}
+        return level, n, int(fails[n - 1]) if n else 0
+
+    def best_in(sizes: list[int]) -> int | None:
+        ok = []
+        for i in sizes:
+            _, n, k = set_at(i)
+            if binomial_bound_holds(k, n, target_eps, beta):
+                ok.append(i)
+        return max(ok) if ok else None
+
+    coarse = sorted({max(1, round(total * j / candidates)) for j in range(1, candidates + 1)})
+    best = best_in(coarse)
+    if best is None:
+        return None
+    above = next((c for c in coarse if c > best), total)
+    fine = sorted({round(best + (above - best) * j / candidates) for j in range(candidates + 1)})
+    best = best_in(fine) or best
+    return set_at(best)
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:

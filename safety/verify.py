@@ -17,7 +17,7 @@ import torch
 
 from reach.systems import ControlAffineSystem
 from reach.value_function import ValueFunction
-from safety.metrics import scenario_epsilon, violation_statistics, wilson_interval
+from safety.metrics import robust_level_search, scenario_epsilon, violation_statistics, wilson_interval
 from safety.rollout import rollout
 
 
@@ -36,6 +36,13 @@ class VerifySettings:
     #: "bfloat16": networks' hidden products in bfloat16 during rollouts (faster, inexact; other
     #: value functions are always rolled out exactly, and each row records what was used)
     matmul_precision: str = "float32"
+    #: robust scenario certification (Lin & Bansal, L4DC 2024, Thm 2): the largest {V > level} whose
+    #: unsafe fraction is certified at most ``target_eps``; searched on ``robust_samples`` fresh
+    #: uniform states, then certified on as many fresh states from the set (None: as many as
+    #: ``certify_samples`` resolves to; 0 skips). ``k = 0`` needs ln(1/beta) / target_eps samples
+    #: (123k at the defaults), so the 100k default finds no level and says so in ``robust_error``.
+    target_eps: float = 3e-4
+    robust_samples: int | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.samples, bool) or not isinstance(self.samples, int) or self.samples < 1:
@@ -44,12 +51,22 @@ class VerifySettings:
             raise ValueError(f"certify_samples must be an integer >= 0, got {self.certify_samples!r}")
         if not (0.0 < self.beta < 1.0):
             raise ValueError(f"beta must lie in (0, 1), got {self.beta!r}")
+        if not (0.0 < self.target_eps < 1.0):
+            raise ValueError(f"target_eps must lie in (0, 1), got {self.target_eps!r}")
+        if self.robust_samples is not None and (
+            isinstance(self.robust_samples, bool) or not isinstance(self.robust_samples, int) or self.robust_samples < 0
+        ):
+            raise ValueError(f"robust_samples must be an integer >= 0, got {self.robust_samples!r}")
         if self.matmul_precision not in ("float32", "bfloat16"):
             raise ValueError(f"matmul_precision must be 'float32' or 'bfloat16', got {self.matmul_precision!r}")
 
     @property
     def fresh_samples(self) -> int:
         return self.samples if self.certify_samples is None else self.certify_samples
+
+    @property
+    def robust_sample_count(self) -> int:
+        return self.fresh_samples if self.robust_samples is None else self.robust_samples
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -147,5 +164,54 @@ def verify(
                 eps=scenario_epsilon(k, n, settings.beta) if k < n else 1.0,
                 certified_volume=row["safe_fraction"],
             )
+    if settings.robust_sample_count:
+        row.update(robust_certification(vf, settings, horizon, common, device))
     row["wall_time"] = time.perf_counter() - start
     return row
+
+
+def robust_certification(
+    vf: ValueFunction, settings: VerifySettings, horizon: float, common: dict[str, Any], device: str | torch.device
+) -> dict[str, Any]:
+    """Robust scenario certification (Lin & Bansal, L4DC 2024, Thm 2), in two independent samples.
+
+    1. *Search*: ``N`` fresh uniform states (seed + 2) are rolled out, and
+       :func:`~safety.metrics.robust_level_search` picks the lowest level whose superlevel set they
+       certify at ``target_eps``; the set's volume is estimated from the same uniform sample.
+    2. *Certification*: ``N`` fresh states from ``{V > level}`` (seed + 3), rolled out; their ``k``
+       failures give ``robust_eps``, the bound that holds with confidence ``1 - beta`` (a level
+       chosen on one sample means nothing until a second one certifies it).
+    """
+    n = settings.robust_sample_count
+    out: dict[str, Any] = {
+        "robust_target_eps": settings.target_eps,
+        "robust_samples": n,
+        "robust_level": math.nan,
+        "robust_eps": math.nan,
+        "robust_failures": None,
+        "robust_certified_volume": math.nan,
+    }
+    search_states = sample_states(vf.system, n, settings.seed + 2)
+    search = rollout(vf, search_states, **common)
+    found = robust_level_search(search.initial_value, search.collided, settings.target_eps, settings.beta)
+    if found is None:
+        need = math.ceil(math.log(1 / settings.beta) / settings.target_eps)
+        out["robust_error"] = (
+            f"no level is certified at eps {settings.target_eps:g} by {n} samples (k = 0 needs at least {need})"
+        )
+        return out
+    level, inside, _ = found
+    try:
+        fresh, _ = sample_superlevel_set(vf, level, n, settings.seed + 3, horizon, device=device)
+    except ValueError as err:
+        out["robust_error"] = str(err)
+        return out
+    check = rollout(vf, fresh, **common)
+    k = int(check.collided.sum())
+    out.update(
+        robust_level=level,
+        robust_eps=scenario_epsilon(k, check.num_states, settings.beta) if k < check.num_states else 1.0,
+        robust_failures=k,
+        robust_certified_volume=inside / n,
+    )
+    return out

@@ -82,10 +82,12 @@ class RolloutScorer:
     ) -> None:
         from safety.verify import VerifySettings, sample_states
 
-        self.settings = VerifySettings(samples=samples, certify_samples=certify_samples, seed=seed)
+        # sweeps score many snapshots: no robust certification (it needs about a million rollouts)
+        self.settings = VerifySettings(samples=samples, certify_samples=certify_samples, seed=seed, robust_samples=0)
         self.states = sample_states(system, samples, seed)
         self.device = device
-        self.key = {"kind": "rollout", "system": system.config(), **self.settings.to_dict(), "pairwise": None}
+        settings = {k: v for k, v in self.settings.to_dict().items() if k not in ("target_eps", "robust_samples")}
+        self.key = {"kind": "rollout", "system": system.config(), **settings, "pairwise": None}
         self.union_values = None
         if pairwise is not None:  # containment in the union of pairwise BRTs (a sound model misses none)
             from safety.evaluate import pairwise_union_values

@@ -156,6 +156,8 @@ def test_tiny_and_subnormal_costates_never_give_nan(dtype):
 def test_huge_finite_states_in_envs_stay_finite():
     import gymnasium as gym
 
+    import reach_envs  # noqa: F401  (registers the ids; training no longer imports the env package)
+
     env = gym.make("MultiVehicle9D-v0")
     env.reset(seed=0, options={"state": [1e12, -1e12, 0.0, 0.0, 5e11, 5e11, 1e6, -1e6, 3.0]})
     obs, *_ = env.step(np.zeros(3, dtype=np.float32))

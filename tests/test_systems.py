@@ -172,7 +172,7 @@ def test_failure_margin_values_and_signs():
     # pairs: (1,2) at 0.3 apart, (1,3) and (2,3) far
     x9 = torch.tensor([[0.0, 0.0, 0.3, 0.0, 1.0, 1.0, 0.0, 1.0, 2.0]], dtype=torch.float64)
     torch.testing.assert_close(nine.failure_margin(x9), torch.tensor([0.05], dtype=torch.float64))
-    # about 12.7 % of the 9D box is in collision (REFERENCE.md section 2)
+    # about 12.7 % of the 9D box is in collision (docs/concepts.md: about 12.7 % of the box)
     xs = nine.sample_states(200_000, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     frac = (nine.failure_margin(xs) <= 0).double().mean().item()
     assert 0.12 < frac < 0.135, frac

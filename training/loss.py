@@ -1,7 +1,7 @@
 """The HJI variational-inequality residual and the training loss.
 
-With ``t`` time-to-go, the value solves ``max(dV/dt - H(x, grad_x V), V - l(x)) = 0`` (REFERENCE.md
-section 1). The residual is that left-hand side at sampled ``(x, t)``; the loss is its mean absolute
+With ``t`` time-to-go, the value solves ``max(dV/dt - H(x, grad_x V), V - l(x)) = 0`` (see
+docs/concepts.md). The residual is that left-hand side at sampled ``(x, t)``; the loss is its mean absolute
 value (``l1``) or mean square (``l2``). The vanilla parameterisation adds a boundary term
 ``|V(x, 0) - l(x)|`` on the points sampled at ``t = 0``.
 

@@ -317,14 +317,9 @@ class ValueNetwork(nn.Module):
         dot products): several times faster where the hardware has them, at a measured accuracy cost
         (see the rollout benchmark). The first layer, activations and output stay in float32.
         """
-        enc = self.encoding
         o, g = self._raw_and_input_gradient(self.encode(x, t), matmul_dtype, inplace=True)
-        grad = self._state_gradient(g, x)
-        if self.parameterisation == "vanilla":
-            return enc.value_scale * o + enc.value_offset, enc.value_scale * grad
-        factor = (t / enc.horizon) * enc.value_scale
-        margin, dl = self.failure_margin_and_gradient(x)
-        return margin + factor * o, dl + factor.unsqueeze(-1) * grad
+        offset, d_offset, scale, _ = self.output_map(x, t)
+        return offset + scale * o, d_offset + _per_state(scale) * self._state_gradient(g, x)
 
     def failure_margin_and_gradient(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``l(x)`` and ``dl/dx`` (autograd on the margin alone; neither depends on the parameters)."""
@@ -358,26 +353,42 @@ class ValueNetwork(nn.Module):
         ``dl/dx``, exact parameterisation) may be passed in when computed outside a compiled region.
         Agrees with autograd's ``create_graph`` input gradients to float32 round-off (tested).
         """
-        enc = self.encoding
         o, g = self._raw_and_input_gradient(self.encode(x, t))
         do_dx = self._state_gradient(g, x)
-        do_dt = g[..., 0] / enc.time_scale
-        if self.parameterisation == "vanilla":
-            s = enc.value_scale
-            return s * o + enc.value_offset, s * do_dx, s * do_dt
-        if margin is None or dmargin is None:
-            margin, dmargin = self.failure_margin_and_gradient(x)
-        s = enc.value_scale / enc.horizon
-        v = margin + s * t * o
-        return v, dmargin + (s * t).unsqueeze(-1) * do_dx, s * (o + t * do_dt)
+        do_dt = g[..., 0] / self.encoding.time_scale
+        offset, d_offset, scale, d_scale = self.output_map(x, t, margin, dmargin)
+        return offset + scale * o, d_offset + _per_state(scale) * do_dx, d_scale * o + scale * do_dt
 
     def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """``V(x, t)`` for states ``(..., n)`` and times ``(...)``."""
         o = self.raw(x, t)
+        # l(x) stays differentiable in x here: autograd's double-backward training path needs it
+        margin = self.system.failure_margin(x) if self.parameterisation == "exact" else None
+        offset, _, scale, _ = self.output_map(x, t, margin, torch.zeros(()))
+        return offset + scale * o
+
+    def output_map(
+        self, x: torch.Tensor, t: torch.Tensor, margin: torch.Tensor | None = None, dmargin: torch.Tensor | None = None
+    ) -> tuple[Any, Any, Any, Any]:
+        """The output parameterisation, written once: ``V = offset + scale * o`` for the raw output ``o``.
+
+        Returns ``(offset, d offset / dx, scale, d scale / dt)``: ``vanilla`` (DeepReach) has
+        ``offset = value_offset``, ``scale = value_scale``; ``exact`` has ``offset = l(x)`` and
+        ``scale = value_scale * t / horizon``, so ``V(x, 0) = l(x)`` for any weights. ``margin`` and
+        ``dmargin`` (``l(x)``, ``dl/dx``) may be passed in when computed elsewhere (outside a compiled
+        region, or differentiably)."""
         enc = self.encoding
         if self.parameterisation == "vanilla":
-            return enc.value_scale * o + enc.value_offset
-        return self.system.failure_margin(x) + (t / enc.horizon) * enc.value_scale * o
+            return enc.value_offset, 0.0, enc.value_scale, 0.0
+        if margin is None or dmargin is None:
+            margin, dmargin = self.failure_margin_and_gradient(x)
+        rate = enc.value_scale / enc.horizon
+        return margin, dmargin, rate * t, rate
+
+
+def _per_state(scale: Any) -> Any:
+    """A per-state factor ``(...)`` broadcast against gradients ``(..., n)`` (scalars as they are)."""
+    return scale.unsqueeze(-1) if isinstance(scale, torch.Tensor) and scale.ndim else scale
 
 
 class NeuralValueFunction:

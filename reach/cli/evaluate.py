@@ -43,6 +43,13 @@ VERIFY_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
     ),
     ("--horizon", "horizon", {"type": positive_float_arg}, "time-to-go of the check (None: the system's)"),
     ("--chunk-size", "chunk_size", {"type": positive_int_arg}, "states rolled out at once"),
+    ("--target-eps", "target_eps", {"type": probability_arg}, "robust certification: eps to certify"),
+    (
+        "--robust-samples",
+        "robust_samples",
+        {"type": nonnegative_int_arg},
+        "robust certification: fresh states for the search and again for the check (None: as certify; 0 skips)",
+    ),
 )
 
 

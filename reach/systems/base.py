@@ -15,7 +15,7 @@ lines run on Python floats (single environment), NumPy (vector environments) and
 training, safety; any dtype and device, differentiable). Public batched methods take torch
 tensors shaped ``(..., n)``.
 
-Conventions (see REFERENCE.md, section 1): ``t`` is time-to-go, the backward reachable tube is
+Conventions (see docs/concepts.md): ``t`` is time-to-go, the backward reachable tube is
 ``{x : V(x, t) <= 0}``, ``l(x) < 0`` inside the failure set, the control keeps the system safe by
 maximising ``p . f`` and the disturbance attacks by minimising it.
 
@@ -159,7 +159,7 @@ class ControlAffineSystem(ABC):
         """Raise ``ValueError`` saying ``what`` is for ``other`` unless :meth:`same_physics` holds."""
         if not self.same_physics(other):
             found = other.config() if isinstance(other, ControlAffineSystem) else type(other).__name__
-            raise ValueError(f"{what} is for {found}, not {self.config()}")
+            raise ValueError(f"{what} is for system {found}, not {self.config()}")
 
     # ------------------------------------------------------------------ description
     @property
