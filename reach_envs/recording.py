@@ -29,10 +29,13 @@ def save_gif(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float =
     return Path(path)
 
 
+Policy = Callable[[np.ndarray], Any]
+
+
 def record_episode(
     env: gym.Env,
     path: str | os.PathLike,
-    policy: Callable[[np.ndarray], Any] | None = None,
+    policy: Policy | None = None,
     seed: int | None = None,
     max_steps: int | None = None,
     every: int = 1,
@@ -42,22 +45,77 @@ def record_episode(
     ``policy(obs) -> action`` drives the agent (default: zero action, i.e. go straight). Every
     ``every``-th frame is kept. Returns a summary: path, steps, whether it collided, total reward.
     """
-    if env.render_mode != "rgb_array":
-        raise ValueError(f"record_episode needs an env made with render_mode='rgb_array', got {env.render_mode!r}")
-    obs, info = env.reset(seed=seed)
-    frames = [env.render()]
-    zero = np.zeros(env.action_space.shape, dtype=env.action_space.dtype)
+    return record_panels([env], path, [policy], [seed], max_steps=max_steps, every=every)
+
+
+def record_panels(
+    envs: Sequence[gym.Env],
+    path: str | os.PathLike,
+    policies: Sequence[Policy | None],
+    seeds: Sequence[int | None],
+    options: Sequence[dict[str, Any] | None] | None = None,
+    max_steps: int | None = None,
+    every: int = 1,
+    caption: Callable[[int, dict[str, Any] | None], str] | None = None,
+    on_reset: Callable[[int], None] | None = None,
+) -> dict[str, Any]:
+    """The one episode recorder: episodes of several envs side by side, in lockstep, into one GIF.
+
+    For each seed in ``seeds`` (episode ``k``), every env is reset with that seed (and
+    ``options[k]``), ``on_reset(k)`` is called (to reset a task), and the envs are stepped together
+    with their ``policies`` (None: zero action) until all have ended; an env that ended shows its
+    last frame. ``caption(j, info)``, if given, writes a header over panel ``j`` from its last step
+    info. Returns the path, steps (of the longest panel, summed over episodes), whether any panel
+    collided, the first panel's total reward, and the frame count.
+    """
+    if any(env.render_mode != "rgb_array" for env in envs):
+        raise ValueError("recording needs envs made with render_mode='rgb_array'")
+    frames: list[np.ndarray] = []
     steps, total, collided = 0, 0.0, False
-    while max_steps is None or steps < max_steps:
-        action = zero if policy is None else policy(obs)
-        obs, reward, terminated, truncated, info = env.step(action)
-        steps += 1
-        total += float(reward)
-        collided = collided or bool(info.get("collision", False))
-        if steps % every == 0 or terminated or truncated:
-            frames.append(env.render())
-        if terminated or truncated:
-            break
-    fps = env.metadata.get("render_fps", 25) / every
+    for k, seed in enumerate(seeds):
+        obs = [env.reset(seed=seed, options=None if options is None else options[k])[0] for env in envs]
+        if on_reset is not None:
+            on_reset(k)
+        done = [False] * len(envs)
+        infos: list[dict[str, Any] | None] = [None] * len(envs)
+        last = [env.render() for env in envs]
+        frames.append(_join(last, infos, caption))
+        n = 0
+        while not all(done) and (max_steps is None or n < max_steps):
+            for j, env in enumerate(envs):
+                if done[j]:
+                    continue
+                policy = policies[j]
+                action = np.zeros(env.action_space.shape, env.action_space.dtype) if policy is None else policy(obs[j])
+                obs[j], reward, terminated, truncated, infos[j] = env.step(action)
+                total += float(reward) if j == 0 else 0.0
+                collided = collided or bool(infos[j].get("collision", False))
+                done[j] = terminated or truncated
+                last[j] = env.render()
+            n += 1
+            if n % every == 0 or all(done):
+                frames.append(_join(last, infos, caption))
+        steps += n
+    fps = envs[0].metadata.get("render_fps", 25) / every
     out = save_gif(frames, path, fps=fps)
     return {"path": str(out), "steps": steps, "collision": collided, "return": total, "frames": len(frames)}
+
+
+def _join(
+    pictures: Sequence[np.ndarray],
+    infos: Sequence[dict[str, Any] | None],
+    caption: Callable[[int, dict[str, Any] | None], str] | None,
+) -> np.ndarray:
+    """Panels side by side, each under its caption strip when ``caption`` is given."""
+    if caption is not None:
+        pictures = [_captioned(p, caption(j, infos[j])) for j, p in enumerate(pictures)]
+    return np.concatenate([p[..., :3] for p in pictures], axis=1) if len(pictures) > 1 else pictures[0][..., :3]
+
+
+def _captioned(frame: np.ndarray, text: str) -> np.ndarray:
+    """``frame`` with a header strip carrying ``text`` (red when it says the filter is active)."""
+    from PIL import Image, ImageDraw
+
+    strip = Image.new("RGB", (frame.shape[1], 22), "white")
+    ImageDraw.Draw(strip).text((8, 5), text, fill=(200, 0, 0) if "ACTIVE" in text else (0, 0, 0))
+    return np.concatenate([np.asarray(strip), frame[..., :3]], axis=0)

@@ -15,7 +15,7 @@ from safety.filter import FilterInfo, SafetyFilter
 from safety.metrics import scenario_epsilon, violation_statistics, wilson_interval
 from safety.policy import OptimalPolicy
 from safety.rollout import RolloutResult, rollout
-from safety.value_functions import LoadedValueFunction, load_value_function, value_and_gradient
+from safety.value_functions import LoadedValueFunction, as_value_function, load_value_function, value_and_gradient
 from safety.verify import VerifySettings, sample_states, sample_superlevel_set, verify
 from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper, SafetyFilterWrapper
 
@@ -29,6 +29,7 @@ __all__ = [
     "SafetyFilterVectorWrapper",
     "SafetyFilterWrapper",
     "VerifySettings",
+    "as_value_function",
     "evaluate_many",
     "load_results",
     "load_value_function",

@@ -33,16 +33,8 @@ def run_demo(
     from groundtruth.solver import solve
     from reach.systems import Air3D
     from safety.evaluate import evaluate_many, markdown_table
-    from safety.filter_eval import (
-        FilterConfig,
-        evaluate_filters,
-        filter_table,
-        outside_states,
-        record_side_by_side,
-        worst_case_disturbance,
-        write_filter_results,
-    )
-    from safety.plots import plot_brt_slices, plot_filter_tradeoff
+    from safety.filter_eval import filter_table, run_filter_study
+    from safety.plots import plot_brt_slices
     from safety.value_functions import load_value_function
     from safety.verify import VerifySettings
     from training import TrainConfig, Trainer
@@ -80,29 +72,21 @@ def run_demo(
     )
     plot_brt_slices([("trained ssssl", network)], out / "slices.png", t=1.0, reference=gt)
 
-    log(f"[4/5] safety filter: {episodes} attacked episodes from outside the grid BRT")
-    starts = outside_states(gt, episodes, 0.1, seed)
-    overrides = {"disturbance": worst_case_disturbance(gt)}
-    configs = [FilterConfig("nominal")] + [
-        FilterConfig(name, vf, th)
-        for name, vf in (("grid truth", gt), ("trained ssssl", network))
-        for th in (0.0, 0.06)
-    ]
-    filter_rows = evaluate_filters("air3d", configs, episodes, seed, scene_overrides=overrides, initial_states=starts)
-    write_filter_results(filter_rows, out / "filter.csv", {"scene": "air3d", "episodes": episodes, "seed": seed})
-    plot_filter_tradeoff(filter_rows, out / "filter_tradeoff.png", title="Air3D, worst-case pursuer")
-
-    log("[5/5] report and a GIF of three attacked episodes (nominal | filtered by the trained network)")
-    picks = list(dict.fromkeys([*filter_rows[0]["collided_episodes"][:3], 0, 1, 2]))[:3]
-    record_side_by_side(
+    log(f"[4/5] safety filter: {episodes} attacked episodes from outside the grid BRT, and a GIF of three")
+    filter_rows = run_filter_study(
         "air3d",
-        network,
-        str(out / "episodes.gif"),
-        0.06,
-        [seed + i for i in picks],
-        scene_overrides=overrides,
-        initial_states=starts[picks],
-    )
+        [("trained ssssl", network), ("grid truth", gt)],  # the first one filters in the GIF
+        out / "filter.csv",
+        thresholds=(0.0, 0.06),
+        episodes=episodes,
+        seed=seed,
+        pursuer=gt,
+        start_outside=gt,
+        gif=out / "episodes.gif",
+        gif_threshold=0.06,
+        title="Air3D, worst-case pursuer",
+    ).rows
+    log("[5/5] report")
     report = out / "report.md"
     text = f"""# reach demo: Air3D
 

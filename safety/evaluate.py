@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import glob
 import json
-import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -26,6 +25,7 @@ from reach.locking import exclusive_lock
 from reach.systems import ControlAffineSystem, make_system
 from reach.validation import check_output_path
 from safety.metrics import containment_statistics
+from safety.results_io import markdown_table as format_table
 from safety.results_io import write_results
 from safety.value_functions import load_value_function, resolve_checkpoint
 from safety.verify import VerifySettings, sample_states, values_at, verify
@@ -82,25 +82,9 @@ def fingerprint(path: str) -> dict[str, Any]:
     return {"file": str(p.resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
 
 
-def _fmt(value: Any, spec: str) -> str:
-    if value is None or (isinstance(value, float) and math.isnan(value)):
-        return "-"
-    if spec == "pct":
-        return f"{100 * value:.2f}"
-    return spec.format(value)
-
-
 def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
     """The paper-style table; columns nobody has (e.g. ground truth for 9D) are left out."""
-    cols = [c for c in TABLE_COLUMNS if any(r.get(c[0]) is not None for r in rows)]
-    lines = ["| " + " | ".join(h for _, h, _ in cols) + " |", "|" + "---|" * len(cols)]
-    for r in rows:
-        if r.get("error"):
-            error = r["error"] if len(r["error"]) <= 120 else r["error"][:117] + "..."
-            lines.append(f"| {r.get('label', r['source'])} | error: {error} |" + " |" * (len(cols) - 2))
-            continue
-        lines.append("| " + " | ".join(_fmt(r.get(k), spec) for k, _, spec in cols) + " |")
-    return "\n".join(lines)
+    return format_table(rows, TABLE_COLUMNS, drop_empty=True)
 
 
 def _write_outputs(out: Path, header: dict[str, Any], rows: list[dict[str, Any]]) -> list[dict[str, Any]]:

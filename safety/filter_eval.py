@@ -17,11 +17,11 @@ the value function's own horizon, a fixed-horizon filter).
 from __future__ import annotations
 
 import copy
-import math
 import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -30,7 +30,7 @@ from reach.value_function import ValueFunction
 from reach_envs.scenes import Scene, make_scene
 from reach_envs.vector import ReachVectorEnv
 from safety.metrics import wilson_interval
-from safety.results_io import write_results
+from safety.results_io import markdown_table, write_results
 from safety.tasks import GoalTask, make_task
 from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper, default_threshold
 
@@ -214,13 +214,18 @@ def evaluate_filter_parallel(
     return tally.row(config, task, system.control_dim, threshold, time.perf_counter() - start)
 
 
+def _with_interval(value: float, row: dict[str, Any]) -> str:
+    """A collision rate with its 95 % Wilson interval, in percent."""
+    return f"{100 * value:.2f} [{100 * row['collision_ci_low']:.2f}, {100 * row['collision_ci_high']:.2f}]"
+
+
 FILTER_COLUMNS = (
     ("label", "configuration", "{}"),
     ("threshold", "threshold", "{:.3g}"),
-    ("collision_rate", "collision % [95 % CI]", "ci"),
-    ("intervention_rate", "intervention %", "pct"),
+    ("collision_rate", "collision % [95 % CI]", _with_interval),
+    ("intervention_rate", "intervention %", "pct1"),
     ("mean_input_change", "mean |u - u_nom|", "{:.3f}"),
-    ("goal_rate", "goal %", "pct"),
+    ("goal_rate", "goal %", "pct1"),
     ("mean_goal_time", "goal time (s)", "{:.2f}"),
     ("wall_time", "wall (s)", "{:.1f}"),
 )
@@ -228,21 +233,7 @@ FILTER_COLUMNS = (
 
 def filter_table(rows: Sequence[dict[str, Any]]) -> str:
     """The markdown table of :func:`evaluate_filters` rows."""
-    lines = ["| " + " | ".join(h for _, h, _ in FILTER_COLUMNS) + " |", "|" + "---|" * len(FILTER_COLUMNS)]
-    for r in rows:
-        cells = []
-        for key, _, spec in FILTER_COLUMNS:
-            v = r.get(key)
-            if v is None or (isinstance(v, float) and math.isnan(v)):
-                cells.append("-")
-            elif spec == "ci":
-                cells.append(f"{100 * v:.2f} [{100 * r['collision_ci_low']:.2f}, {100 * r['collision_ci_high']:.2f}]")
-            elif spec == "pct":
-                cells.append(f"{100 * v:.1f}")
-            else:
-                cells.append(spec.format(v))
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    return markdown_table(rows, FILTER_COLUMNS)
 
 
 def write_filter_results(rows: Sequence[dict[str, Any]], out: str | os.PathLike, header: dict[str, Any]) -> None:
@@ -273,15 +264,6 @@ def outside_states(value_function: ValueFunction, episodes: int, margin: float, 
     return x.double().numpy()
 
 
-def _label(frame: np.ndarray, text: str) -> np.ndarray:
-    """``frame`` with a header strip carrying ``text`` (red when the filter is active)."""
-    from PIL import Image, ImageDraw
-
-    strip = Image.new("RGB", (frame.shape[1], 22), "white")
-    ImageDraw.Draw(strip).text((8, 5), text, fill=(200, 0, 0) if "ACTIVE" in text else (0, 0, 0))
-    return np.concatenate([np.asarray(strip), frame[..., :3]], axis=0)
-
-
 def record_side_by_side(
     scene: str | Scene,
     value_function: ValueFunction,
@@ -295,53 +277,130 @@ def record_side_by_side(
 ) -> str:
     """A GIF of a few episodes, nominal policy (left) and filtered (right), from the same starts."""
     from reach_envs.env import ReachEnv
-    from reach_envs.recording import save_gif
+    from reach_envs.recording import record_panels
     from safety.wrappers import SafetyFilterWrapper
 
     sc = _scene(scene, scene_overrides).replace(trails=True)
-    task_l = task if task is not None else make_task(sc.system)
-    task_r = copy.deepcopy(task_l)
-    frames = []
-    for k, seed in enumerate(seeds):
-        left = ReachEnv(sc, render_mode="rgb_array")
-        right = SafetyFilterWrapper(ReachEnv(sc, render_mode="rgb_array"), value_function, threshold, time_to_go)
-        options = None if initial_states is None else {"state": initial_states[k]}
-        envs = [(left, task_l, left), (right, task_r, right.unwrapped)]
-        done = [False, False]
-        last = [None, None]
-        status = "filtered"
-        for e, t, base in envs:
-            e.reset(seed=seed, options=options)
-            t.reset(base.state[None], np.random.default_rng(seed))
-        for step in range(sc.max_steps + 1):
-            pics = []
-            for j, (e, _, _) in enumerate(envs):
-                if not done[j]:
-                    last[j] = e.render()
-                pics.append(last[j])
-            frames.append(np.concatenate([_label(pics[0], "nominal policy"), _label(pics[1], status)], axis=1))
-            if all(done) or step == sc.max_steps:
-                break
-            for j, (e, t, base) in enumerate(envs):
-                if done[j]:
-                    continue
-                action = t.nominal_actions(base.state[None])[0].astype(np.float32)
-                _, _, term, trunc, info = e.step(action)
-                done[j] = term or trunc
-                if j == 1:
-                    status = "filtered: FILTER ACTIVE" if info["filter_intervened"] else "filtered: nominal kept"
-        left.close()
-        right.close()
-    save_gif(frames, path, fps=max(1, round(1.0 / sc.dt)))
+    tasks = [task if task is not None else make_task(sc.system)]
+    tasks.append(copy.deepcopy(tasks[0]))
+    left = ReachEnv(sc, render_mode="rgb_array")
+    right = SafetyFilterWrapper(ReachEnv(sc, render_mode="rgb_array"), value_function, threshold, time_to_go)
+    bases = [left, right.unwrapped]
+
+    def policy(j: int) -> Any:
+        return lambda obs: tasks[j].nominal_actions(bases[j].state[None])[0].astype(np.float32)
+
+    def reset_tasks(k: int) -> None:
+        for t, base in zip(tasks, bases):
+            t.reset(base.state[None], np.random.default_rng(seeds[k]))
+
+    def caption(j: int, info: dict[str, Any] | None) -> str:
+        if j == 0:
+            return "nominal policy"
+        if info is None:
+            return "filtered"
+        return "filtered: FILTER ACTIVE" if info["filter_intervened"] else "filtered: nominal kept"
+
+    options = None if initial_states is None else [{"state": initial_states[k]} for k in range(len(seeds))]
+    record_panels(
+        [left, right], path, [policy(0), policy(1)], list(seeds), options, caption=caption, on_reset=reset_tasks
+    )
+    left.close()
+    right.close()
     return path
+
+
+@dataclass
+class FilterStudy:
+    """What ``reach filter-eval`` and the demo compute: the same episodes, nominal and filtered.
+
+    Attributes:
+        rows: one row per configuration (nominal first), as :func:`evaluate_filters` returns them.
+        paths: the files written (results, trade-off plot, GIF).
+    """
+
+    rows: list[dict[str, Any]]
+    paths: list[str]
+
+
+def run_filter_study(
+    scene: str | Scene,
+    value_functions: Sequence[tuple[str, ValueFunction]],
+    out: str | os.PathLike,
+    thresholds: Sequence[float | None] = (None,),
+    episodes: int = 1000,
+    seed: int = 0,
+    time_to_go: float | str | None = None,
+    pursuer: str | ValueFunction | None = None,
+    start_outside: ValueFunction | None = None,
+    start_margin: float = 0.1,
+    gif: str | os.PathLike | None = None,
+    gif_threshold: float | None = None,
+    pettingzoo: bool = False,
+    header: dict[str, Any] | None = None,
+    title: str | None = None,
+) -> FilterStudy:
+    """The one filter-evaluation pipeline: episodes, results, trade-off plot and a side-by-side GIF.
+
+    Args:
+        value_functions: ``(label, value function)`` pairs, each filtered at every threshold.
+        pursuer: ``None`` keeps the scene's disturbance; a name (``"pursue"``, ``"random"``) replaces
+            it; a value function makes the pursuer play its worst-case ``d*``.
+        start_outside: draw the episodes' starts from ``{V > start_margin}`` of this value function.
+        gif: also record three episodes (nominal | filtered by the first value function), preferring
+            episodes in which the nominal policy crashed; ``gif_threshold`` (default: the first
+            threshold) is the filter's threshold there.
+    """
+    from safety.plots import plot_filter_tradeoff
+
+    sc = _scene(scene, None)
+    overrides: dict[str, Any] = {}
+    if pursuer is not None:
+        if not sc.system.disturbance_dim:
+            raise ValueError(f"pursuer {pursuer!r}: scene {sc.name} has no disturbance input")
+        overrides["disturbance"] = pursuer if isinstance(pursuer, str) else worst_case_disturbance(pursuer)
+    starts = None if start_outside is None else outside_states(start_outside, episodes, start_margin, seed)
+    configs = [FilterConfig("nominal")]
+    configs += [FilterConfig(label, vf, th) for label, vf in value_functions for th in thresholds]
+    if pettingzoo:
+        if starts is not None:
+            raise ValueError("the PettingZoo path samples its own starts; drop start_outside or pettingzoo")
+        rows = [
+            evaluate_filter_parallel(sc, c, episodes, seed, time_to_go, scene_overrides=overrides) for c in configs
+        ]
+    else:
+        rows = evaluate_filters(
+            sc, configs, episodes, seed, time_to_go, scene_overrides=overrides, initial_states=starts
+        )
+    out = Path(out)
+    write_filter_results(rows, out, {"scene": sc.name, "episodes": episodes, "seed": seed, **(header or {})})
+    paths = [str(out.with_suffix(s)) for s in (".csv", ".json", ".md")]
+    tradeoff = out.with_name(out.stem + "_tradeoff.png")
+    paths.append(str(plot_filter_tradeoff(rows, tradeoff, title=title or sc.name)))
+    if gif is not None and value_functions:
+        picks = list(dict.fromkeys([*rows[0]["collided_episodes"][:3], 0, 1, 2]))[:3]
+        record_side_by_side(
+            sc,
+            value_functions[0][1],
+            str(gif),
+            gif_threshold if gif_threshold is not None else thresholds[0],
+            [seed + i for i in picks],
+            time_to_go,
+            scene_overrides=overrides,
+            initial_states=None if starts is None else starts[picks],
+        )
+        paths.append(str(gif))
+    return FilterStudy(rows, paths)
 
 
 __all__ = [
     "FilterConfig",
+    "FilterStudy",
     "default_threshold",
     "evaluate_filter_parallel",
     "evaluate_filters",
     "outside_states",
     "record_side_by_side",
+    "run_filter_study",
     "worst_case_disturbance",
 ]

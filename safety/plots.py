@@ -175,10 +175,10 @@ def record_filtered_episode(
     from reach_envs.env import ReachEnv
     from reach_envs.recording import record_episode
     from safety.filter_eval import worst_case_disturbance
-    from safety.value_functions import load_value_function
+    from safety.value_functions import as_value_function
     from safety.wrappers import SafetyFilterWrapper
 
-    vf = load_value_function(value_function).value_function if isinstance(value_function, str) else value_function
+    vf = as_value_function(value_function)
     overrides: dict[str, Any] = {"trails": True}
     if adversary and vf.system.disturbance_dim:
         overrides["disturbance"] = worst_case_disturbance(vf)

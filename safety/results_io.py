@@ -1,16 +1,61 @@
-"""Result tables on disk: the same rows as JSON (with a header), CSV and markdown, each written atomically."""
+"""Result tables: the one markdown formatter, and the same rows on disk as JSON (with a header), CSV
+and markdown, each written atomically.
+
+A table is a sequence of columns ``(key, header, spec)``. ``spec`` is a format string
+(``"{:.3f}"``), ``"pct"`` (a share printed in percent, two decimals) or ``"pct1"`` (one decimal), or
+a callable ``(value, row) -> str`` for cells that need more of the row (a confidence interval).
+Missing and NaN values print as ``-``; a row with an ``error`` spans the table with its message.
+"""
 
 from __future__ import annotations
 
 import csv
 import io
 import json
+import math
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 from reach.atomic import atomic_path
+
+Column = tuple[str, str, "str | Callable[[Any, dict[str, Any]], str]"]
+
+
+def format_cell(value: Any, spec: str | Callable[[Any, dict[str, Any]], str], row: dict[str, Any]) -> str:
+    """One cell by its column's ``spec`` (see the module docstring)."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    if callable(spec):
+        return spec(value, row)
+    if spec in ("pct", "pct1"):
+        return f"{100 * value:.{2 if spec == 'pct' else 1}f}"
+    return spec.format(value)
+
+
+def render_markdown(headers: Sequence[str], cells: Sequence[Sequence[str]], align: str = "") -> str:
+    """A markdown table from ready cells; ``align`` is one character a column (``l`` or ``r``, default ``l``)."""
+    rule = "|" + "".join("---:|" if align[i : i + 1] == "r" else "---|" for i in range(len(headers)))
+    lines = ["| " + " | ".join(headers) + " |", rule]
+    lines += ["| " + " | ".join(row) + " |" for row in cells]
+    return "\n".join(lines)
+
+
+def markdown_table(
+    rows: Sequence[dict[str, Any]], columns: Sequence[Column], label_key: str = "label", drop_empty: bool = False
+) -> str:
+    """Rows as a markdown table of ``columns``; ``drop_empty`` leaves out columns no row has."""
+    if drop_empty:
+        columns = [c for c in columns if any(r.get(c[0]) is not None for r in rows)]
+    cells = []
+    for r in rows:
+        if r.get("error"):
+            error = r["error"] if len(r["error"]) <= 120 else r["error"][:117] + "..."
+            cells.append([str(r.get(label_key, r.get("source", ""))), f"error: {error}", *[""] * (len(columns) - 2)])
+            continue
+        cells.append([format_cell(r.get(key), spec, r) for key, _, spec in columns])
+    return render_markdown([header for _, header, _ in columns], cells)
 
 
 def write_results(

@@ -73,6 +73,26 @@ def detect_format(path: Path) -> str:
     return "reach"
 
 
+def as_value_function(
+    source: ValueFunction | str | os.PathLike,
+    system: ControlAffineSystem | str | None = None,
+    device: str | torch.device = "cpu",
+    what: str = "value function",
+) -> ValueFunction:
+    """A value function from a path (see :func:`load_value_function`) or as given, checked against
+    ``system`` by the one compatibility rule (:meth:`~reach.systems.base.ControlAffineSystem.same_physics`).
+
+    The filters, their env wrappers and the plots take either form through this function."""
+    if isinstance(source, (str, os.PathLike)):
+        return load_value_function(source, system=system, device=device).value_function
+    if not isinstance(source, ValueFunction):
+        raise ValueError(f"expected a ValueFunction or a path, got {type(source).__name__}")
+    if system is not None:
+        wanted = make_system(system) if isinstance(system, str) else system
+        wanted.require_same_physics(source.system, what)
+    return source
+
+
 def load_value_function(
     path: str | os.PathLike,
     format: Format = "auto",

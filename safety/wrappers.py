@@ -32,26 +32,16 @@ from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from reach.value_function import ValueFunction, check_time_coverage
 from safety.filter import FilterInfo, SafetyFilter
-from safety.value_functions import load_value_function
-
-
-def _resolve_value_function(value_function: ValueFunction | str, system: Any, device: str) -> ValueFunction:
-    vf = (
-        load_value_function(value_function, system=system, device=device).value_function
-        if isinstance(value_function, str)
-        else value_function
-    )
-    if not isinstance(vf, ValueFunction):
-        raise ValueError(f"value_function must be a ValueFunction or a path, got {type(value_function).__name__}")
-    system.require_same_physics(vf.system, "value function (the environment simulates another system)")
-    return vf
+from safety.value_functions import as_value_function
 
 
 def _check_time_to_go(time_to_go: float | str | None) -> None:
     if time_to_go is None or time_to_go == "remaining":
         return
-    if isinstance(time_to_go, (str, bool)) or not isinstance(time_to_go, (int, float)) or not (
-        math.isfinite(time_to_go) and time_to_go >= 0
+    if (
+        isinstance(time_to_go, (str, bool))
+        or not isinstance(time_to_go, (int, float))
+        or not (math.isfinite(time_to_go) and time_to_go >= 0)
     ):
         raise ValueError(f"time_to_go must be None, 'remaining' or a number >= 0, got {time_to_go!r}")
 
@@ -78,7 +68,9 @@ class _Adapter:
         episode_horizon = scene.episode_horizon
         if threshold is None:
             threshold = default_threshold(system, scene.dt)
-        vf = _resolve_value_function(value_function, system, device)
+        vf = as_value_function(
+            value_function, system, device, "value function (the environment simulates another system)"
+        )
         self.filter = SafetyFilter(vf, threshold)
         # the times the filter will ask for, checked now rather than mid-episode
         if time_to_go is None:

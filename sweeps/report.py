@@ -14,6 +14,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from safety.results_io import format_cell, render_markdown
+
 Row = dict[str, Any]
 
 #: how each metric is written in tables (header, format; "pct" prints a percentage)
@@ -31,9 +33,7 @@ METRIC_FORMATS: dict[str, tuple[str, str]] = {
 
 
 def _fmt(value: float, spec: str) -> str:
-    if value is None or (isinstance(value, float) and math.isnan(value)):
-        return "-"
-    return f"{100 * value:.2f}" if spec == "pct" else spec.format(value)
+    return format_cell(value, spec, {})
 
 
 def _finite(values: Sequence[Any]) -> list[float]:
@@ -95,7 +95,7 @@ def summary_table(rows: Sequence[Row], headline: Sequence[tuple[str, bool]]) -> 
     order = ranked + [k for k in finals if k not in ranked]
     metrics = [m for m, _ in headline]
     head = ["layout", "seeds", *(METRIC_FORMATS.get(m, (m, "{:.3g}"))[0] for m in metrics), "steps", "steps/s"]
-    lines = ["| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
+    table = []
     for layout in order:
         rs = finals[layout]
         cells = [f"`{layout}`", str(len(rs))]
@@ -105,8 +105,8 @@ def summary_table(rows: Sequence[Row], headline: Sequence[tuple[str, bool]]) -> 
             cells.append(f"{_fmt(s['mean'], spec)} ± {_fmt(s['std'], spec)}" if s["n"] > 1 else _fmt(s["mean"], spec))
         cells.append(f"{statistics.fmean(r['step'] for r in rs):.0f}")
         cells.append(f"{statistics.fmean(r['steps_per_s'] for r in rs):.1f}")
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+        table.append(cells)
+    return render_markdown(head, table, "l" + "r" * (len(head) - 1))
 
 
 def pareto_front(points: Sequence[tuple[float, float, str]], higher_is_better: bool) -> list[tuple[float, float, str]]:
@@ -286,15 +286,19 @@ def claims(rows: Sequence[Row], metric: str, higher_is_better: bool) -> list[dic
 def claims_table(rows: Sequence[Row], headline: Sequence[tuple[str, bool]]) -> str:
     """Markdown: the claims' statistics on each headline metric (sign-adjusted: > 0 agrees with the
     claim), their one-sided permutation p-values, and the mean seed-to-seed spread."""
-    lines = [
-        "| metric | claim | statistic (> 0 agrees) | value | one-sided p | mean seed std |",
-        "|---|---|---|---:|---:|---:|",
-    ]
+    head = ["metric", "claim", "statistic (> 0 agrees)", "value", "one-sided p", "mean seed std"]
+    table = []
     for metric, higher in headline:
         for c in claims(rows, metric, higher):
             std = c.get("seed_std")
-            lines.append(
-                f"| {metric} | {c['claim']} | {c['statistic']} | {_fmt(c['value'], '{:.3g}')} | "
-                f"{_fmt(c['p_value'], '{:.3f}')} | {_fmt(std, '{:.3g}') if std is not None else ''} |"
+            table.append(
+                [
+                    metric,
+                    c["claim"],
+                    c["statistic"],
+                    _fmt(c["value"], "{:.3g}"),
+                    _fmt(c["p_value"], "{:.3f}"),
+                    _fmt(std, "{:.3g}") if std is not None else "",
+                ]
             )
-    return "\n".join(lines)
+    return render_markdown(head, table, "lllrrr")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 from typing import Any
 
 from reach.cli.common import add_subparser
@@ -55,17 +54,7 @@ def parse_time_to_go(text: str | None) -> float | str | None:
 def run(args: argparse.Namespace) -> int:
     from reach_envs.scenes import make_scene
     from safety.evaluate import expand_sources
-    from safety.filter_eval import (
-        FilterConfig,
-        evaluate_filter_parallel,
-        evaluate_filters,
-        filter_table,
-        outside_states,
-        record_side_by_side,
-        worst_case_disturbance,
-        write_filter_results,
-    )
-    from safety.plots import plot_filter_tradeoff
+    from safety.filter_eval import filter_table, run_filter_study
     from safety.value_functions import load_value_function
 
     # checks first: scene, numbers, output paths, then the value functions (their time ranges too)
@@ -82,65 +71,42 @@ def run(args: argparse.Namespace) -> int:
         load_value_function(p, format=args.format, system=system, layout=args.layout)
         for p in (expand_sources(args.value_functions) if args.value_functions else [])
     ]
-    overrides: dict = {}
+    pursuer = None
     if args.pursuer != "scene":
         if not system.disturbance_dim:
             raise ValueError(f"--pursuer {args.pursuer}: scene {args.scene} has no disturbance input")
+        pursuer = args.pursuer
         if args.pursuer == "worst-case":
             source = args.adversary or (str(loaded[0].path) if loaded else None)
             if source is None:
                 raise ValueError("--pursuer worst-case needs --adversary VF (or a value function to filter with)")
-            adversary = load_value_function(source, system=system).value_function
-            overrides["disturbance"] = worst_case_disturbance(adversary)
-        else:
-            overrides["disturbance"] = args.pursuer
-    initial = None
-    if args.start_outside:
-        reference = load_value_function(args.start_outside, system=system).value_function
-        initial = outside_states(reference, args.episodes, args.start_margin, args.seed)
-    configs = [FilterConfig("nominal")]
-    for lv in loaded:
-        configs += [FilterConfig(lv.label, lv.value_function, th) for th in thresholds]
-    if args.pettingzoo:
-        rows = [
-            evaluate_filter_parallel(scene, c, args.episodes, args.seed, ttg, scene_overrides=overrides)
-            for c in configs
-        ]
-    else:
-        rows = evaluate_filters(
-            scene, configs, args.episodes, args.seed, ttg, scene_overrides=overrides, initial_states=initial
-        )
-    header = {
-        "format": "reach.filter-eval.v1",
-        "scene": args.scene,
-        "episodes": args.episodes,
-        "seed": args.seed,
-        "pursuer": args.pursuer,
-        "time_to_go": args.time_to_go or "value function horizon",
-        "start_outside": args.start_outside,
-        "start_margin": args.start_margin if args.start_outside else None,
-        "path": "pettingzoo" if args.pettingzoo else "vector",
-    }
-    write_filter_results(rows, out, header)
-    print(filter_table(rows))
-    print(f"\nwrote {out.with_suffix('.csv')}, {out.with_suffix('.json')}, {out.with_suffix('.md')}")
-    print(f"wrote {plot_filter_tradeoff(rows, out.with_name(out.stem + '_tradeoff.png'), title=args.scene)}")
-    if args.gif and loaded:
-        # show episodes in which the nominal policy crashed (else the first three)
-        picks = list(dict.fromkeys([*rows[0]["collided_episodes"][:3], 0, 1, 2]))[:3]
-        starts = initial[picks] if initial is not None else None
-        gif = record_side_by_side(
-            scene,
-            loaded[0].value_function,
-            args.gif,
-            thresholds[0],
-            [args.seed + i for i in picks],
-            ttg,
-            scene_overrides=overrides,
-            initial_states=starts,
-        )
-        print(f"wrote {gif} (left: nominal, right: filtered by {loaded[0].label})")
+            pursuer = load_value_function(source, system=system).value_function
+    start = load_value_function(args.start_outside, system=system).value_function if args.start_outside else None
+    study = run_filter_study(
+        scene,
+        [(lv.label, lv.value_function) for lv in loaded],
+        out,
+        thresholds=thresholds,
+        episodes=args.episodes,
+        seed=args.seed,
+        time_to_go=ttg,
+        pursuer=pursuer,
+        start_outside=start,
+        start_margin=args.start_margin,
+        gif=args.gif,
+        pettingzoo=args.pettingzoo,
+        header={
+            "format": "reach.filter-eval.v1",
+            "scene": args.scene,
+            "pursuer": args.pursuer,
+            "time_to_go": args.time_to_go or "value function horizon",
+            "start_outside": args.start_outside,
+            "start_margin": args.start_margin if args.start_outside else None,
+            "path": "pettingzoo" if args.pettingzoo else "vector",
+        },
+    )
+    print(filter_table(study.rows))
+    print()
+    for path in study.paths:
+        print(f"wrote {path}" + (f" (left: nominal, right: filtered by {loaded[0].label})" if path == args.gif else ""))
     return 0
-
-
-__all__ = ["Path", "add_parser", "run"]
