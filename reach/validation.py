@@ -99,16 +99,7 @@ def check_output_path(path: str | os.PathLike, what: str = "output") -> Path:
         raise ValueError(f"{what} path {str(path)!r} is not a file name")
     if p.is_dir():
         raise ValueError(f"{what} path {str(p)!r} is a directory, not a file")
-    parent = p.parent
-    existing = parent
-    while not existing.exists():
-        if existing.parent == existing:
-            break
-        existing = existing.parent
-    if not existing.is_dir():
-        raise ValueError(f"{what} path {str(p)!r}: {str(existing)!r} is a file, not a folder")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise ValueError(f"{what} path {str(p)!r}: folder {str(existing)!r} is not writable")
+    _check_creatable(p.parent, f"{what} path {str(p)!r}")
     return p
 
 
@@ -117,16 +108,19 @@ def check_output_dir(path: str | os.PathLike, what: str = "output") -> Path:
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise ValueError(f"{what} directory {str(p)!r} is a file")
-    existing = p
-    while not existing.exists():
-        if existing.parent == existing:
-            break
+    _check_creatable(p, f"{what} directory {str(p)!r}")
+    return p
+
+
+def _check_creatable(folder: Path, label: str) -> None:
+    """``folder`` exists and is writable, or its nearest existing ancestor is a writable folder."""
+    existing = folder
+    while not existing.exists() and existing.parent != existing:
         existing = existing.parent
     if not existing.is_dir():
-        raise ValueError(f"{what} directory {str(p)!r}: {str(existing)!r} is a file, not a folder")
+        raise ValueError(f"{label}: {str(existing)!r} is a file, not a folder")
     if not os.access(existing, os.W_OK | os.X_OK):
-        raise ValueError(f"{what} directory {str(p)!r}: {str(existing)!r} is not writable")
-    return p
+        raise ValueError(f"{label}: folder {str(existing)!r} is not writable")
 
 
 # ---------------------------------------------------------------------- argparse types

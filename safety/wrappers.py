@@ -114,6 +114,17 @@ class _FilterAdapterMixin:
 
     _adapter: _Adapter
 
+    def __init__(
+        self,
+        env: Any,
+        value_function: ValueFunction | str,
+        threshold: float | None = None,
+        time_to_go: float | str | None = None,
+        device: str = "cpu",
+    ) -> None:
+        super().__init__(env)  # the wrapper base class of the env kind
+        self._attach_filter(env, value_function, threshold, time_to_go, device)
+
     def _attach_filter(
         self, env: Any, value_function: ValueFunction | str, threshold: float | None, time_to_go: Any, device: str
     ) -> None:
@@ -166,17 +177,6 @@ class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordCons
 class SafetyFilterVectorWrapper(_FilterAdapterMixin, VectorWrapper):
     """The filter over a :class:`~reach_envs.vector.ReachVectorEnv`, batched over sub-environments."""
 
-    def __init__(
-        self,
-        env: Any,
-        value_function: ValueFunction | str,
-        threshold: float | None = None,
-        time_to_go: float | str | None = None,
-        device: str = "cpu",
-    ) -> None:
-        super().__init__(env)
-        self._attach_filter(env, value_function, threshold, time_to_go, device)
-
     def step(self, actions: Any) -> tuple[Any, Any, Any, Any, dict]:
         base = self.env.unwrapped
         a = np.asarray(actions, dtype=np.float64)
@@ -200,17 +200,6 @@ class SafetyFilterParallelWrapper(_FilterAdapterMixin, BaseParallelWrapper):
     Agents that are no longer live contribute the centre of their box (zero turn rate) to the joint
     nominal input, as the environment applies for them.
     """
-
-    def __init__(
-        self,
-        env: Any,
-        value_function: ValueFunction | str,
-        threshold: float | None = None,
-        time_to_go: float | str | None = None,
-        device: str = "cpu",
-    ) -> None:
-        super().__init__(env)
-        self._attach_filter(env, value_function, threshold, time_to_go, device)
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         base = self.env.unwrapped

@@ -161,7 +161,33 @@ class MultiVehicle(ControlAffineSystem):
         return tuple(c.max_turn_rate for c in self.cars)
 
 
-class MultiVehicle6D(MultiVehicle):
+class UniformCars(MultiVehicle):
+    """A multi-vehicle system whose cars share one speed and turn-rate bound: its parameters are
+    those two numbers (and the shared radius, horizon and box), not a list of cars."""
+
+    def __init__(
+        self,
+        cars: Sequence[Car],
+        speed: float,
+        max_turn_rate: float,
+        collision_radius: float,
+        horizon: float,
+        half_width: float,
+    ) -> None:
+        super().__init__(list(cars), collision_radius=collision_radius, horizon=horizon, half_width=half_width)
+        self._params = {
+            "speed": float(speed),
+            "max_turn_rate": float(max_turn_rate),
+            "collision_radius": float(collision_radius),
+            "horizon": float(horizon),
+            "half_width": float(half_width),
+        }
+
+    def parameters(self) -> dict[str, Any]:
+        return dict(self._params)
+
+
+class MultiVehicle6D(UniformCars):
     """Air3D's pursuit-evasion game in absolute coordinates: car 1 evades (control), car 2 pursues.
 
     :meth:`relative_coordinates` maps a 6D state to the Air3D state (the pursuer's position and
@@ -178,22 +204,8 @@ class MultiVehicle6D(MultiVehicle):
         horizon: float = 1.1,
         half_width: float = 1.0,
     ) -> None:
-        super().__init__(
-            [Car(speed, max_turn_rate, "control", "evader_1"), Car(speed, max_turn_rate, "disturbance", "pursuer_1")],
-            collision_radius=collision_radius,
-            horizon=horizon,
-            half_width=half_width,
-        )
-        self._params = {
-            "speed": float(speed),
-            "max_turn_rate": float(max_turn_rate),
-            "collision_radius": float(collision_radius),
-            "horizon": float(horizon),
-            "half_width": float(half_width),
-        }
-
-    def parameters(self) -> dict[str, Any]:
-        return dict(self._params)
+        cars = [Car(speed, max_turn_rate, "control", "evader_1"), Car(speed, max_turn_rate, "disturbance", "pursuer_1")]
+        super().__init__(cars, speed, max_turn_rate, collision_radius, horizon, half_width)
 
     def relative_coordinates(self, x: Sequence[Column], xp: Backend) -> list[Column]:
         """Air3D state ``(x1, x2, x3)`` of 6D columns ``(xe, ye, xp, yp, the, thp)``."""
@@ -203,7 +215,7 @@ class MultiVehicle6D(MultiVehicle):
         return [c * dx + s * dy, -s * dx + c * dy, xp.wrap_angle(thq - the)]
 
 
-class MultiVehicle9D(MultiVehicle):
+class MultiVehicle9D(UniformCars):
     """DeepReach's MultiVehicleCollision: three cooperating cars (all controls), v = 0.6, w_max = 1.1."""
 
     name = "multivehicle9d"
@@ -216,19 +228,5 @@ class MultiVehicle9D(MultiVehicle):
         horizon: float = 1.0,
         half_width: float = 1.0,
     ) -> None:
-        super().__init__(
-            [Car(speed, max_turn_rate, "control", f"car_{i}") for i in (1, 2, 3)],
-            collision_radius=collision_radius,
-            horizon=horizon,
-            half_width=half_width,
-        )
-        self._params = {
-            "speed": float(speed),
-            "max_turn_rate": float(max_turn_rate),
-            "collision_radius": float(collision_radius),
-            "horizon": float(horizon),
-            "half_width": float(half_width),
-        }
-
-    def parameters(self) -> dict[str, Any]:
-        return dict(self._params)
+        cars = [Car(speed, max_turn_rate, "control", f"car_{i}") for i in (1, 2, 3)]
+        super().__init__(cars, speed, max_turn_rate, collision_radius, horizon, half_width)
