@@ -25,6 +25,7 @@ from collections.abc import Sequence
 
 from reach.cli import demo, envs, evaluate, filter_eval, groundtruth, plot, record, sweep, train
 from reach.cli.common import OneLineParser, common_options, finish_namespace
+from reach.threads import apply_thread_policy
 
 #: subcommand modules, in the order ``reach --help`` lists them
 COMMANDS = (envs, record, groundtruth, train, evaluate, filter_eval, plot, sweep, demo)
@@ -73,10 +74,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    if args.threads is not None:
-        import torch
-
-        torch.set_num_threads(args.threads)
+    if args.command != "sweep":  # a sweep sets threads per run itself (--threads there means per run)
+        apply_thread_policy(args.threads)
     return int(args.func(args))
 
 

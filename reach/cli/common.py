@@ -28,7 +28,7 @@ def common_options(threads: bool = True) -> argparse.ArgumentParser:
         "--threads",
         type=positive_int_arg,
         default=argparse.SUPPRESS,
-        help="torch threads (default: torch's, one per core; on a machine busy with other work, 1 is often faster)",
+        help="torch threads (default: OMP_NUM_THREADS if set, else the cores the load average leaves free)",
     )
     return parent
 
