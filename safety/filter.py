@@ -1,11 +1,27 @@
-"""The least-restrictive safety filter: keep the nominal input unless the value says danger.
+"""Safety filters around a value function: keep the nominal input unless the value says danger.
 
-``SafetyFilter(vf, threshold)(x, t, u_nominal) -> (u, info)`` keeps ``u_nominal`` where
-``V(x, t) > threshold`` and applies the optimal control ``u*(x, t)`` elsewhere, batched over states.
-The time-to-go ``t`` is the caller's choice; the environment adapters in :mod:`safety.wrappers`
-default to a *fixed horizon* (``t`` = the system's horizon, the tube the network was trained for):
-a state is filtered when it cannot be kept safe for that long. ``"remaining"`` uses the time left in
-the episode instead.
+``SafetyFilter(vf, threshold, kind=...)(x, t, u_nominal) -> (u, info)``, batched over states. Three
+kinds, one interface (every env adapter in :mod:`safety.wrappers` takes each):
+
+- ``"switch"`` (least-restrictive): keep ``u_nominal`` where ``V(x, t) > threshold``, else apply
+  the optimal control ``u*``. Decides on the current state, so between two decisions of a
+  zero-order-hold controller ``V`` can fall by about ``|dl/dt|_max dt``: its default threshold in the
+  env adapters covers that.
+- ``"lookahead"``: predict the state one step ``dt`` ahead under ``u_nominal`` (the system's own
+  integrator, the disturbance playing its worst case ``d*`` held over the step), and keep
+  ``u_nominal`` only if ``V`` there stays above ``threshold``; else apply ``u*``. It decides before
+  the step that would cross, so it is safe at threshold 0.
+- ``"smooth"``: the input closest to ``u_nominal`` (least squares) that satisfies the HJ barrier
+  condition ``grad V . f(x, u, d*) + gamma (V - threshold) >= 0`` inside the input box (control
+  barrier-value functions, Choi et al. 2021). For control-affine systems the condition is one linear
+  inequality in ``u``, so the problem is a projection onto a half-space within a box, solved exactly
+  and batched (the multiplier is found between the kinks where inputs saturate; no QP solver).
+  Where no input of the box satisfies it, ``u*`` (the input that does best) is applied and
+  ``info.infeasible`` says so. The time-to-go is
+  held fixed over the step (the fixed-horizon filter of the env adapters), so ``dV/dt`` drops out.
+
+The time-to-go ``t`` is the caller's choice (see :mod:`safety.wrappers`). Every kind fails closed: a
+non-finite value, gradient or optimal input raises instead of passing the nominal input.
 """
 
 from __future__ import annotations
@@ -15,46 +31,82 @@ from dataclasses import dataclass
 
 import torch
 
+from reach.integrators import check_integrator, make_stepper
+from reach.systems.backend import TORCH
 from reach.value_function import ValueFunction
-from safety.policy import OptimalPolicy, check_states
+from safety.policy import check_states
+from safety.value_functions import value_and_gradient
+
+#: the filter kinds :class:`SafetyFilter` offers
+KINDS = ("switch", "lookahead", "smooth")
+
+#: default barrier rate of the smooth filter (1/s): V may fall at most at rate gamma (V - threshold)
+DEFAULT_GAMMA = 5.0
 
 
 @dataclass
 class FilterInfo:
-    """What the filter saw and did, per state: value, nominal and applied input, intervention."""
+    """What the filter saw and did, per state: value, nominal and applied input, intervention.
+
+    ``intervened`` is True where the applied input differs from the nominal one; ``infeasible``
+    (smooth filter) where no input of the box met the barrier condition and ``u*`` was applied.
+    """
 
     value: torch.Tensor
     nominal: torch.Tensor
     applied: torch.Tensor
     intervened: torch.Tensor
+    infeasible: torch.Tensor | None = None
 
 
 class SafetyFilter:
-    """Least-restrictive filter around a value function (see the module docstring).
+    """A safety filter around a value function (see the module docstring).
 
     Args:
         value_function: any :class:`ValueFunction` (network, DeepReach import, grid solution).
-        threshold: intervene where ``V <= threshold`` (a small positive margin buys robustness to
-            sampling and value errors).
+        threshold: the level treated as the boundary (a small positive margin buys robustness).
+        kind: ``"switch"``, ``"lookahead"`` or ``"smooth"``.
+        dt: the step the lookahead predicts over (required for ``"lookahead"``; the env adapters
+            pass the env's ``dt``).
+        integrator: how the lookahead predicts (``"rk4"``, the envs' default, or ``"euler"``).
+        gamma: the smooth filter's barrier rate (1/s, finite, >= 0; 0 forbids any decrease of ``V``).
     """
 
-    def __init__(self, value_function: ValueFunction, threshold: float = 0.0) -> None:
-        if not isinstance(threshold, (int, float)) or not math.isfinite(threshold):
+    def __init__(
+        self,
+        value_function: ValueFunction,
+        threshold: float = 0.0,
+        kind: str = "switch",
+        dt: float | None = None,
+        integrator: str = "rk4",
+        gamma: float = DEFAULT_GAMMA,
+    ) -> None:
+        if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not math.isfinite(threshold):
             raise ValueError(f"threshold must be a finite number, got {threshold!r}")
+        if kind not in KINDS:
+            raise ValueError(f"filter kind must be one of {KINDS}, got {kind!r}")
+        if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not (math.isfinite(gamma) and gamma >= 0):
+            raise ValueError(f"gamma must be a finite number >= 0, got {gamma!r}")
+        if kind == "lookahead":
+            if dt is None or isinstance(dt, bool) or not (math.isfinite(dt) and dt > 0):
+                raise ValueError(f"the lookahead filter needs a step dt > 0, got {dt!r}")
+            self._predict = make_stepper(value_function.system, float(dt), check_integrator(integrator), TORCH)
         self.value_function = value_function
         self.system = value_function.system
         self.threshold = float(threshold)
-        self.policy = OptimalPolicy(value_function)
+        self.kind = kind
+        self.dt = dt
+        self.gamma = float(gamma)
 
     def __call__(
         self, x: torch.Tensor, t: float | torch.Tensor, u_nominal: torch.Tensor
     ) -> tuple[torch.Tensor, FilterInfo]:
         """Filtered inputs ``(..., m_u)`` for states ``(..., n)`` and nominal inputs ``(..., m_u)``.
 
-        Nominal inputs are physical units; where kept they are returned bit for bit, where
-        replaced the result is exactly ``u*``. NaN/inf in states or nominal inputs, a time-to-go the value
-        function does not cover, and a non-finite value or ``u*`` raise ``ValueError``: the filter
-        never passes the nominal input on a value it cannot trust.
+        Nominal inputs are physical units; where kept they are returned bit for bit. NaN/inf in
+        states or nominal inputs, a time-to-go the value function does not cover, and a non-finite
+        value, gradient or ``u*`` raise ``ValueError``: no kind passes the nominal input on a value
+        it cannot trust.
         """
         system = self.system
         check_states(x, system.state_dim)
@@ -63,17 +115,110 @@ class SafetyFilter:
             raise ValueError(f"u_nominal must have shape {(*x.shape[:-1], system.control_dim)}, got {shape}")
         if not bool(torch.isfinite(u_nominal).all()):
             raise ValueError(f"u_nominal contains NaN or inf: {u_nominal[~torch.isfinite(u_nominal)][:4].tolist()}")
-        value, u_star, _ = self.policy.inputs(x, t)
-        # fail closed: a NaN value compares False with everything, so "not above the threshold" (never
-        # "at or below it") decides; and an untrustworthy value or input is refused outright
-        intervene = ~(value > self.threshold)
-        untrusted = ~torch.isfinite(value) | ~torch.isfinite(u_star).all(-1)
+        value, p = value_and_gradient(self.value_function, x, t)
+        u_star = system.optimal_control(x, p)
+        d_star = system.optimal_disturbance(x, p) if system.disturbance_dim else None
+        self._trust(x, t, value, p, u_star)
+        u_nominal = u_nominal.to(u_star.dtype)
+        infeasible = None
+        if self.kind == "switch":
+            # a NaN value compares False with everything: "not above" (never "at or below") decides
+            keep = value > self.threshold
+            applied = torch.where(keep.unsqueeze(-1), u_nominal, u_star)
+        elif self.kind == "lookahead":
+            # the nominal step, then one step of the safe policy from where it lands: the nominal
+            # input is kept only if the safe policy can still hold V above the threshold afterwards
+            ahead = self._ahead(x, u_nominal, d_star)
+            v_ahead, p_ahead = value_and_gradient(self.value_function, ahead, t)
+            u_back = system.optimal_control(ahead, p_ahead)
+            d_back = system.optimal_disturbance(ahead, p_ahead) if system.disturbance_dim else None
+            self._trust(ahead, t, v_ahead, p_ahead, u_back)
+            back = self._ahead(ahead, u_back, d_back)
+            v_back = self.value_function.value(back, t)
+            self._trust(back, t, v_back, None, None)
+            keep = (v_ahead > self.threshold) & (v_back > self.threshold)
+            applied = torch.where(keep.unsqueeze(-1), u_nominal, u_star)
+        else:
+            applied, infeasible = self._project(x, value, p, u_nominal, u_star, d_star)
+        intervened = (applied != u_nominal).any(-1)
+        return applied, FilterInfo(value, u_nominal, applied, intervened, infeasible)
+
+    # ------------------------------------------------------------------ the kinds
+    def _ahead(self, x: torch.Tensor, u: torch.Tensor, d: torch.Tensor | None) -> torch.Tensor:
+        """The state one step ``dt`` ahead under ``u`` and ``d`` held over the step."""
+        system = self.system
+        cols = TORCH.unbind(x)
+        uc = system.input_columns(u, system.control_bounds, "u")
+        dc = system.input_columns(d, system.disturbance_bounds, "d")
+        return TORCH.stack(self._predict(cols, uc, dc), like=cols[0])
+
+    def _project(
+        self,
+        x: torch.Tensor,
+        value: torch.Tensor,
+        p: torch.Tensor,
+        u_nominal: torch.Tensor,
+        u_star: torch.Tensor,
+        d_star: torch.Tensor | None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """argmin |u - u_nom|^2 s.t. a . u >= b and u in the box, exactly, batched.
+
+        ``p . f(x, u, d*)`` is affine in ``u`` with slope ``a = G_u^T p``; with ``f_c`` the dynamics
+        at the box centre ``c``, the barrier condition reads ``a . u >= a . c - p . f_c - gamma (V - thr)``.
+        The solution is ``clip(u_nom + lam a, box)`` for the smallest ``lam >= 0`` meeting it (the
+        KKT conditions of a projection onto a half-space within a box); ``a . clip(u_nom + lam a)``
+        is piecewise linear and non-decreasing in ``lam``, so it is solved exactly between two kinks.
+        Infeasible where even ``u*`` (the box corner
+        along ``a``) falls short."""
+        system = self.system
+        box = system.control_bounds
+        dtype = torch.float64
+        lo = torch.tensor(box.low, dtype=dtype, device=x.device)
+        hi = torch.tensor(box.high, dtype=dtype, device=x.device)
+        centre = torch.tensor(box.center, dtype=dtype, device=x.device)
+        xd, pd = x.to(dtype), p.to(dtype)
+        a = system.control_switching(xd, pd)
+        f_centre = system.dynamics(xd, None, None if d_star is None else d_star.to(dtype))
+        b = (a * centre).sum(-1) - (pd * f_centre).sum(-1) - self.gamma * (value.to(dtype) - self.threshold)
+        u0 = u_nominal.to(dtype)
+        ok_nominal = (a * u0).sum(-1) >= b
+        best = (a * u_star.to(dtype)).sum(-1)
+        infeasible = ~ok_nominal & (best < b)
+        # g(lam) = a . clip(u_nom + lam a) is piecewise linear, with a kink where each input saturates:
+        # evaluate it at the kinks and interpolate on the segment where it first reaches b
+        toward = torch.where(a > 0, hi, lo)
+        kinks = torch.where(a != 0, (toward - u0) / torch.where(a != 0, a, 1.0), 1e300).clamp(0.0, 1e300)
+        lams = torch.cat([torch.zeros_like(kinks[..., :1]), kinks.sort(-1).values], -1)
+        g = (a.unsqueeze(-2) * torch.clamp(u0.unsqueeze(-2) + lams.unsqueeze(-1) * a.unsqueeze(-2), lo, hi)).sum(-1)
+        reached = g >= b.unsqueeze(-1)
+        k = torch.where(reached.any(-1), reached.int().argmax(-1), lams.shape[-1] - 1).unsqueeze(-1)
+        k_prev = (k - 1).clamp_min(0)
+        lam_k, lam_p = lams.gather(-1, k), lams.gather(-1, k_prev)
+        g_k, g_p = g.gather(-1, k), g.gather(-1, k_prev)
+        step = torch.where(g_k > g_p, (b.unsqueeze(-1) - g_p) / (g_k - g_p).clamp_min(1e-300), 0.0)
+        lam = torch.where(k == 0, 0.0, lam_p + step.clamp(0.0, 1.0) * (lam_k - lam_p))
+        lam_hi = lam.squeeze(-1)
+        projected = torch.clamp(u0 + lam_hi.unsqueeze(-1) * a, lo, hi).to(u_star.dtype)
+        applied = torch.where(ok_nominal.unsqueeze(-1), u_nominal, projected)
+        applied = torch.where(infeasible.unsqueeze(-1), u_star, applied)
+        return applied, infeasible
+
+    # ------------------------------------------------------------------ fail closed
+    def _trust(
+        self,
+        x: torch.Tensor,
+        t: float | torch.Tensor,
+        value: torch.Tensor,
+        p: torch.Tensor | None,
+        u_star: torch.Tensor | None,
+    ) -> None:
+        untrusted = ~torch.isfinite(value)
+        for tensor in (p, u_star):
+            if tensor is not None:
+                untrusted = untrusted | ~torch.isfinite(tensor).all(-1)
         if bool(untrusted.any()):
             bad = x[untrusted][0].tolist()
             raise ValueError(
-                f"value function returned a non-finite value or optimal input at state {bad} (t = {t}); "
+                f"value function returned a non-finite value, gradient or optimal input at state {bad} (t = {t}); "
                 "the filter does not trust it and keeps no nominal input"
             )
-        u_nominal = u_nominal.to(u_star.dtype)
-        applied = torch.where(intervene.unsqueeze(-1), u_star, u_nominal)
-        return applied, FilterInfo(value=value, nominal=u_nominal, applied=applied, intervened=intervene)

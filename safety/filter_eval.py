@@ -29,6 +29,7 @@ import numpy as np
 from reach.value_function import ValueFunction
 from reach_envs.scenes import Scene, make_scene
 from reach_envs.vector import ReachVectorEnv
+from safety.filter import DEFAULT_GAMMA
 from safety.metrics import wilson_interval
 from safety.results_io import markdown_table, write_results
 from safety.tasks import GoalTask, make_task
@@ -37,11 +38,14 @@ from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapp
 
 @dataclass
 class FilterConfig:
-    """One configuration: a label, a value function (``None``: nominal policy alone), a threshold."""
+    """One configuration: a label, a value function (``None``: nominal policy alone), a threshold,
+    the filter kind (``switch``, ``lookahead``, ``smooth``) and the smooth filter's ``gamma``."""
 
     label: str
     value_function: ValueFunction | None = None
     threshold: float | None = None
+    kind: str = "switch"
+    gamma: float = DEFAULT_GAMMA
 
 
 class _Tally:
@@ -52,15 +56,33 @@ class _Tally:
         self.active = np.ones(n, dtype=bool)
         self.running_steps = 0
         self.interventions = 0
+        self.infeasible = 0
         self.change = 0.0
+        self.variation = np.zeros(n)  # total variation of the applied input, per episode
+        self.min_margin = np.full(n, np.inf)  # smallest l(x) reached, per episode
+        self._last: np.ndarray | None = None
 
-    def step(self, collision: np.ndarray, intervened: np.ndarray | None, change: np.ndarray) -> None:
+    def step(
+        self,
+        collision: np.ndarray,
+        intervened: np.ndarray | None,
+        change: np.ndarray,
+        applied: np.ndarray,
+        margin: np.ndarray,
+        infeasible: np.ndarray | None = None,
+    ) -> None:
         a = self.active
         self.collided |= collision & a
         self.running_steps += int(a.sum())
         if intervened is not None:
             self.interventions += int((intervened & a).sum())
+        if infeasible is not None:
+            self.infeasible += int((infeasible & a).sum())
         self.change += float(change[a].sum())
+        if self._last is not None:
+            self.variation += np.where(a, np.abs(applied - self._last).sum(axis=-1), 0.0)
+        self._last = applied
+        self.min_margin = np.where(a, np.minimum(self.min_margin, margin), self.min_margin)
 
     def row(self, config: FilterConfig, task: GoalTask, inputs: int, threshold: float | None, wall: float) -> dict:
         n = len(self.collided)
@@ -77,6 +99,12 @@ class _Tally:
             "collision_ci_high": high,
             "intervention_rate": self.interventions / max(1, self.running_steps),
             "mean_input_change": self.change / max(1, self.running_steps * inputs),
+            "total_variation": float(self.variation.mean()),
+            "min_margin": float(self.min_margin.min()),
+            "mean_min_margin": float(self.min_margin.mean()),
+            "infeasible_rate": self.infeasible / max(1, self.running_steps),
+            "kind": config.kind if config.value_function is not None else None,
+            "gamma": config.gamma if config.value_function is not None and config.kind == "smooth" else None,
             "goal_rate": float(reached.mean()),
             "mean_goal_time": float(np.nanmean(task.reach_time[reached])) if reached.any() else float("nan"),
             "wall_time": wall,
@@ -121,7 +149,9 @@ def evaluate_filters(
         env = base
         threshold = None
         if config.value_function is not None:
-            env = SafetyFilterVectorWrapper(base, config.value_function, config.threshold, time_to_go)
+            env = SafetyFilterVectorWrapper(
+                base, config.value_function, config.threshold, time_to_go, kind=config.kind, gamma=config.gamma
+            )
             threshold = env.safety_filter.threshold
         options = None if initial_states is None else {"state": initial_states}
         env.reset(seed=seed, options=options)
@@ -131,8 +161,16 @@ def evaluate_filters(
             nominal = task.nominal_actions(base.state).astype(np.float32)
             _, _, terminated, truncated, info = env.step(nominal)
             applied = info.get("applied_action", nominal)
-            change = (np.abs(np.asarray(applied, dtype=np.float64) - nominal) * half).sum(axis=1)
-            tally.step(info["collision"], info.get("filter_intervened"), change)
+            physical = np.asarray(applied, dtype=np.float64) * half
+            change = np.abs(physical - nominal * half).sum(axis=1)
+            tally.step(
+                info["collision"],
+                info.get("filter_intervened"),
+                change,
+                physical,
+                info["margin"],
+                info.get("filter_infeasible"),
+            )
             task.advance(base.state, info["control"], sc.dt, tally.active & ~info["collision"], (k + 1) * sc.dt)
             tally.active &= ~(terminated | truncated)
             if not tally.active.any():
@@ -146,7 +184,11 @@ def _labelled(row: dict[str, Any]) -> dict[str, Any]:
     """``value_function`` = the configuration's name; ``label`` adds the threshold when filtered."""
     name = row["label"]
     threshold = row["threshold"]
-    return {**row, "value_function": name, "label": name if threshold is None else f"{name} @ {threshold:.3g}"}
+    if threshold is None:
+        return {**row, "value_function": name, "label": name}
+    kind = "" if row.get("kind") in (None, "switch") else f" {row['kind']}"
+    gamma = f" g{row['gamma']:g}" if row.get("gamma") is not None else ""
+    return {**row, "value_function": name, "label": f"{name}{kind} @ {threshold:.3g}{gamma}"}
 
 
 def evaluate_filter_parallel(
@@ -174,7 +216,9 @@ def evaluate_filter_parallel(
         base = MultiVehicleParallelEnv(sc)
         env: Any = base
         if config.value_function is not None:
-            env = SafetyFilterParallelWrapper(base, config.value_function, config.threshold, time_to_go)
+            env = SafetyFilterParallelWrapper(
+                base, config.value_function, config.threshold, time_to_go, kind=config.kind, gamma=config.gamma
+            )
             threshold = env.safety_filter.threshold
         env.reset(seed=seed + i)
         rng = np.random.default_rng(seed)
@@ -198,7 +242,8 @@ def evaluate_filter_parallel(
                 np.array([infos[agents[0]]["filter_intervened"]]) if "filter_intervened" in infos[agents[0]] else None
             )
             change = np.array([(np.abs(applied - nominal) * half).sum()])
-            one.step(collision, intervened, change)
+            margin = np.array([min(infos[a]["margin"] for a in agents)])
+            one.step(collision, intervened, change, (applied * half)[None], margin)
             task.advance(base.full_state[None], control[None], sc.dt, one.active & ~collision, (k + 1) * sc.dt)
             done = collision[0] or any(terminations.values()) or any(truncations.values()) or not env.agents
             one.active &= not done
@@ -208,6 +253,7 @@ def evaluate_filter_parallel(
         tally.running_steps += one.running_steps
         tally.interventions += one.interventions
         tally.change += one.change
+        tally.variation[i], tally.min_margin[i] = one.variation[0], one.min_margin[0]
         reached[i], reach_time[i] = task.reached[0], task.reach_time[0]
         env.close()
     task.reached, task.reach_time = reached, reach_time
@@ -225,6 +271,8 @@ FILTER_COLUMNS = (
     ("collision_rate", "collision % [95 % CI]", _with_interval),
     ("intervention_rate", "intervention %", "pct1"),
     ("mean_input_change", "mean |u - u_nom|", "{:.3f}"),
+    ("total_variation", "input TV", "{:.2f}"),
+    ("min_margin", "min l", "{:.3f}"),
     ("goal_rate", "goal %", "pct1"),
     ("mean_goal_time", "goal time (s)", "{:.2f}"),
     ("wall_time", "wall (s)", "{:.1f}"),
@@ -339,11 +387,14 @@ def run_filter_study(
     pettingzoo: bool = False,
     header: dict[str, Any] | None = None,
     title: str | None = None,
+    kinds: Sequence[str] = ("switch",),
+    gammas: Sequence[float] = (DEFAULT_GAMMA,),
 ) -> FilterStudy:
     """The one filter-evaluation pipeline: episodes, results, trade-off plot and a side-by-side GIF.
 
     Args:
-        value_functions: ``(label, value function)`` pairs, each filtered at every threshold.
+        value_functions: ``(label, value function)`` pairs, each filtered by every kind in ``kinds``
+            at every threshold (and, for ``"smooth"``, every ``gamma`` in ``gammas``).
         pursuer: ``None`` keeps the scene's disturbance; a name (``"pursue"``, ``"random"``) replaces
             it; a value function makes the pursuer play its worst-case ``d*``.
         start_outside: draw the episodes' starts from ``{V > start_margin}`` of this value function.
@@ -361,7 +412,11 @@ def run_filter_study(
         overrides["disturbance"] = pursuer if isinstance(pursuer, str) else worst_case_disturbance(pursuer)
     starts = None if start_outside is None else outside_states(start_outside, episodes, start_margin, seed)
     configs = [FilterConfig("nominal")]
-    configs += [FilterConfig(label, vf, th) for label, vf in value_functions for th in thresholds]
+    for label, vf in value_functions:
+        for kind in kinds:
+            for th in thresholds:
+                for gamma in gammas if kind == "smooth" else (DEFAULT_GAMMA,):
+                    configs.append(FilterConfig(label, vf, th, kind, gamma))
     if pettingzoo:
         if starts is not None:
             raise ValueError("the PettingZoo path samples its own starts; drop start_outside or pettingzoo")

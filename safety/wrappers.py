@@ -9,11 +9,15 @@ Time-to-go: ``time_to_go=None`` (default) evaluates ``V`` at the system's horizo
 value function was trained for; a number fixes another horizon; ``"remaining"`` uses the time left
 in the episode (``horizon - elapsed``, floored at 0).
 
-Threshold: a filter that acts once per environment step (zero-order hold) lets ``V`` fall by up to
-about ``|dl/dt|_max * dt`` before it can react, so the default threshold (``threshold=None``) is
-``2 * margin_rate_bound * dt`` (0.06 for Air3D at dt = 0.02; 0 for systems that declare no bound).
-With threshold 0 and a worst-case pursuer, the Air3D grid filter still lets most attacked episodes
-collide: the state rides the BRT boundary and slips in between decisions.
+Filters: ``kind="switch"`` (default), ``"lookahead"`` (predicts one env step with the env's ``dt``
+and integrator) or ``"smooth"`` (``gamma``: the barrier rate); see :mod:`safety.filter`.
+
+Threshold: a switch or smooth filter that acts once per environment step (zero-order hold) lets
+``V`` fall by up to about ``|dl/dt|_max * dt`` before it can react, so their default threshold
+(``threshold=None``) is ``2 * margin_rate_bound * dt`` (0.06 for Air3D at dt = 0.02; 0 for systems
+that declare no bound). With threshold 0 and a worst-case pursuer, the Air3D grid switch filter
+still lets most attacked episodes collide: the state rides the BRT boundary and slips in between
+decisions. The lookahead filter checks the state after the step, so its default threshold is 0.
 
 ``info`` gains ``filter_value`` (``V`` at the pre-step state), ``filter_intervened``,
 ``nominal_action`` and ``applied_action`` (normalised units).
@@ -31,7 +35,7 @@ from gymnasium.vector import VectorWrapper
 from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from reach.value_function import ValueFunction, check_time_coverage
-from safety.filter import FilterInfo, SafetyFilter
+from safety.filter import DEFAULT_GAMMA, FilterInfo, SafetyFilter
 from safety.value_functions import as_value_function
 
 
@@ -46,8 +50,12 @@ def _check_time_to_go(time_to_go: float | str | None) -> None:
         raise ValueError(f"time_to_go must be None, 'remaining' or a number >= 0, got {time_to_go!r}")
 
 
-def default_threshold(system: Any, dt: float) -> float:
-    """``2 * margin_rate_bound * dt``: twice what ``V`` can lose in one held step (0 without a bound)."""
+def default_threshold(system: Any, dt: float, kind: str = "switch") -> float:
+    """The default threshold of a filter kind in an env stepping ``dt``: the switch and the smooth
+    filter decide on the current state, so theirs is ``2 * margin_rate_bound * dt``, twice what ``V``
+    can lose in one held step (0 without a bound); the lookahead checks the next state, so 0."""
+    if kind == "lookahead":
+        return 0.0
     bound = system.margin_rate_bound()
     return 0.0 if bound is None else 2.0 * bound * dt
 
@@ -63,15 +71,17 @@ class _Adapter:
         time_to_go: float | str | None,
         scene: Any,
         device: str,
+        kind: str = "switch",
+        gamma: float = DEFAULT_GAMMA,
     ) -> None:
         _check_time_to_go(time_to_go)
         episode_horizon = scene.episode_horizon
         if threshold is None:
-            threshold = default_threshold(system, scene.dt)
+            threshold = default_threshold(system, scene.dt, kind)
         vf = as_value_function(
             value_function, system, device, "value function (the environment simulates another system)"
         )
-        self.filter = SafetyFilter(vf, threshold)
+        self.filter = SafetyFilter(vf, threshold, kind=kind, dt=scene.dt, integrator=scene.integrator, gamma=gamma)
         # the times the filter will ask for, checked now rather than mid-episode
         if time_to_go is None:
             check_time_coverage(vf, vf.system.horizon, vf.system.horizon, "the filter (time_to_go=None)")
@@ -121,15 +131,24 @@ class _FilterAdapterMixin:
         threshold: float | None = None,
         time_to_go: float | str | None = None,
         device: str = "cpu",
+        kind: str = "switch",
+        gamma: float = DEFAULT_GAMMA,
     ) -> None:
         super().__init__(env)  # the wrapper base class of the env kind
-        self._attach_filter(env, value_function, threshold, time_to_go, device)
+        self._attach_filter(env, value_function, threshold, time_to_go, device, kind, gamma)
 
     def _attach_filter(
-        self, env: Any, value_function: ValueFunction | str, threshold: float | None, time_to_go: Any, device: str
+        self,
+        env: Any,
+        value_function: ValueFunction | str,
+        threshold: float | None,
+        time_to_go: Any,
+        device: str,
+        kind: str = "switch",
+        gamma: float = DEFAULT_GAMMA,
     ) -> None:
         base = env.unwrapped
-        self._adapter = _Adapter(base.system, value_function, threshold, time_to_go, base.scene, device)
+        self._adapter = _Adapter(base.system, value_function, threshold, time_to_go, base.scene, device, kind, gamma)
 
     @property
     def safety_filter(self) -> SafetyFilter:
@@ -138,7 +157,7 @@ class _FilterAdapterMixin:
 
 
 class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordConstructorArgs):
-    """A Gymnasium env whose actions pass through a least-restrictive safety filter.
+    """A Gymnasium env whose actions pass through a safety filter (``kind``: switch, lookahead, smooth).
 
     ``value_function`` may be a path (run directory, checkpoint, ``.npz``), which keeps
     ``env.spec`` serialisable, so ``gym.make(env.spec)`` rebuilds the wrapped env.
@@ -151,12 +170,20 @@ class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordCons
         threshold: float | None = None,
         time_to_go: float | str | None = None,
         device: str = "cpu",
+        kind: str = "switch",
+        gamma: float = DEFAULT_GAMMA,
     ) -> None:
         gym.utils.RecordConstructorArgs.__init__(
-            self, value_function=value_function, threshold=threshold, time_to_go=time_to_go, device=device
+            self,
+            value_function=value_function,
+            threshold=threshold,
+            time_to_go=time_to_go,
+            device=device,
+            kind=kind,
+            gamma=gamma,
         )
         gym.Wrapper.__init__(self, env)
-        self._attach_filter(env, value_function, threshold, time_to_go, device)
+        self._attach_filter(env, value_function, threshold, time_to_go, device, kind, gamma)
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         base = self.env.unwrapped
@@ -188,6 +215,7 @@ class SafetyFilterVectorWrapper(_FilterAdapterMixin, VectorWrapper):
         step_info.update(
             filter_value=info.value.numpy(),
             filter_intervened=info.intervened.numpy(),
+            filter_infeasible=None if info.infeasible is None else info.infeasible.numpy(),
             nominal_action=np.asarray(actions),
             applied_action=applied,
         )

@@ -14,9 +14,11 @@ from reach.validation import (
     positive_int_arg,
     seed_arg,
 )
+from safety.filter import DEFAULT_GAMMA, KINDS
 
 
 def add_parser(sub: Any) -> None:
+
     p = add_subparser(
         sub, "filter-eval", help="episodes of a goal-seeking task with and without the safety filter: safety vs task"
     )
@@ -26,6 +28,16 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--seed", type=seed_arg, default=0)
     p.add_argument(
         "--thresholds", default=None, help="comma-separated filter thresholds >= 0 (default: 2 x rate bound x dt)"
+    )
+    p.add_argument(
+        "--filters",
+        default="switch",
+        help="comma-separated filter kinds to compare on the same episodes: switch, lookahead, smooth",
+    )
+    p.add_argument(
+        "--gammas",
+        default=None,
+        help=f"smooth filter: comma-separated barrier rates gamma >= 0 (default: {DEFAULT_GAMMA:g})",
     )
     p.add_argument("--time-to-go", default=None, help="None (value function horizon), a number, or 'remaining'")
     p.add_argument("--pursuer", choices=["scene", "pursue", "random", "worst-case"], default="scene")
@@ -64,6 +76,13 @@ def run(args: argparse.Namespace) -> int:
     thresholds = (
         csv_floats("--thresholds", args.thresholds, lambda n, v: check_float(n, v, 0)) if args.thresholds else [None]
     )
+    kinds = [k.strip() for k in args.filters.split(",") if k.strip()]
+    unknown = [k for k in kinds if k not in KINDS]
+    if unknown or not kinds:
+        raise ValueError(f"--filters must list kinds among {', '.join(KINDS)}, got {args.filters!r}")
+    gammas = (
+        csv_floats("--gammas", args.gammas, lambda n, v: check_float(n, v, 0)) if args.gammas else [DEFAULT_GAMMA]
+    )
     out = check_output_path(args.out, "--out")
     if args.gif:
         check_output_path(args.gif, "--gif")
@@ -95,7 +114,11 @@ def run(args: argparse.Namespace) -> int:
         start_margin=args.start_margin,
         gif=args.gif,
         pettingzoo=args.pettingzoo,
+        kinds=kinds,
+        gammas=gammas,
         header={
+            "filters": kinds,
+            "gammas": gammas if "smooth" in kinds else None,
             "format": "reach.filter-eval.v1",
             "scene": args.scene,
             "pursuer": args.pursuer,

@@ -324,6 +324,14 @@ class ControlAffineSystem(ABC):
         u, _ = self.optimal_inputs_columns(TORCH.unbind(x), TORCH.unbind(p), TORCH)
         return TORCH.stack(u, like=x[..., 0])
 
+    def control_switching(self, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+        """``G_u(x)^T p``, shape ``(..., m_u)``: how ``p . xdot`` changes with each control input
+        (``p . f(x, u, d)`` is affine in ``u`` with this slope)."""
+        self._check("x", x, self.state_dim)
+        self._check("p", p, self.state_dim)
+        s = self._switching(self.control_matrix(TORCH.unbind(x), TORCH), TORCH.unbind(p), self.control_dim)
+        return TORCH.stack(s, like=x[..., 0])
+
     def optimal_disturbance(self, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
         """``d*(x, p)``, shape ``(..., m_d)`` (``m_d`` may be 0)."""
         self._check("x", x, self.state_dim)
