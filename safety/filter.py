@@ -48,8 +48,9 @@ DEFAULT_GAMMA = 5.0
 class FilterInfo:
     """What the filter saw and did, per state: value, nominal and applied input, intervention.
 
-    ``intervened`` is True where the applied input differs from the nominal one; ``infeasible``
-    (smooth filter) where no input of the box met the barrier condition and ``u*`` was applied.
+    ``intervened`` is True where the filter overrode the nominal input (the switch and the lookahead
+    judged it unsafe; the smooth filter found it violating the barrier condition); ``infeasible``
+    (smooth filter) where no input of the box met the condition and ``u*`` was applied.
     """
 
     value: torch.Tensor
@@ -121,6 +122,7 @@ class SafetyFilter:
         self._trust(x, t, value, p, u_star)
         u_nominal = u_nominal.to(u_star.dtype)
         infeasible = None
+        keep = None
         if self.kind == "switch":
             # a NaN value compares False with everything: "not above" (never "at or below") decides
             keep = value > self.threshold
@@ -136,12 +138,17 @@ class SafetyFilter:
             back = self._ahead(ahead, u_back, d_back)
             v_back = self.value_function.value(back, t)
             self._trust(back, t, v_back, None, None)
+            # V <= l holds for the exact value function; a grid's interpolation can break it at the
+            # failure set's edge, so the predicted states are judged by min(V, l)
+            v_ahead = torch.minimum(v_ahead, system.failure_margin(ahead).to(v_ahead.dtype))
+            v_back = torch.minimum(v_back, system.failure_margin(back).to(v_back.dtype))
             keep = (v_ahead > self.threshold) & (v_back > self.threshold)
-            applied = torch.where(keep.unsqueeze(-1), u_nominal, u_star)
+            applied = torch.where(keep.unsqueeze(-1), u_nominal, self._best_step(x, t, u_star, d_star))
         else:
-            applied, infeasible = self._project(x, value, p, u_nominal, u_star, d_star)
-        intervened = (applied != u_nominal).any(-1)
-        return applied, FilterInfo(value, u_nominal, applied, intervened, infeasible)
+            applied, infeasible, keep = self._project(x, value, p, u_nominal, u_star, d_star)
+        # intervened = the filter overrode the nominal input (its decision; the applied input can
+        # still equal the nominal one, e.g. where u* is the box centre and the nominal input is 0)
+        return applied, FilterInfo(value, u_nominal, applied, ~keep, infeasible)
 
     # ------------------------------------------------------------------ the kinds
     def _ahead(self, x: torch.Tensor, u: torch.Tensor, d: torch.Tensor | None) -> torch.Tensor:
@@ -152,6 +159,38 @@ class SafetyFilter:
         dc = system.input_columns(d, system.disturbance_bounds, "d")
         return TORCH.stack(self._predict(cols, uc, dc), like=cols[0])
 
+    def _best_step(
+        self, x: torch.Tensor, t: float | torch.Tensor, u_star: torch.Tensor, d_star: torch.Tensor | None
+    ) -> torch.Tensor:
+        """The fallback of the lookahead: among ``u*`` and the box's corners and centre, the input
+        whose predicted next state has the highest ``V`` (``u*`` on ties). In continuous time ``u*``
+        is that input; over a held step near the boundary a corner can keep more value, which is
+        what makes the lookahead safe at threshold 0."""
+        system = self.system
+        box = system.control_bounds
+        corners = torch.cartesian_prod(
+            *[torch.tensor([lo, hi], dtype=u_star.dtype) for lo, hi in zip(box.low, box.high)]
+        )
+        corners = corners.reshape(-1, system.control_dim)
+        candidates = [
+            u_star,
+            *[c.expand_as(u_star) for c in corners],
+            torch.tensor(box.center, dtype=u_star.dtype).expand_as(u_star),
+        ]
+        best, best_value = u_star, None
+        for u in candidates:
+            ahead = self._ahead(x, u, d_star)
+            v = self.value_function.value(ahead, t)
+            self._trust(x, t, v, None, None)
+            v = torch.minimum(v, system.failure_margin(ahead).to(v.dtype))
+            if best_value is None:
+                best_value = v
+                continue
+            better = v > best_value
+            best = torch.where(better.unsqueeze(-1), u, best)
+            best_value = torch.where(better, v, best_value)
+        return best
+
     def _project(
         self,
         x: torch.Tensor,
@@ -160,8 +199,9 @@ class SafetyFilter:
         u_nominal: torch.Tensor,
         u_star: torch.Tensor,
         d_star: torch.Tensor | None,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """argmin |u - u_nom|^2 s.t. a . u >= b and u in the box, exactly, batched.
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """argmin |u - u_nom|^2 s.t. a . u >= b and u in the box, exactly, batched; returns the
+        inputs, where the condition is infeasible, and where the nominal input already met it.
 
         ``p . f(x, u, d*)`` is affine in ``u`` with slope ``a = G_u^T p``; with ``f_c`` the dynamics
         at the box centre ``c``, the barrier condition reads ``a . u >= a . c - p . f_c - gamma (V - thr)``.
@@ -201,7 +241,7 @@ class SafetyFilter:
         projected = torch.clamp(u0 + lam_hi.unsqueeze(-1) * a, lo, hi).to(u_star.dtype)
         applied = torch.where(ok_nominal.unsqueeze(-1), u_nominal, projected)
         applied = torch.where(infeasible.unsqueeze(-1), u_star, applied)
-        return applied, infeasible
+        return applied, infeasible, ok_nominal
 
     # ------------------------------------------------------------------ fail closed
     def _trust(

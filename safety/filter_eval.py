@@ -322,18 +322,26 @@ def record_side_by_side(
     task: GoalTask | None = None,
     scene_overrides: dict[str, Any] | None = None,
     initial_states: np.ndarray | None = None,
+    kinds: Sequence[str] = ("switch",),
+    gamma: float = DEFAULT_GAMMA,
 ) -> str:
-    """A GIF of a few episodes, nominal policy (left) and filtered (right), from the same starts."""
+    """A GIF of a few episodes from the same starts: the nominal policy (left), then the same policy
+    under each filter kind in ``kinds``, side by side."""
     from reach_envs.env import ReachEnv
     from reach_envs.recording import record_panels
     from safety.wrappers import SafetyFilterWrapper
 
     sc = _scene(scene, scene_overrides).replace(trails=True)
-    tasks = [task if task is not None else make_task(sc.system)]
-    tasks.append(copy.deepcopy(tasks[0]))
-    left = ReachEnv(sc, render_mode="rgb_array")
-    right = SafetyFilterWrapper(ReachEnv(sc, render_mode="rgb_array"), value_function, threshold, time_to_go)
-    bases = [left, right.unwrapped]
+    first = task if task is not None else make_task(sc.system)
+    tasks = [first] + [copy.deepcopy(first) for _ in kinds]
+    envs: list[Any] = [ReachEnv(sc, render_mode="rgb_array")]
+    envs += [
+        SafetyFilterWrapper(
+            ReachEnv(sc, render_mode="rgb_array"), value_function, threshold, time_to_go, kind=k, gamma=gamma
+        )
+        for k in kinds
+    ]
+    bases = [env.unwrapped for env in envs]
 
     def policy(j: int) -> Any:
         return lambda obs: tasks[j].nominal_actions(bases[j].state[None])[0].astype(np.float32)
@@ -345,16 +353,17 @@ def record_side_by_side(
     def caption(j: int, info: dict[str, Any] | None) -> str:
         if j == 0:
             return "nominal policy"
+        name = kinds[j - 1]
         if info is None:
-            return "filtered"
-        return "filtered: FILTER ACTIVE" if info["filter_intervened"] else "filtered: nominal kept"
+            return name
+        return f"{name}: FILTER ACTIVE" if info["filter_intervened"] else f"{name}: nominal kept"
 
     options = None if initial_states is None else [{"state": initial_states[k]} for k in range(len(seeds))]
     record_panels(
-        [left, right], path, [policy(0), policy(1)], list(seeds), options, caption=caption, on_reset=reset_tasks
+        envs, path, [policy(j) for j in range(len(envs))], list(seeds), options, caption=caption, on_reset=reset_tasks
     )
-    left.close()
-    right.close()
+    for env in envs:
+        env.close()
     return path
 
 
@@ -398,9 +407,9 @@ def run_filter_study(
         pursuer: ``None`` keeps the scene's disturbance; a name (``"pursue"``, ``"random"``) replaces
             it; a value function makes the pursuer play its worst-case ``d*``.
         start_outside: draw the episodes' starts from ``{V > start_margin}`` of this value function.
-        gif: also record three episodes (nominal | filtered by the first value function), preferring
-            episodes in which the nominal policy crashed; ``gif_threshold`` (default: the first
-            threshold) is the filter's threshold there.
+        gif: also record three episodes (nominal, then the first value function under each kind,
+            side by side), preferring episodes in which the nominal policy crashed; ``gif_threshold``
+            (default: the first threshold) is the filters' threshold there.
     """
     from safety.plots import plot_filter_tradeoff
 
@@ -420,9 +429,7 @@ def run_filter_study(
     if pettingzoo:
         if starts is not None:
             raise ValueError("the PettingZoo path samples its own starts; drop start_outside or pettingzoo")
-        rows = [
-            evaluate_filter_parallel(sc, c, episodes, seed, time_to_go, scene_overrides=overrides) for c in configs
-        ]
+        rows = [evaluate_filter_parallel(sc, c, episodes, seed, time_to_go, scene_overrides=overrides) for c in configs]
     else:
         rows = evaluate_filters(
             sc, configs, episodes, seed, time_to_go, scene_overrides=overrides, initial_states=starts
@@ -443,6 +450,8 @@ def run_filter_study(
             time_to_go,
             scene_overrides=overrides,
             initial_states=None if starts is None else starts[picks],
+            kinds=kinds,
+            gamma=gammas[0],
         )
         paths.append(str(gif))
     return FilterStudy(rows, paths)

@@ -72,9 +72,7 @@ def test_lookahead_keeps_the_nominal_input_only_when_the_next_state_stays_safe(a
     filt = SafetyFilter(air3d_grid, kind="lookahead", dt=0.02)
     u, info = filt(x, 1.1, nominal)
     _, p = air3d_grid.value_and_gradient(x, 1.1)
-    u_star = system.optimal_control(x, p)
-    # decided by the filter (where u* equals the nominal input, either decision applies the same)
-    kept = ~info.intervened & (u_star != nominal).any(-1)
+    kept = ~info.intervened
     assert kept.any() and info.intervened.any()
     # where the nominal input was kept, V one step ahead under the worst-case d* stayed above 0
     ahead = filt._ahead(x, nominal, system.optimal_disturbance(x, p))

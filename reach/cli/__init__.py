@@ -74,9 +74,15 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    import torch
+
+    before = torch.get_num_threads()
     if args.command != "sweep":  # a sweep sets threads per run itself (--threads there means per run)
         apply_thread_policy(args.threads)
-    return int(args.func(args))
+    try:
+        return int(args.func(args))
+    finally:  # main() called in-process (tests, scripts) leaves the caller's thread count as it was
+        torch.set_num_threads(before)
 
 
 __all__ = ["build_parser", "main"]

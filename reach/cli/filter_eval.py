@@ -47,7 +47,9 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--format", choices=["auto", "reach", "deepreach", "grid"], default="auto")
     p.add_argument("--layout", default=None, help="layout (needed for DeepReach files)")
     p.add_argument("--pettingzoo", action="store_true", help="run through the PettingZoo parallel env instead")
-    p.add_argument("--gif", default=None, help="also write a side-by-side GIF (nominal | filtered) of 3 episodes")
+    p.add_argument(
+        "--gif", default=None, help="also write a GIF of 3 episodes: nominal and each filter kind, side by side"
+    )
     p.add_argument("--out", default="filter.csv", help="results path; .csv, .json and .md are written")
     p.set_defaults(func=run)
 
@@ -80,9 +82,7 @@ def run(args: argparse.Namespace) -> int:
     unknown = [k for k in kinds if k not in KINDS]
     if unknown or not kinds:
         raise ValueError(f"--filters must list kinds among {', '.join(KINDS)}, got {args.filters!r}")
-    gammas = (
-        csv_floats("--gammas", args.gammas, lambda n, v: check_float(n, v, 0)) if args.gammas else [DEFAULT_GAMMA]
-    )
+    gammas = csv_floats("--gammas", args.gammas, lambda n, v: check_float(n, v, 0)) if args.gammas else [DEFAULT_GAMMA]
     out = check_output_path(args.out, "--out")
     if args.gif:
         check_output_path(args.gif, "--gif")
@@ -131,5 +131,6 @@ def run(args: argparse.Namespace) -> int:
     print(filter_table(study.rows))
     print()
     for path in study.paths:
-        print(f"wrote {path}" + (f" (left: nominal, right: filtered by {loaded[0].label})" if path == args.gif else ""))
+        note = f" (nominal, then filtered by {loaded[0].label}: {', '.join(kinds)})" if path == args.gif else ""
+        print(f"wrote {path}{note}")
     return 0
