@@ -26,17 +26,25 @@ def check_states(x: torch.Tensor, state_dim: int, what: str = "states") -> None:
 
 
 class OptimalPolicy:
-    """The optimal inputs of a value function: ``inputs(x, t) -> (V, u*, d*)``."""
+    """The optimal inputs of a value function: ``inputs(x, t) -> (V, u*, d*)``, and with the costate,
+    ``evaluate(x, t) -> (V, grad V, u*, d*)`` (for the filters, which also need ``grad V``)."""
 
     def __init__(self, value_function: ValueFunction) -> None:
         self.value_function = value_function
         self.system = value_function.system
 
-    def inputs(self, x: torch.Tensor, t: float | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``V(x, t)``, ``u*`` ``(..., m_u)`` and ``d*`` ``(..., m_d)`` from one gradient evaluation."""
+    def evaluate(
+        self, x: torch.Tensor, t: float | torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``V(x, t)``, ``p = grad V``, ``u*`` ``(..., m_u)`` and ``d*`` ``(..., m_d)`` from one gradient evaluation."""
         check_states(x, self.system.state_dim)
         v, p = value_and_gradient(self.value_function, x, t)
-        return v, self.system.optimal_control(x, p), self.system.optimal_disturbance(x, p)
+        return v, p, self.system.optimal_control(x, p), self.system.optimal_disturbance(x, p)
+
+    def inputs(self, x: torch.Tensor, t: float | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``V(x, t)``, ``u*`` ``(..., m_u)`` and ``d*`` ``(..., m_d)`` from one gradient evaluation."""
+        v, _, u, d = self.evaluate(x, t)
+        return v, u, d
 
     def control(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
         return self.inputs(x, t)[1]

@@ -49,3 +49,17 @@ def test_parsed_defaults_reach_the_library_unchanged(tmp_path):
     assert _config_fields(args) == {}  # nothing given: TrainConfig's own defaults apply
     config = TrainConfig(**_config_fields(args))
     assert config == TrainConfig()
+
+
+@pytest.mark.parametrize(
+    ("argv", "threads"),
+    [
+        (["--threads", "2", "sweep", "--out", "s"], 2),
+        (["sweep", "--threads", "3", "--out", "s"], 3),
+        (["sweep", "--out", "s"], None),
+    ],
+)
+def test_threads_given_before_or_after_the_subcommand_are_kept(argv, threads):
+    from reach.cli.common import finish_namespace
+
+    assert finish_namespace(build_parser().parse_args(argv)).threads == threads

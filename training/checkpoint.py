@@ -25,6 +25,9 @@ from training.network import Encoding, ValueNetwork
 
 FORMAT = "reach.checkpoint.v1"
 
+#: the metadata that rebuilds a network (:meth:`ValueNetwork.architecture`), covered by the digest
+ARCHITECTURE_KEYS = ("system", "layout", "width", "parameterisation", "w0", "encoding")
+
 
 def save_checkpoint(
     path: str | os.PathLike,
@@ -89,7 +92,7 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     meta = payload.get("metadata")
     if not isinstance(meta, dict) or not isinstance(payload.get("model"), dict):
         raise ValueError(f"{path}: checkpoint without metadata or weights")
-    missing = [key for key in ("system", "layout", "width", "parameterisation", "w0", "encoding") if key not in meta]
+    missing = [key for key in ARCHITECTURE_KEYS if key not in meta]
     if missing:
         raise ValueError(f"{path}: checkpoint metadata lacks {missing}")
     return payload
@@ -103,7 +106,7 @@ def check_integrity(path: str | os.PathLike, payload: dict[str, Any]) -> None:
     stored = (meta.get("integrity") or {}).get("sha256")
     if stored is None:
         return
-    architecture = {k: meta[k] for k in ("system", "layout", "width", "parameterisation", "w0", "encoding")}
+    architecture = {k: meta[k] for k in ARCHITECTURE_KEYS}
     if _digest(architecture, payload["model"]) != stored:
         raise ValueError(
             f"{path}: metadata or weights were changed after saving (digest mismatch; layout "
@@ -119,7 +122,18 @@ def load_network(
 ) -> ValueNetwork:
     """Rebuild the network of a checkpoint; a different ``system`` or ``layout`` than expected,
     weights that do not fit, or NaN/inf weights raise ``ValueError`` saying what does not match."""
-    payload = read_checkpoint(path)
+    return network_from_payload(path, read_checkpoint(path), system, layout, device)
+
+
+def network_from_payload(
+    path: str | os.PathLike,
+    payload: dict[str, Any],
+    system: ControlAffineSystem | None = None,
+    layout: str | None = None,
+    device: str | torch.device = "cpu",
+) -> ValueNetwork:
+    """:func:`load_network` for a checkpoint already read by :func:`read_checkpoint` (a resumed run
+    needs the optimizer and RNG state of the same file too); ``path`` names it in errors."""
     check_integrity(path, payload)
     meta = payload["metadata"]
     stored = system_from_config(meta["system"])

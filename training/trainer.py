@@ -35,7 +35,7 @@ from reach.atomic import atomic_path
 from reach.locking import run_lock
 from reach.systems import make_system
 from reach.validation import check_output_dir
-from training.checkpoint import load_network, read_checkpoint, save_checkpoint
+from training.checkpoint import network_from_payload, read_checkpoint, save_checkpoint
 from training.config import TrainConfig
 from training.loss import residual_function, training_loss
 from training.network import Encoding, NeuralValueFunction, ValueNetwork
@@ -213,7 +213,9 @@ class Trainer:
         trainer = cls(TrainConfig.from_dict(data), run_dir, evaluator, progress, _resuming=True)
         if trainer.checkpoint_path.exists():
             payload = read_checkpoint(trainer.checkpoint_path)
-            net = load_network(trainer.checkpoint_path, system=trainer.system, layout=trainer.config.layout)
+            net = network_from_payload(
+                trainer.checkpoint_path, payload, system=trainer.system, layout=trainer.config.layout
+            )
             if net.architecture() != trainer.network.architecture():
                 raise ValueError(
                     f"{trainer.checkpoint_path}: network {net.architecture()} does not match the run's "

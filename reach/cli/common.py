@@ -53,11 +53,6 @@ def default(cls: Any, name: str) -> Any:
     raise ValueError(f"{cls.__name__} has no field {name!r}")
 
 
-def given(args: argparse.Namespace, mapping: dict[str, str]) -> dict[str, Any]:
-    """``{field: value}`` for the options the user gave (not None); ``mapping`` is field -> option dest."""
-    return {field: getattr(args, dest) for field, dest in mapping.items() if getattr(args, dest) is not None}
-
-
 def add_subparser(sub: Any, name: str, threads: bool = True, **kwargs: Any) -> argparse.ArgumentParser:
     """A subcommand parser that also takes the global options (``threads=False``: all but ``--threads``)."""
     return sub.add_parser(name, parents=[common_options(threads)], **kwargs)  # parser_class: OneLineParser

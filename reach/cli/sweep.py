@@ -76,8 +76,11 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--backend", choices=["local", "ray"], default="local")
     p.add_argument("--address", default=None, help="ray: address of an existing cluster (default: start one)")
     p.add_argument("--workers", type=positive_int_arg, default=1, help="local: runs trained at once")
-    p.add_argument(
-        "--threads", type=positive_int_arg, default=None, help="torch threads per run (local default: cores/workers)"
+    p.add_argument(  # SUPPRESS: a `reach --threads N sweep` before the subcommand is not reset to None
+        "--threads",
+        type=positive_int_arg,
+        default=argparse.SUPPRESS,
+        help="torch threads per run (local default: cores/workers)",
     )
     p.add_argument("--out", required=True, help="sweep directory (an interrupted sweep continues there)")
     p.set_defaults(func=run)

@@ -77,10 +77,6 @@ TRAIN_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
     ("--snapshots", "snapshots", {"type": nonnegative_int_arg}, "save the network after every 1/N of the run"),
 )
 
-#: options a resumed run accepts (its stop rules, logging and device); the rest are fixed by its config
-RESUMABLE = {"steps", "budget_s", "target_loss", "device", "log_every", "checkpoint_every_s", "eval_every_s"}
-
-
 def add_parser(sub: Any) -> None:
     from training import TrainConfig
 
@@ -135,12 +131,14 @@ def _evaluator(args: argparse.Namespace) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     from training import TrainConfig, Trainer, TrainingDivergedError
+    from training.trainer import RESUME_OVERRIDABLE
 
     fields = _config_fields(args)
     if args.resume:
         if args.out:
             raise ValueError(f"give --out for a new run or --resume for an old one, not both (--out {args.out})")
-        fixed = sorted(set(fields) - RESUMABLE - {"tensorboard"})
+        # any other option given is refused, even one equal to the stored value: it was meant to change
+        fixed = sorted(set(fields) - RESUME_OVERRIDABLE)
         if fixed:
             option = {field: flag for flag, field, _, _ in TRAIN_OPTIONS} | {
                 "budget_s": "--budget",
