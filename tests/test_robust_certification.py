@@ -65,3 +65,16 @@ def test_verify_says_why_when_no_level_qualifies(air3d_grid):
     settings = VerifySettings(samples=200, certify_samples=0, robust_samples=500, dt=0.01)
     row = verify(air3d_grid, states, settings, progress=False)
     assert "needs at least" in row["robust_error"] and math.isnan(row["robust_level"])
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"target_eps": 0.0}, "target_eps"),
+        ({"target_eps": 1.5}, "target_eps"),
+        ({"robust_samples": -1}, "robust_samples"),
+    ],
+)
+def test_bad_robust_settings_are_refused(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        VerifySettings(**kwargs)
