@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from reach.atomic import atomic_path
-from reach.systems import make_system
+from reach.systems.registry import SystemSpecified
 from training.config import TrainConfig
 from training.network import parse_layout
 
@@ -35,7 +35,7 @@ _SWEEP_OWNED = {"system", "system_parameters", "layout", "seed", "budget_s", "st
 
 
 @dataclass
-class SweepSpec:
+class SweepSpec(SystemSpecified):
     """Every (layout, seed) is trained with the same budget and evaluated at ``snapshots`` points.
 
     ``evaluation`` is ``"groundtruth"`` (value MSE and BRT IoU against a grid solution, for systems
@@ -46,7 +46,7 @@ class SweepSpec:
     pairwise BRTs that a network calls safe, which a sound model keeps at zero.
     """
 
-    system: str = "air3d"
+    system: Any = "air3d"  # a registered name, an import path or a system instance
     system_parameters: dict[str, Any] = field(default_factory=dict)
     layouts: list[str] = field(default_factory=lambda: list(AIR3D_LAYOUTS))
     seeds: list[int] = field(default_factory=lambda: [0, 1, 2])
@@ -68,6 +68,7 @@ class SweepSpec:
     pairwise: str | None = None
 
     def __post_init__(self) -> None:
+        self.take_system_instance()
         self.layouts = [str(x) for x in self.layouts]
         self.seeds = [int(s) for s in self.seeds]
 
@@ -101,9 +102,9 @@ class SweepSpec:
             from groundtruth.solution import GridSolution
 
             reference = GridSolution.load(self.groundtruth)
-            wanted = make_system(self.system, **self.system_parameters)
+            wanted = self.build_system()
             wanted.require_same_physics(reference.system, f"ground truth {self.groundtruth}")
-        system = make_system(self.system, **self.system_parameters)
+        system = self.build_system()
         if self.evaluation == "auto":
             self.evaluation = "groundtruth" if system.state_dim <= 3 else "rollout"
         if self.evaluation not in ("groundtruth", "rollout"):

@@ -47,9 +47,8 @@ def _ground_truth(spec: SweepSpec, out: Path, progress: bool, log: Callable[[str
     path = out / "groundtruth.npz"
     if not path.exists():
         from groundtruth.solver import solve
-        from reach.systems import make_system
 
-        system = make_system(spec.system, **spec.system_parameters)
+        system = spec.build_system()
         t = system.horizon if spec.eval_time is None else spec.eval_time
         times = [t * k / 20 for k in range(21)]
         log(f"ground truth: {spec.system} on a {spec.grid}^{system.state_dim} grid to t = {t:g} -> {path}")

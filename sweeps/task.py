@@ -29,12 +29,11 @@ def run_dir(out: str | os.PathLike, layout: str, seed: int) -> Path:
 
 
 def _scorer(spec: Any, groundtruth: str | None) -> Any:
-    from reach.systems import make_system
     from sweeps.scoring import GroundTruthScorer, RolloutScorer
 
     ident = json.dumps([spec.to_dict(), groundtruth], sort_keys=True, default=str)
     if ident not in _SCORERS:
-        system = make_system(spec.system, **spec.system_parameters)
+        system = spec.build_system()
         if spec.evaluation == "groundtruth":
             if groundtruth is None:
                 raise ValueError("a ground-truth evaluation needs the ground-truth file")

@@ -9,7 +9,8 @@ import re
 from dataclasses import dataclass, field
 from typing import Any
 
-from reach.systems import make_system
+from reach.systems import ControlAffineSystem
+from reach.systems.registry import SystemSpecified
 from reach.validation import check_device, check_float, check_int, check_seed
 from training.network import parse_layout
 
@@ -34,10 +35,14 @@ COMPILE_MIN_BUDGET_S = 120.0
 
 
 @dataclass
-class TrainConfig:
-    """A training run. At least one stop rule (``steps``, ``budget_s`` or ``target_loss``) is needed."""
+class TrainConfig(SystemSpecified):
+    """A training run. At least one stop rule (``steps``, ``budget_s`` or ``target_loss``) is needed.
 
-    system: str = "air3d"
+    ``system`` is a registered name, an import path (``pkg.module:ClassName``) or a system instance;
+    an instance is stored as its reference and parameters (:class:`~reach.systems.registry.SystemSpecified`).
+    """
+
+    system: str | ControlAffineSystem = "air3d"
     system_parameters: dict[str, Any] = field(default_factory=dict)
     layout: str = "ssssl"
     width: int = 128
@@ -69,6 +74,9 @@ class TrainConfig:
     eval_every_s: float = 60.0
     tensorboard: bool = False  # also log the metrics as TensorBoard scalars in RUN/tensorboard (reach[tensorboard])
     snapshots: int = 0  # evenly spaced network snapshots over the run (RUN/snapshots/NNN.pt); needs steps or budget_s
+
+    def __post_init__(self) -> None:
+        self.take_system_instance()
 
     def validate(self) -> TrainConfig:
         parse_layout(self.layout)
@@ -125,7 +133,7 @@ class TrainConfig:
             if not ok:
                 raise ValueError(f"invalid {name}: {getattr(self, name)!r}")
         check_device(self.device)
-        make_system(self.system, **self.system_parameters)  # an unknown system or parameter fails here
+        self.build_system()  # an unknown system or parameter fails here
         if self.snapshots and self.steps is None and self.budget_s is None:
             raise ValueError("snapshots are spaced over steps or budget_s; give one of them")
         if self.parameterisation not in ("exact", "vanilla"):

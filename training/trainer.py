@@ -33,7 +33,6 @@ from tqdm.auto import tqdm
 
 from reach.atomic import atomic_path
 from reach.locking import run_lock
-from reach.systems import make_system
 from reach.validation import check_output_dir
 from training.checkpoint import network_from_payload, read_checkpoint, save_checkpoint
 from training.config import TrainConfig
@@ -97,7 +96,7 @@ def build_network(config: TrainConfig) -> ValueNetwork:
     """The run's network, initialised from ``config.seed`` alone (not from the global RNG's state, which
     depends on what the process did before: runs of one sweep in one process would differ from the
     same runs in fresh processes)."""
-    system = make_system(config.system, **config.system_parameters)
+    system = config.build_system()
     encoding = Encoding.for_system(
         system, sincos=config.sincos, value_scale=config.value_scale, sincos_radius=config.sincos_radius
     )
@@ -146,7 +145,7 @@ class Trainer:
                     f"`reach train --resume {self.run_dir}` (Trainer.resume) or choose another directory"
                 )
         if evaluator is not None and getattr(evaluator, "system", None) is not None:
-            wanted = make_system(config.system, **config.system_parameters)
+            wanted = config.build_system()
             wanted.require_same_physics(evaluator.system, "the evaluation ground truth")
         self.evaluator = evaluator
         self.progress = progress

@@ -98,7 +98,6 @@ class RelativePair(ControlAffineSystem):
         self.deepreach = DeepReachNormalisation(
             state_offset=(0.0, 0.0, 0.0), state_scale=(half_width, half_width, 1.2 * math.pi)
         )
-        self.validate()
 
     def parameters(self) -> dict[str, Any]:
         return {

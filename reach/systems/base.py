@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import json
 import math
-from abc import ABC, abstractmethod
+from abc import ABCMeta, abstractmethod
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
@@ -93,14 +93,26 @@ class DeepReachNormalisation:
     value_offset: float = 0.25
 
 
-class ControlAffineSystem(ABC):
+class _CheckedOnConstruction(ABCMeta):
+    """Runs :meth:`ControlAffineSystem.validate` after every constructor: a bad definition fails when
+    it is built, naming the field, not later inside a solver or a training step."""
+
+    def __call__(cls, *args: Any, **kwargs: Any) -> Any:
+        system = super().__call__(*args, **kwargs)
+        system.validate()
+        return system
+
+
+class ControlAffineSystem(metaclass=_CheckedOnConstruction):
     """Base class of every dynamical system; subclasses declare physics only.
 
     Subclasses set the class or instance attributes below and implement :meth:`drift`,
     :meth:`control_matrix`, optionally :meth:`disturbance_matrix`, and :meth:`failure_margin_columns`.
+    Every instance is checked by :meth:`validate` when it is constructed.
     """
 
-    #: registry name, used in configs and checkpoints
+    #: short name (default: the class name in lower case); configs store the registered name or the
+    #: import path (:func:`reach.systems.registry.system_reference`)
     name: ClassVar[str]
     state_names: tuple[str, ...]
     #: (low, high) per state dimension; periodic dimensions span one period [-pi, pi)
@@ -111,7 +123,13 @@ class ControlAffineSystem(ABC):
     control_objective: Objective = "max"
     disturbance_objective: Objective = "min"
     horizon: float
-    deepreach: DeepReachNormalisation
+    #: only for importing DeepReach checkpoints; network inputs are scaled from ``domain``
+    deepreach: DeepReachNormalisation | None = None
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "name" not in cls.__dict__:
+            cls.name = cls.__name__.lower()
 
     # ------------------------------------------------------------------ physics (subclasses)
     @abstractmethod
@@ -148,7 +166,7 @@ class ControlAffineSystem(ABC):
         horizon and the sampling box. Two systems with equal physics can share a value function
         (e.g. a 9D network filters a 2 s merge scene of the same three cars)."""
         params = {k: v for k, v in self.parameters().items() if k not in ("horizon", "half_width")}
-        return {"name": self.name, "parameters": params}
+        return {"name": self.reference(), "parameters": params}
 
     def same_physics(self, other: ControlAffineSystem) -> bool:
         """The package's one compatibility rule: a value function of ``other`` may serve ``self``
@@ -181,9 +199,15 @@ class ControlAffineSystem(ABC):
             dims = self.__dict__["_periodic_dims"] = tuple(i for i, p in enumerate(self.periodic) if p)
         return dims
 
+    def reference(self) -> str:
+        """The registered name of this system's class, or else its import path ``module:ClassName``."""
+        from reach.systems.registry import system_reference  # the registry imports this module
+
+        return system_reference(type(self))
+
     def config(self) -> dict[str, Any]:
         """``{"name": ..., "parameters": {...}}``: enough to rebuild the system and compare two."""
-        return {"name": self.name, "parameters": self.parameters()}
+        return {"name": self.reference(), "parameters": self.parameters()}
 
     def __eq__(self, other: object) -> bool:
         return isinstance(other, ControlAffineSystem) and self.config() == other.config()
@@ -196,21 +220,63 @@ class ControlAffineSystem(ABC):
         return f"{type(self).__name__}({params})"
 
     def validate(self) -> None:
-        """Check that the declared attributes are consistent (called by subclasses' constructors)."""
+        """Check the declared attributes and probe the physics on a few states; ``ValueError`` naming
+        the field otherwise. Runs after every constructor (a user system need not call it)."""
+        what = f"{type(self).__name__}"
+        for attr in ("state_names", "domain", "periodic", "control_bounds", "horizon"):
+            if not hasattr(self, attr):
+                raise ValueError(f"{what}: declare {attr!r} (see ControlAffineSystem)")
         n = len(self.state_names)
-        if len(self.domain) != n or len(self.periodic) != n:
+        if n == 0 or len(self.domain) != n or len(self.periodic) != n:
             raise ValueError(
-                f"{self.name}: state_names ({n}), domain ({len(self.domain)}) and periodic "
-                f"({len(self.periodic)}) must have the same length"
+                f"{what}: state_names ({n}), domain ({len(self.domain)}) and periodic "
+                f"({len(self.periodic)}) must have the same nonzero length"
             )
-        for name, (lo, hi) in zip(self.state_names, self.domain):
+        if len(set(self.state_names)) != n:
+            raise ValueError(f"{what}: state_names must be distinct, got {self.state_names}")
+        for name, bounds in zip(self.state_names, self.domain):
+            lo, hi = bounds if len(bounds) == 2 else (math.nan, math.nan)
             if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-                raise ValueError(f"{self.name}: domain of {name} must be finite with low < high, got [{lo}, {hi}]")
+                raise ValueError(f"{what}: domain of {name} must be finite with low < high, got {bounds}")
+        for name, periodic, (lo, hi) in zip(self.state_names, self.periodic, self.domain):
+            if periodic and not (abs(lo + math.pi) < 1e-6 and abs(hi - math.pi) < 1e-6):
+                raise ValueError(f"{what}: periodic dimension {name} must span [-pi, pi), got [{lo}, {hi}]")
+        for side in ("control_bounds", "disturbance_bounds"):
+            if not isinstance(getattr(self, side), Box):
+                raise ValueError(f"{what}: {side} must be a Box, got {getattr(self, side)!r}")
         for side, objective in (("control", self.control_objective), ("disturbance", self.disturbance_objective)):
             if objective not in ("max", "min"):
-                raise ValueError(f"{self.name}: {side}_objective must be 'max' or 'min', got {objective!r}")
-        if not (self.horizon > 0 and math.isfinite(self.horizon)):
-            raise ValueError(f"{self.name}: horizon must be positive and finite, got {self.horizon}")
+                raise ValueError(f"{what}: {side}_objective must be 'max' or 'min', got {objective!r}")
+        if isinstance(self.horizon, bool) or not (
+            isinstance(self.horizon, (int, float)) and self.horizon > 0 and math.isfinite(self.horizon)
+        ):
+            raise ValueError(f"{what}: horizon must be positive and finite, got {self.horizon!r}")
+        self._probe_physics(what)
+
+    def _probe_physics(self, what: str) -> None:
+        """Evaluate the physics on 4 states of the domain: column counts, matrix indices, ``l``'s shape."""
+        x = TORCH.unbind(self.sample_states(4, torch.Generator().manual_seed(0), dtype=torch.float64))
+        n = self.state_dim
+        drift = self.drift(x, TORCH)
+        if len(drift) != n:
+            raise ValueError(f"{what}: drift returned {len(drift)} columns, expected {n} (one per state)")
+        for side, matrix, m in (
+            ("control_matrix", self.control_matrix(x, TORCH), self.control_dim),
+            ("disturbance_matrix", self.disturbance_matrix(x, TORCH), self.disturbance_dim),
+        ):
+            for key in matrix:
+                if not (isinstance(key, tuple) and len(key) == 2 and 0 <= key[0] < n and 0 <= key[1] < m):
+                    raise ValueError(
+                        f"{what}: {side} entry {key!r} is out of range: keys are (state index < {n}, input index < {m})"
+                    )
+        margin = self.failure_margin_columns(x, TORCH)
+        if not isinstance(margin, torch.Tensor) or tuple(margin.shape) != (4,):
+            shape = tuple(margin.shape) if isinstance(margin, torch.Tensor) else type(margin).__name__
+            raise ValueError(
+                f"{what}: failure_margin_columns must return one value per state, shape (4,) for 4 states, got {shape}"
+            )
+        if not torch.isfinite(margin).all():
+            raise ValueError(f"{what}: failure_margin_columns returned non-finite values inside the domain")
 
     # ------------------------------------------------------------------ derived, on columns
     def xdot_columns(self, x: Sequence[Column], u: Sequence[Column], d: Sequence[Column], xp: Backend) -> list[Column]:

@@ -94,7 +94,6 @@ class MultiVehicle(ControlAffineSystem):
         )
         self._control_entries = tuple((2 * n + car, k) for k, car in enumerate(self.control_cars))
         self._disturbance_entries = tuple((2 * n + car, k) for k, car in enumerate(self.disturbance_cars))
-        self.validate()
 
     def parameters(self) -> dict[str, Any]:
         return {
