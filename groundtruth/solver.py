@@ -32,6 +32,7 @@ from groundtruth.weno import derivatives
 from reach.compiling import maybe_compile
 from reach.systems.backend import TORCH
 from reach.systems.base import ControlAffineSystem
+from reach.systems.registry import make_system
 
 MAX_DIM = 4
 #: Above this CFL number TVD-RK3 with WENO5 is not guaranteed stable (the scheme's linear limit is ~1).
@@ -105,7 +106,7 @@ def check_memory(shape: Sequence[int], num_times: int, dtype: torch.dtype = torc
 
 
 def solve(
-    system: ControlAffineSystem,
+    system: ControlAffineSystem | str,
     grid: Grid | int | Sequence[int],
     times: Sequence[float],
     *,
@@ -120,7 +121,8 @@ def solve(
     """Solve the BRT value function of ``system`` on ``grid`` and keep it at the given ``times``.
 
     Args:
-        system: any system with at most 4 state dimensions.
+        system: any system with at most 4 state dimensions: an instance, a registered name or an
+            import path ``package.module:ClassName``.
         grid: a :class:`Grid`, or node counts (int or per dimension) over the system's domain.
         times: output times-to-go (>= 0, increasing); the last one is the horizon.
         cfl: Courant number; values above 1 are refused (TVD-RK3 + WENO5 is unstable there).
@@ -138,6 +140,7 @@ def solve(
             solution, but numerically monotone in time; with ``min_with_target`` numerical
             diffusion at kinks of ``V`` can raise ``V`` by a few 1e-3 between output times.
     """
+    system = make_system(system)
     if system.state_dim > MAX_DIM:
         raise ValueError(f"the grid solver handles at most {MAX_DIM} dimensions, {system.name} has {system.state_dim}")
     if not isinstance(grid, Grid):

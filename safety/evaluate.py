@@ -142,7 +142,7 @@ def evaluate_many(
     layout: str | None = None,
     ground_truth: str | os.PathLike | None = None,
     gt_time: float | None = None,
-    gt_slice: float = 1.5863,
+    gt_slice: float | None = None,
     pairwise: str | os.PathLike | None = None,
     device: str = "cpu",
     progress: bool = True,

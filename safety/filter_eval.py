@@ -32,7 +32,7 @@ from reach_envs.vector import ReachVectorEnv
 from safety.filter import DEFAULT_GAMMA
 from safety.metrics import wilson_interval
 from safety.results_io import markdown_table, write_results
-from safety.tasks import GoalTask, make_task
+from safety.tasks import GoalTask, NominalPolicy, make_task
 from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper, default_threshold
 
 
@@ -105,7 +105,7 @@ class _Tally:
             "infeasible_rate": self.infeasible / max(1, self.running_steps),
             "kind": config.kind if config.value_function is not None else None,
             "gamma": config.gamma if config.value_function is not None and config.kind == "smooth" else None,
-            "goal_rate": float(reached.mean()),
+            "goal_rate": float(reached.mean()) if task.has_goal else float("nan"),
             "mean_goal_time": float(np.nanmean(task.reach_time[reached])) if reached.any() else float("nan"),
             "wall_time": wall,
             "collided_episodes": [int(i) for i in np.flatnonzero(self.collided)[:20]],
@@ -398,6 +398,7 @@ def run_filter_study(
     title: str | None = None,
     kinds: Sequence[str] = ("switch",),
     gammas: Sequence[float] = (DEFAULT_GAMMA,),
+    nominal: NominalPolicy | None = None,
 ) -> FilterStudy:
     """The one filter-evaluation pipeline: episodes, results, trade-off plot and a side-by-side GIF.
 
@@ -410,6 +411,9 @@ def run_filter_study(
         gif: also record three episodes (nominal, then the first value function under each kind,
             side by side), preferring episodes in which the nominal policy crashed; ``gif_threshold``
             (default: the first threshold) is the filters' threshold there.
+        nominal: the nominal policy (float64 states ``(N, n)`` -> normalised actions ``(N, m_u)``);
+            default: the scene system's goal task (:func:`~safety.tasks.make_task`), which for a
+            system without goals keeps the centre of the control box.
     """
     from safety.plots import plot_filter_tradeoff
 
@@ -420,6 +424,7 @@ def run_filter_study(
             raise ValueError(f"pursuer {pursuer!r}: scene {sc.name} has no disturbance input")
         overrides["disturbance"] = pursuer if isinstance(pursuer, str) else worst_case_disturbance(pursuer)
     starts = None if start_outside is None else outside_states(start_outside, episodes, start_margin, seed)
+    task = make_task(sc.system, nominal)
     configs = [FilterConfig("nominal")]
     for label, vf in value_functions:
         for kind in kinds:
@@ -429,10 +434,13 @@ def run_filter_study(
     if pettingzoo:
         if starts is not None:
             raise ValueError("the PettingZoo path samples its own starts; drop start_outside or pettingzoo")
-        rows = [evaluate_filter_parallel(sc, c, episodes, seed, time_to_go, scene_overrides=overrides) for c in configs]
+        rows = [
+            evaluate_filter_parallel(sc, c, episodes, seed, time_to_go, task=task, scene_overrides=overrides)
+            for c in configs
+        ]
     else:
         rows = evaluate_filters(
-            sc, configs, episodes, seed, time_to_go, scene_overrides=overrides, initial_states=starts
+            sc, configs, episodes, seed, time_to_go, task=task, scene_overrides=overrides, initial_states=starts
         )
     out = Path(out)
     write_filter_results(rows, out, {"scene": sc.name, "episodes": episodes, "seed": seed, **(header or {})})
@@ -452,6 +460,7 @@ def run_filter_study(
             initial_states=None if starts is None else starts[picks],
             kinds=kinds,
             gamma=gammas[0],
+            task=task,
         )
         paths.append(str(gif))
     return FilterStudy(rows, paths)

@@ -18,18 +18,8 @@ import torch
 
 from reach.atomic import atomic_path
 from reach.systems import ControlAffineSystem
+from reach.systems.multivehicle import DEEPREACH_9D_SLICE
 from reach.value_function import ValueFunction
-
-#: A second 9D slice (ours): cars 2 and 3 head-on across the x axis, car 1 heading east.
-SECOND_9D_SLICE = (0.0, 0.0, 0.0, 0.5, 0.0, -0.5, 0.0, -math.pi / 2, math.pi / 2)
-
-#: DeepReach's 9D slice: car 2 at (-0.4, 0), car 3 at (0.4, 0), headings pi/2, pi/4, 3 pi/4; axes x1, y1.
-DEEPREACH_9D_SLICE = (0.0, 0.0, -0.4, 0.0, 0.4, 0.0, math.pi / 2, math.pi / 4, 3 * math.pi / 4)
-
-#: The slice of DeepReach's 2021 figure comparing the 9D BRT with the union of pairwise BRTs (its
-#: validation script ``2E1P_valfunc_and_BRT.py``, at t = 1.0): car 1 varies over (x1, y1) with heading
-#: -2.54, car 2 at (-0.4, 0) heading 0, car 3 at (0.43, 0.33) heading -2.44.
-PAPER_2021_9D_SLICE = (0.0, 0.0, -0.4, 0.0, 0.43, 0.33, -2.54, 0.0, -2.44)
 
 
 @dataclass(frozen=True)
@@ -42,25 +32,10 @@ class SliceSpec:
 
 
 def default_slices(system: ControlAffineSystem) -> list[SliceSpec]:
-    """Air3D: x1-x2 at x3 = 1.5863 (the reference slice), 0 and -pi/2; 9D: DeepReach's slice, the
-    2021 paper's figure's slice and one of ours; anything else: the domain centre over the first two
-    dimensions."""
-    if system.name == "air3d":
-        return [SliceSpec((0.0, 0.0, v), (0, 1), f"x3 = {v:.4g}") for v in (1.5863, 0.0, -math.pi / 2)]
-    if system.state_dim == 9 and getattr(system, "num_cars", 0) == 3:
-        return [
-            SliceSpec(
-                DEEPREACH_9D_SLICE, (0, 1), "DeepReach: cars 2, 3 at (-0.4, 0), (0.4, 0)\nheadings pi/2, pi/4, 3pi/4"
-            ),
-            SliceSpec(
-                PAPER_2021_9D_SLICE,
-                (0, 1),
-                "2021 figure: cars 2, 3 at (-0.4, 0), (0.43, 0.33)\nheadings -2.54, 0, -2.44",
-            ),
-            SliceSpec(SECOND_9D_SLICE, (0, 1), "cars 2, 3 at (0, 0.5), (0, -0.5) facing each other\ncar 1 heading 0"),
-        ]
-    centre = tuple(0.5 * (a + b) for a, b in system.domain)
-    return [SliceSpec(centre, (0, 1), "domain centre")]
+    """The system's own plot slices (:meth:`~reach.systems.base.ControlAffineSystem.plot_slices`):
+    Air3D's reference slice and two more, DeepReach's 9D slices, and for any other system the domain
+    centre over its view dimensions."""
+    return [SliceSpec(tuple(base), tuple(axes), title) for base, axes, title in system.plot_slices()]
 
 
 def slice_states(
@@ -159,13 +134,16 @@ def plot_violation_bars(rows: Sequence[dict[str, Any]], path: str | os.PathLike)
 def record_filtered_episode(
     value_function: ValueFunction | str,
     path: str | os.PathLike,
-    scene: str = "air3d",
+    scene: Any = None,
     threshold: float | None = None,
     seed: int = 0,
     adversary: bool = True,
     every: int = 1,
 ) -> dict[str, Any]:
     """A GIF of one safety-filtered episode whose nominal policy drives straight.
+
+    ``scene`` is a named scene or a :class:`~reach_envs.scenes.Scene`; by default ``air3d`` for an
+    Air3D value function and a plain scene of the value function's system otherwise.
 
     With ``adversary=True`` and a system with a disturbance, the pursuer plays the value function's
     worst-case ``d*`` (at the system's horizon), which is what the filter is built to withstand.
@@ -174,11 +152,14 @@ def record_filtered_episode(
 
     from reach_envs.env import ReachEnv
     from reach_envs.recording import record_episode
+    from reach_envs.scenes import Scene
     from safety.filter_eval import worst_case_disturbance
     from safety.value_functions import as_value_function
     from safety.wrappers import SafetyFilterWrapper
 
     vf = as_value_function(value_function)
+    if scene is None:
+        scene = "air3d" if vf.system.name == "air3d" else Scene(system=vf.system, name=vf.system.name)
     overrides: dict[str, Any] = {"trails": True}
     if adversary and vf.system.disturbance_dim:
         overrides["disturbance"] = worst_case_disturbance(vf)

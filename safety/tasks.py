@@ -11,12 +11,15 @@ episodes in NumPy.
 * :class:`EvaderGoalTask` (Air3D, relative coordinates): the state says where the pursuer is relative
   to the evader, not where the evader is, so the task integrates the evader's world pose itself (exact
   arcs under the applied turn rate) and steers it to a goal drawn per episode.
+* :class:`NominalTask` (any system, a user's own included): no goal; the nominal policy is a callable
+  the user supplies, or by default "keep the nominal input" (the centre of the control box).
 """
 
 from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 
 import numpy as np
 
@@ -27,6 +30,9 @@ _wrap = NUMPY.wrap_angle  # the package's one angle wrap, on NumPy arrays
 
 class GoalTask(ABC):
     """Goal-seeking nominal policy plus goal bookkeeping for ``N`` parallel episodes."""
+
+    #: whether the task has goals (a task without, :class:`NominalTask`, reports no goal rate)
+    has_goal = True
 
     def __init__(self, system: ControlAffineSystem, goal_radius: float, gain: float) -> None:
         for name, value in (("goal_radius", goal_radius), ("gain", gain)):
@@ -147,10 +153,55 @@ class EvaderGoalTask(GoalTask):
         self._mark(near, active, time)
 
 
-def make_task(system: ControlAffineSystem, **kwargs: float) -> GoalTask:
-    """The default task of a scene's system: waypoints for cars, a goal for Air3D's evader."""
+#: a nominal policy: float64 states ``(N, n)`` -> actions ``(N, m_u)`` normalised to [-1, 1]
+NominalPolicy = Callable[[np.ndarray], np.ndarray]
+
+
+class NominalTask(GoalTask):
+    """No goal: nominal actions from ``policy(states)`` (normalised to [-1, 1], one row per episode),
+    or the centre of the control box when ``policy`` is None ("keep the nominal input").
+
+    A policy's output is checked every step: a wrong shape or a non-finite entry raises
+    ``ValueError`` instead of reaching the filter as a nominal input.
+    """
+
+    has_goal = False
+
+    def __init__(self, system: ControlAffineSystem, policy: NominalPolicy | None = None) -> None:
+        if policy is not None and not callable(policy):
+            raise ValueError(f"NominalTask: policy must be callable (states -> actions), got {policy!r}")
+        self.system = system
+        self.policy = policy
+        self.half = np.array(system.control_bounds.half_width)
+        self.reached = np.zeros(0, dtype=bool)
+        self.reach_time = np.zeros(0)
+
+    def reset(self, states: np.ndarray, rng: np.random.Generator) -> None:
+        self.reached = np.zeros(len(states), dtype=bool)
+        self.reach_time = np.full(len(states), np.nan)
+
+    def nominal_actions(self, states: np.ndarray) -> np.ndarray:
+        shape = (len(states), self.system.control_dim)
+        if self.policy is None:
+            return np.zeros(shape)
+        actions = np.asarray(self.policy(states), dtype=np.float64)
+        if actions.shape != shape:
+            raise ValueError(f"nominal policy returned shape {actions.shape}, expected {shape} (states, controls)")
+        if not np.isfinite(actions).all():
+            raise ValueError("nominal policy returned a non-finite action")
+        return actions
+
+    def advance(self, states: np.ndarray, applied: np.ndarray, dt: float, active: np.ndarray, time: float) -> None:
+        return None
+
+
+def make_task(system: ControlAffineSystem, nominal: NominalPolicy | None = None, **kwargs: float) -> GoalTask:
+    """The default task of a scene's system: waypoints for cars, a goal for Air3D's evader, and for any
+    other system (or whenever ``nominal`` is given) a :class:`NominalTask` with that policy."""
+    if nominal is not None or not isinstance(system, (MultiVehicle, RelativePair)):
+        if kwargs:
+            raise ValueError(f"task options {sorted(kwargs)} need a goal task; {system.name} gets a NominalTask")
+        return NominalTask(system, nominal)
     if isinstance(system, MultiVehicle):
         return WaypointTask(system, **kwargs)
-    if isinstance(system, RelativePair):
-        return EvaderGoalTask(system, **kwargs)
-    raise ValueError(f"no goal task for system {system.name}")
+    return EvaderGoalTask(system, **kwargs)

@@ -88,7 +88,7 @@ def as_value_function(
     if not isinstance(source, ValueFunction):
         raise ValueError(f"expected a ValueFunction or a path, got {type(source).__name__}")
     if system is not None:
-        wanted = make_system(system) if isinstance(system, str) else system
+        wanted = make_system(system)
         wanted.require_same_physics(source.system, what)
     return source
 
@@ -119,8 +119,8 @@ def load_value_function(
     """
     if format not in FORMATS:
         raise ValueError(f"format must be one of {FORMATS}, got {format!r}")
-    if isinstance(system, str):
-        system = make_system(system)
+    if system is not None:
+        system = make_system(system)  # an instance, a registered name or an import path
     p = resolve_checkpoint(path)
     try:
         return _load(p, format, system, layout, device, label)

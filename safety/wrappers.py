@@ -14,8 +14,8 @@ and integrator) or ``"smooth"`` (``gamma``: the barrier rate); see :mod:`safety.
 
 Threshold: a switch or smooth filter that acts once per environment step (zero-order hold) lets
 ``V`` fall by up to about ``|dl/dt|_max * dt`` before it can react, so their default threshold
-(``threshold=None``) is ``2 * margin_rate_bound * dt`` (0.06 for Air3D at dt = 0.02; 0 for systems
-that declare no bound). With threshold 0 and a worst-case pursuer, the Air3D grid switch filter
+(``threshold=None``) is ``2 * margin_rate_bound * dt`` (0.06 for Air3D at dt = 0.02; systems that
+declare no bound use a rate sampled from their own physics, :meth:`margin_rate_estimate`). With threshold 0 and a worst-case pursuer, the Air3D grid switch filter
 still lets most attacked episodes collide: the state rides the BRT boundary and slips in between
 decisions. The lookahead filter checks the state after the step, so its default threshold is 0
 (on Air3D it still lets 2.6 % of attacked episodes graze the failure set there; 0.03 lets none).
@@ -53,12 +53,14 @@ def _check_time_to_go(time_to_go: float | str | None) -> None:
 
 def default_threshold(system: Any, dt: float, kind: str = "switch") -> float:
     """The default threshold of a filter kind in an env stepping ``dt``: the switch and the smooth
-    filter decide on the current state, so theirs is ``2 * margin_rate_bound * dt``, twice what ``V``
-    can lose in one held step (0 without a bound); the lookahead checks the next state, so 0."""
+    filter decide on the current state, so theirs is ``2 * rate * dt``, twice what ``V`` can lose in
+    one held step, with ``rate`` the system's :meth:`margin_rate_bound` or, for a system that declares
+    none, :meth:`margin_rate_estimate` (sampled over the domain); the lookahead checks the next
+    state, so 0."""
     if kind == "lookahead":
         return 0.0
     bound = system.margin_rate_bound()
-    return 0.0 if bound is None else 2.0 * bound * dt
+    return 2.0 * (system.margin_rate_estimate() if bound is None else bound) * dt
 
 
 class _Adapter:

@@ -27,7 +27,9 @@ class GroundTruthScorer:
 
     headline = (("iou_volume", True), ("mse_volume", False), ("iou_slice", True), ("mse_slice", False))
 
-    def __init__(self, system: ControlAffineSystem, path: str | os.PathLike, t: float | None, slice_value: float):
+    def __init__(
+        self, system: ControlAffineSystem, path: str | os.PathLike, t: float | None, slice_value: float | None
+    ):
         from groundtruth.solution import GridSolution
         from training.evaluate import ReferenceEvaluator
 

@@ -27,6 +27,14 @@ AIR3D_LAYOUTS = ("ssssl", "ssrsl", "srsrl", "rrrsl", "srrrl", "rrrrl")
 #: the seed paper's 9D layouts studied here: the Air3D six plus three of its six-layer ones
 NINE_D_LAYOUTS = (*AIR3D_LAYOUTS, "sssssl", "ssrrsl", "srsrrl")
 
+
+def default_layouts(system: Any) -> list[str]:
+    """Layouts a sweep compares when none are given: the 9D study's for the multi-vehicle systems, the
+    paper's six (:data:`AIR3D_LAYOUTS`) for Air3D and for any other system, a user's own included."""
+    from reach.systems import MultiVehicle, make_system
+
+    return list(NINE_D_LAYOUTS if isinstance(make_system(system), MultiVehicle) else AIR3D_LAYOUTS)
+
 #: keys that may differ between runs into one sweep directory
 GROWABLE = ("layouts", "seeds")
 
@@ -60,7 +68,7 @@ class SweepSpec(SystemSpecified):
     grid: int = 101
     groundtruth: str | None = None
     eval_time: float | None = None
-    slice_value: float = 1.5863
+    slice_value: float | None = None  # None: the system's reference slice value
     samples: int = 10_000
     certify_samples: int | None = None
     rollout_every: int = 1
@@ -113,6 +121,8 @@ class SweepSpec(SystemSpecified):
             raise ValueError("pairwise containment is a rollout-evaluation metric (multi-vehicle systems)")
         if self.pairwise is not None and not Path(self.pairwise).exists():
             raise ValueError(f"pairwise solution {self.pairwise} does not exist")
+        if self.slice_value is None:  # stored resolved, so a sweep's spec does not change with the default
+            self.slice_value = system.reference_slice()[1]
         if self.evaluation == "groundtruth" and system.state_dim > 3:
             raise ValueError(f"{self.system} has {system.state_dim} dimensions; a grid ground truth needs at most 3")
         for layout in self.layouts[:1]:

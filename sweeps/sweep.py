@@ -223,7 +223,8 @@ def write_report(
         parts.append(
             f"Accuracy against the grid ground truth `{Path(groundtruth).name}` "
             f"({'x'.join(str(n) for n in gt.grid.shape)} nodes) at t = {t:g}: value MSE and IoU of "
-            f"{{V <= 0}} over every grid node (vol.) and over the slice x3 = {spec.slice_value:g}."
+            f"{{V <= 0}} over every grid node (vol.) and over the slice "
+            f"{gt.system.state_names[gt.system.reference_slice()[0]]} = {spec.slice_value:g}."
         )
     else:
         parts.append(

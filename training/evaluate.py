@@ -29,16 +29,17 @@ class ReferenceEvaluator:
     """Callable ``evaluator(value_function) -> metrics`` over a volume and one 2D slice of a grid.
 
     ``reference`` is a grid solution (anything with ``grid.points()`` and ``value(x, t)``); the
-    volume is all its nodes, the slice the nodes of dimension ``slice_dim`` nearest ``slice_value``,
-    or, when ``slice_states`` and ``slice_values`` are given, those (e.g. the toolbox's slice).
+    volume is all its nodes, the slice the nodes of dimension ``slice_dim`` nearest ``slice_value``
+    (default: the system's :meth:`~reach.systems.base.ControlAffineSystem.reference_slice`, x3 = 1.5863
+    for Air3D), or, when ``slice_states`` and ``slice_values`` are given, those (e.g. the toolbox's slice).
     """
 
     def __init__(
         self,
         reference: Any,
         t: float,
-        slice_dim: int = 2,
-        slice_value: float = 1.5863,
+        slice_dim: int | None = None,
+        slice_value: float | None = None,
         slice_states: torch.Tensor | None = None,
         slice_values: torch.Tensor | None = None,
     ) -> None:
@@ -49,6 +50,10 @@ class ReferenceEvaluator:
         self.volume_states = pts.reshape(-1, pts.shape[-1])
         self.volume_values = reference.value(self.volume_states, self.t)
         if slice_states is None:
+            if slice_dim is None or slice_value is None:
+                dim, value = self.system.reference_slice()
+                slice_dim = dim if slice_dim is None else slice_dim
+                slice_value = value if slice_value is None else slice_value
             axis = reference.grid.axis(slice_dim)
             k = int(torch.argmin((axis - slice_value).abs()))
             slice_states = pts.select(slice_dim, k).reshape(-1, pts.shape[-1])

@@ -65,7 +65,12 @@ def add_parser(sub: Any) -> None:
             option, dest=field, default=None, help=f"{text} (default: {default(VerifySettings, field)})", **kwargs
         )
     p.add_argument("--format", choices=["auto", "reach", "deepreach", "grid"], default="auto")
-    p.add_argument("--system", default=None, help="system name (needed for DeepReach files)")
+    p.add_argument(
+        "--system",
+        default=None,
+        help="system: a registered name or package.module:ClassName (needed for DeepReach files; "
+        "lets a run of a user system import its module)",
+    )
     p.add_argument("--layout", default=None, help="layout (needed for DeepReach files)")
     p.add_argument("--ground-truth", default=None, help="grid .npz to score IoU and MSE against")
     p.add_argument(

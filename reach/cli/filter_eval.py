@@ -23,7 +23,20 @@ def add_parser(sub: Any) -> None:
         sub, "filter-eval", help="episodes of a goal-seeking task with and without the safety filter: safety vs task"
     )
     p.add_argument("value_functions", nargs="*", help="value functions to filter with (runs, .pt, .pth, .npz)")
-    p.add_argument("--scene", default="air3d", help="named scene (air3d, three-car-merge, three-car-crossing, ...)")
+    p.add_argument(
+        "--scene", default=None, help="named scene (air3d, three-car-merge, three-car-crossing, ...; default air3d)"
+    )
+    p.add_argument(
+        "--system",
+        default=None,
+        help="instead of --scene: a plain scene of this system (registered name or package.module:ClassName)",
+    )
+    p.add_argument(
+        "--nominal",
+        default=None,
+        help="nominal policy package.module:function, states (N, n) -> actions (N, m) in [-1, 1] "
+        "(default: the scene's goal task; for a system without goals, the centre of the control box)",
+    )
     p.add_argument("--episodes", type=positive_int_arg, default=1000)
     p.add_argument("--seed", type=seed_arg, default=0)
     p.add_argument(
@@ -72,8 +85,24 @@ def run(args: argparse.Namespace) -> int:
     from safety.value_functions import load_value_function
 
     # checks first: scene, numbers, output paths, then the value functions (their time ranges too)
-    scene = make_scene(args.scene)
+    if args.scene is not None and args.system is not None:
+        raise ValueError(f"give --scene or --system, not both (got {args.scene!r} and {args.system!r})")
+    if args.system is not None:
+        from reach.systems import make_system
+        from reach_envs.scenes import Scene
+
+        built = make_system(args.system)
+        scene = Scene(system=built, name=built.name)
+    else:
+        scene = make_scene(args.scene or "air3d")
     system = scene.system
+    nominal = None
+    if args.nominal is not None:
+        from reach.systems.registry import import_object
+
+        nominal = import_object(args.nominal, what="--nominal")
+        if not callable(nominal):
+            raise ValueError(f"--nominal {args.nominal!r} is not callable")
     ttg = parse_time_to_go(args.time_to_go)
     thresholds = (
         csv_floats("--thresholds", args.thresholds, lambda n, v: check_float(n, v, 0)) if args.thresholds else [None]
@@ -93,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
     pursuer = None
     if args.pursuer != "scene":
         if not system.disturbance_dim:
-            raise ValueError(f"--pursuer {args.pursuer}: scene {args.scene} has no disturbance input")
+            raise ValueError(f"--pursuer {args.pursuer}: scene {scene.name} has no disturbance input")
         pursuer = args.pursuer
         if args.pursuer == "worst-case":
             source = args.adversary or (str(loaded[0].path) if loaded else None)
@@ -116,11 +145,14 @@ def run(args: argparse.Namespace) -> int:
         pettingzoo=args.pettingzoo,
         kinds=kinds,
         gammas=gammas,
+        nominal=nominal,
         header={
             "filters": kinds,
             "gammas": gammas if "smooth" in kinds else None,
             "format": "reach.filter-eval.v1",
-            "scene": args.scene,
+            "scene": scene.name,
+            "system": system.reference(),
+            "nominal": args.nominal or "task default",
             "pursuer": args.pursuer,
             "time_to_go": args.time_to_go or "value function horizon",
             "start_outside": args.start_outside,

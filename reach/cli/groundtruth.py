@@ -21,7 +21,10 @@ def add_parser(sub: Any) -> None:
     from reach.cli.common import signature_default
 
     p = add_subparser(sub, "groundtruth", help="solve a low-dimensional system's BRT on a grid (level-set method)")
-    p.add_argument("system", help="system name, e.g. air3d or relativepair")
+    p.add_argument(
+        "system",
+        help="system: a registered name or package.module:ClassName, e.g. air3d, relativepair, my_pkg.dynamics:Dubins",
+    )
     p.add_argument("--grid", default="101", help="nodes per dimension, e.g. 101 or 101,101,51")
     p.add_argument("--horizon", type=positive_float_arg, default=None, help="final time-to-go (default: the system's)")
     p.add_argument(

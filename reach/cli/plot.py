@@ -25,9 +25,9 @@ def add_parser(sub: Any) -> None:
         "--t", type=finite_float_arg, default=None, help="time-to-go of the slices (default: the system's horizon)"
     )
     p.add_argument("--format", choices=["auto", "reach", "deepreach", "grid"], default="auto")
-    p.add_argument("--system", default=None)
+    p.add_argument("--system", default=None, help="system: a registered name or package.module:ClassName")
     p.add_argument("--layout", default=None)
-    p.add_argument("--scene", default="air3d", help="scene of the episode")
+    p.add_argument("--scene", default=None, help="scene of the episode (default: a plain scene of the source's system)")
     p.add_argument(
         "--threshold", type=nonnegative_float_arg, default=None, help="filter threshold (default: 2 x rate bound x dt)"
     )
@@ -48,6 +48,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {plots.plot_violation_bars(rows, args.out)}")
         return 0
     if args.kind == "episode":
+        if args.system is not None:
+            from reach.systems import make_system
+
+            make_system(args.system)  # names the run's system module, so its import path loads
         summary = plots.record_filtered_episode(
             args.sources[0], args.out, scene=args.scene, threshold=args.threshold, seed=args.seed
         )

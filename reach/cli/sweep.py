@@ -23,7 +23,7 @@ from reach.validation import (
 
 #: (option, SweepSpec field, argparse keywords, help)
 SPEC_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
-    ("--system", "system", {}, "system name"),
+    ("--system", "system", {}, "system: a registered name or package.module:ClassName"),
     ("--steps", "steps", {"type": positive_int_arg}, "train a fixed number of steps instead of a budget"),
     ("--snapshots", "snapshots", {"type": positive_int_arg}, "score each run after every 1/N of its budget"),
     ("--width", "width", {"type": positive_int_arg}, "hidden width"),
@@ -116,7 +116,7 @@ def parse_train_options(items: Sequence[str]) -> dict[str, object]:
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from sweeps.spec import AIR3D_LAYOUTS, NINE_D_LAYOUTS, SweepSpec
+    from sweeps.spec import SweepSpec, default_layouts
     from sweeps.sweep import run_sweep
     from training import parse_duration
 
@@ -131,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
     if args.layouts:
         fields["layouts"] = [s.strip() for s in args.layouts.split(",") if s.strip()]
     else:
-        fields["layouts"] = list(AIR3D_LAYOUTS if system == "air3d" else NINE_D_LAYOUTS)
+        fields["layouts"] = default_layouts(system)
     if args.seeds is not None:
         fields["seeds"] = parse_seeds(args.seeds)
     fields["train"] = parse_train_options(args.train)

@@ -34,7 +34,7 @@ def _optional_float(text: str) -> float | str:
 
 #: (option, TrainConfig field, argparse keywords, help): the options that set a training field
 TRAIN_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
-    ("--system", "system", {}, "system name"),
+    ("--system", "system", {}, "system: a registered name or package.module:ClassName"),
     ("--layout", "layout", {}, "one letter per activated layer (s sine, r ReLU, t tanh, g GELU) and a final l"),
     ("--width", "width", {"type": positive_int_arg}, "hidden width"),
     ("--w0", "w0", {"type": positive_float_arg}, "sine frequency"),

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 from reach.systems.backend import Backend, Column
 from reach.systems.base import NO_INPUT, Box, ControlAffineSystem, DeepReachNormalisation, InputMatrix
@@ -224,3 +224,14 @@ class Air3D(RelativePair):
     @property
     def car_names(self) -> tuple[str, ...]:
         return ("evader_1", "pursuer_1")
+
+    #: the relative heading of the slice that DeepReach and the MATLAB toolbox report
+    REFERENCE_HEADING: ClassVar[float] = 1.5863
+
+    def reference_slice(self) -> tuple[int, float]:
+        """The x3 = 1.5863 slice, where DeepReach and the MATLAB toolbox compare Air3D BRTs."""
+        return (2, self.REFERENCE_HEADING)
+
+    def plot_slices(self) -> list[tuple[tuple[float, ...], tuple[int, int], str]]:
+        """x1-x2 at the reference heading 1.5863, at 0 and at -pi/2."""
+        return [((0.0, 0.0, v), (0, 1), f"x3 = {v:.4g}") for v in (self.REFERENCE_HEADING, 0.0, -math.pi / 2)]

@@ -157,6 +157,50 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
         """
         return None
 
+    # ------------------------------------------------------------------ per-system defaults (hooks)
+    # Built-in systems override these with the choices of the literature; a user system inherits
+    # generic fallbacks derived from its declared physics.
+    def view_dims(self) -> tuple[int, int]:
+        """The two state dimensions that 2D views (renders, plot slices) show by default: the first two
+        non-periodic dimensions (positions, typically), else the first two."""
+        plain = [i for i, p in enumerate(self.periodic) if not p]
+        if self.state_dim < 2:
+            return (0, 0)
+        return (plain[0], plain[1]) if len(plain) >= 2 else (0, 1)
+
+    def reference_slice(self) -> tuple[int, float]:
+        """``(dimension, value)`` of the 2D slice that grid comparisons report beside the whole volume:
+        the nodes of that dimension nearest that value. Default: the last dimension at its domain centre."""
+        lo, hi = self.domain[-1]
+        return (self.state_dim - 1, 0.5 * (lo + hi))
+
+    def plot_slices(self) -> list[tuple[tuple[float, ...], tuple[int, int], str]]:
+        """``(base state, (i, j), title)`` of the 2D slices that plots draw by default: the domain
+        centre over :meth:`view_dims`."""
+        centre = tuple(0.5 * (lo + hi) for lo, hi in self.domain)
+        return [(centre, self.view_dims(), "domain centre")]
+
+    def margin_rate_estimate(self, samples: int = 4096, seed: int = 0) -> float:
+        """The largest ``|d l(x(t)) / dt|`` over ``samples`` states drawn from the domain and every
+        admissible input (exact over the input boxes: ``grad l . xdot`` is affine in the inputs).
+
+        A sampled estimate, not a bound: it sets default filter thresholds for systems that declare
+        no :meth:`margin_rate_bound`, and never licenses skipping simulation."""
+        x = self.sample_states(samples, torch.Generator().manual_seed(seed), dtype=torch.float64).requires_grad_(True)
+        (p,) = torch.autograd.grad(self.failure_margin(x).sum(), x)
+        x = x.detach()
+        cols, pc = TORCH.unbind(x), TORCH.unbind(p)
+        centre = self.xdot_columns(cols, self.control_bounds.center, self.disturbance_bounds.center, TORCH)
+        rate = sum(pi * fi for pi, fi in zip(pc, centre)).abs()
+        sides = [(self.control_matrix(cols, TORCH), self.control_bounds)]
+        if self.disturbance_dim:
+            sides.append((self.disturbance_matrix(cols, TORCH), self.disturbance_bounds))
+        for matrix, box in sides:
+            for sj, hw in zip(self._switching(matrix, pc, box.dim), box.half_width):
+                rate = rate + hw * (sj.abs() if isinstance(sj, torch.Tensor) else abs(sj))
+        rate = rate[torch.isfinite(rate)]
+        return float(rate.max()) if rate.numel() else 0.0
+
     def parameters(self) -> dict[str, Any]:
         """Constructor arguments that rebuild this system (JSON-serialisable)."""
         return {}

@@ -214,6 +214,18 @@ class MultiVehicle6D(UniformCars):
         return [c * dx + s * dy, -s * dx + c * dy, xp.wrap_angle(thq - the)]
 
 
+#: A second 9D slice (ours): cars 2 and 3 head-on across the x axis, car 1 heading east.
+SECOND_9D_SLICE = (0.0, 0.0, 0.0, 0.5, 0.0, -0.5, 0.0, -math.pi / 2, math.pi / 2)
+
+#: DeepReach's 9D slice: car 2 at (-0.4, 0), car 3 at (0.4, 0), headings pi/2, pi/4, 3 pi/4; axes x1, y1.
+DEEPREACH_9D_SLICE = (0.0, 0.0, -0.4, 0.0, 0.4, 0.0, math.pi / 2, math.pi / 4, 3 * math.pi / 4)
+
+#: The slice of DeepReach's 2021 figure comparing the 9D BRT with the union of pairwise BRTs (its
+#: validation script ``2E1P_valfunc_and_BRT.py``, at t = 1.0): car 1 varies over (x1, y1) with heading
+#: -2.54, car 2 at (-0.4, 0) heading 0, car 3 at (0.43, 0.33) heading -2.44.
+PAPER_2021_9D_SLICE = (0.0, 0.0, -0.4, 0.0, 0.43, 0.33, -2.54, 0.0, -2.44)
+
+
 class MultiVehicle9D(UniformCars):
     """DeepReach's MultiVehicleCollision: three cooperating cars (all controls), v = 0.6, w_max = 1.1."""
 
@@ -229,3 +241,15 @@ class MultiVehicle9D(UniformCars):
     ) -> None:
         cars = [Car(speed, max_turn_rate, "control", f"car_{i}") for i in (1, 2, 3)]
         super().__init__(cars, speed, max_turn_rate, collision_radius, horizon, half_width)
+
+    def plot_slices(self) -> list[tuple[tuple[float, ...], tuple[int, int], str]]:
+        """DeepReach's slice, the 2021 paper's figure's slice and one of ours, all over car 1's (x, y)."""
+        return [
+            (DEEPREACH_9D_SLICE, (0, 1), "DeepReach: cars 2, 3 at (-0.4, 0), (0.4, 0)\nheadings pi/2, pi/4, 3pi/4"),
+            (
+                PAPER_2021_9D_SLICE,
+                (0, 1),
+                "2021 figure: cars 2, 3 at (-0.4, 0), (0.43, 0.33)\nheadings -2.54, 0, -2.44",
+            ),
+            (SECOND_9D_SLICE, (0, 1), "cars 2, 3 at (0, 0.5), (0, -0.5) facing each other\ncar 1 heading 0"),
+        ]

@@ -95,31 +95,40 @@ def _trusted(module: str) -> bool:
     return any(module == p or module.startswith(p + ".") for p in _TRUSTED | env)
 
 
-def _class_from_path(path: str, *, from_file: bool) -> type[ControlAffineSystem]:
+def import_object(path: str, *, what: str = "object", from_file: bool = False) -> Any:
+    """The object at ``package.module:QualName`` (``ValueError`` naming the path if there is none).
+
+    With ``from_file`` (the path was read from a file), a module not yet imported is imported only if
+    it is trusted (see the module docstring)."""
     module_name, _, qualname = path.partition(":")
     if not module_name or not qualname or not all(p.isidentifier() for p in module_name.split(".")):
-        raise ValueError(f"system {path!r}: an import path looks like 'package.module:ClassName'")
+        raise ValueError(f"{what} {path!r}: an import path looks like 'package.module:Name'")
     if module_name not in sys.modules:
         if from_file and not _trusted(module_name):
             raise ValueError(
-                f"system {path!r} is named by a file, and importing {module_name!r} would run its code: "
+                f"{what} {path!r} is named by a file, and importing {module_name!r} would run its code: "
                 f"import it first, pass --system {path} (Python: make_system({path!r})), "
                 f"or trust it with REACH_TRUSTED_MODULES={module_name}"
             )
         if module_name == "__main__":
-            raise ValueError(f"system {path!r} was defined in a script's __main__: move it to an importable module")
+            raise ValueError(f"{what} {path!r} was defined in a script's __main__: move it to an importable module")
         try:
             importlib.import_module(module_name)
         except ImportError as err:
-            raise ValueError(f"system {path!r}: cannot import module {module_name!r} ({err})") from None
+            raise ValueError(f"{what} {path!r}: cannot import module {module_name!r} ({err})") from None
     obj: Any = sys.modules[module_name]
     for part in qualname.split("."):
         if part == "<locals>" or not hasattr(obj, part):
             raise ValueError(
-                f"system {path!r}: module {module_name!r} has no class {qualname!r} "
-                "(classes defined inside functions cannot be reloaded by path)"
+                f"{what} {path!r}: module {module_name!r} has no {qualname!r} "
+                "(what is defined inside a function cannot be found by path)"
             )
         obj = getattr(obj, part)
+    return obj
+
+
+def _class_from_path(path: str, *, from_file: bool) -> type[ControlAffineSystem]:
+    obj = import_object(path, what="system", from_file=from_file)
     if not (isinstance(obj, type) and issubclass(obj, ControlAffineSystem)):
         raise ValueError(f"system {path!r} is not a ControlAffineSystem subclass")
     return obj
