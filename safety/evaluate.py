@@ -154,14 +154,20 @@ def evaluate_many(
     if isinstance(system, str):
         system = make_system(system)
     if system is None:  # the first source that loads decides, so every row shares the states
+        errors = []
         for p in paths:
             try:
                 system = load_value_function(p, format=format, layout=layout).value_function.system
                 break
-            except ValueError:
-                continue
+            except ValueError as err:
+                errors.append(str(err))
         if system is None:
-            raise ValueError(f"none of {paths} could be loaded; give --system to see each error in the table")
+            if len(errors) == 1:
+                raise ValueError(errors[0])
+            raise ValueError(
+                f"none of {len(paths)} sources could be loaded (first: {errors[0]}); "
+                "give --system to see each error in the table"
+            )
     reference = None
     if ground_truth is not None:
         gt = GridSolution.load(ground_truth, outside="clamp")
