@@ -82,3 +82,14 @@ class DubinsAccel(ControlAffineSystem):
 
     def failure_margin_columns(self, x, xp):
         return xp.sqrt(x[0] ** 2 + x[1] ** 2) - self.radius
+
+
+def cruise(states):
+    """A nominal policy for DubinsAccel that ignores safety: no turn, accelerate toward speed 0.8.
+
+    Float64 states ``(N, 4)`` in, actions ``(N, 2)`` normalised to [-1, 1] out (turn rate, acceleration).
+    """
+    import numpy as np
+
+    accel = np.clip(2.0 * (0.8 - states[:, 3]), -1.0, 1.0)
+    return np.stack([np.zeros(len(states)), accel], axis=-1)

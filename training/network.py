@@ -102,6 +102,11 @@ class Encoding:
     def deepreach(cls, system: ControlAffineSystem) -> Encoding:
         """DeepReach's convention: raw t, headings / 1.2 pi, ``V = 25 o + 0.25`` (checkpoint import)."""
         n = system.deepreach
+        if n is None:
+            raise ValueError(
+                f"{system.reference()} declares no DeepReach normalisation (attribute 'deepreach'), which "
+                "importing a DeepReach checkpoint needs"
+            )
         return cls(
             state_offset=n.state_offset,
             state_scale=n.state_scale,
