@@ -1,26 +1,36 @@
-"""Pieces every environment kind shares: spaces, action validation, renderer set-up."""
+"""Pieces every environment kind shares: spaces, action validation, renderer set-up, trails.
+
+Rendering picks its view from the scene: vehicle systems (those with ``car_poses``) are drawn as cars
+(:class:`~reach_envs.rendering.SceneRenderer`), any other system as a projection on two state
+dimensions (:class:`~reach_envs.projection.ProjectionRenderer`); :func:`render_frame` and
+:func:`trail_points` hide the difference from the environments.
+"""
 
 from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from gymnasium import spaces
 
+from reach.systems.backend import FLOAT
 from reach.systems.base import ControlAffineSystem
+from reach_envs.projection import ProjectionRenderer, default_view_dims
 from reach_envs.rendering import SceneRenderer
 from reach_envs.scenes import Scene
 
 
 def observation_space(system: ControlAffineSystem) -> spaces.Box:
-    """float32 states: headings in [-pi, pi], positions unbounded (cars may leave the domain)."""
+    """float32 states: periodic dimensions (headings) in [-pi, pi], the others unbounded (states may
+    leave the sampling domain: cars drive off it, process noise is unbounded)."""
     low = np.array([-np.pi if p else -np.inf for p in system.periodic], dtype=np.float32)
     return spaces.Box(low=low, high=-low, dtype=np.float32)
 
 
 def action_space(dim: int) -> spaces.Box:
-    """Turn rates normalised to [-1, 1]."""
+    """Controls (turn rates, ...) normalised to [-1, 1]: -1 and 1 are the ends of each control's box."""
     return spaces.Box(low=-1.0, high=1.0, shape=(dim,), dtype=np.float32)
 
 
@@ -75,9 +85,21 @@ def check_state(state: object, system: ControlAffineSystem) -> np.ndarray:
     return x
 
 
-def make_renderer(scene: Scene, size: int = 400) -> SceneRenderer:
-    """A renderer framing the scene's arena (or the system's position domain)."""
+def projected_view(scene: Scene) -> tuple[int, int] | None:
+    """The two state dimensions a projection view draws, or ``None`` for a vehicle system (drawn as cars)."""
+    if hasattr(scene.system, "car_poses"):
+        return None
+    return scene.view_dims if scene.view_dims is not None else default_view_dims(scene.system)
+
+
+def make_renderer(scene: Scene, size: int = 400) -> SceneRenderer | ProjectionRenderer:
+    """The car renderer framing the scene's arena (or the cars' position domain) for vehicle systems,
+    else the projection renderer on the scene's view dimensions."""
     system = scene.system
+    view = projected_view(scene)
+    if view is not None:
+        title = scene.name if scene.name == system.name else f"{scene.name} ({system.name})"
+        return ProjectionRenderer(system, view, title=title, size=size)
     extent = scene.arena if scene.arena is not None else 1.15 * getattr(system, "half_width", 1.0)
     return SceneRenderer(
         roles=system.car_roles,
@@ -87,3 +109,28 @@ def make_renderer(scene: Scene, size: int = 400) -> SceneRenderer:
         title=f"{scene.name} ({system.name})",
         size=size,
     )
+
+
+def render_frame(
+    renderer: SceneRenderer | ProjectionRenderer,
+    system: ControlAffineSystem,
+    state: Sequence[float],
+    time: float,
+    trails: Sequence[Sequence[tuple[float, float]]] | None,
+    crashed: bool,
+) -> np.ndarray:
+    """One frame of ``state`` (Python floats) with the renderer :func:`make_renderer` chose."""
+    if isinstance(renderer, ProjectionRenderer):
+        return renderer.render(state, time, trails, crashed)
+    hit = [crashed and role == "control" for role in system.car_roles]
+    return renderer.render(system.car_poses(state, FLOAT), time, trails, hit)
+
+
+def trail_points(scene: Scene) -> Callable[[Sequence[float]], list[tuple[float, float]]]:
+    """``state -> points`` that trails record: each car's position, or the state projected on the view."""
+    view = projected_view(scene)
+    if view is None:
+        system = scene.system
+        return lambda x: [(float(px), float(py)) for px, py, _ in system.car_poses(x, FLOAT)]
+    i, j = view
+    return lambda x: [(float(x[i]), float(x[j]))]

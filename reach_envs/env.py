@@ -1,8 +1,12 @@
-"""Gymnasium environment for any scene: ``Air3D-v0``, ``MultiVehicle6D-v0``, ``MultiVehicle9D-v0``.
+"""Gymnasium environment for any scene or system: ``Air3D-v0``, ``MultiVehicle6D-v0``,
+``MultiVehicle9D-v0``, and ``Reach-v0`` for any system (``gym.make("Reach-v0", system=...)``, the
+same as :func:`reach_envs.make_env`).
 
-Actions are the controlled cars' turn rates normalised to [-1, 1] (values outside are clipped to the
-box; NaN, inf and wrong shapes raise ``ValueError``). The disturbance comes from the scene.
-Observations are float32 states with headings wrapped to [-pi, pi). An episode *terminates* on
+Actions are the system's controls (the controlled cars' turn rates) normalised to [-1, 1] (values
+outside are clipped to the box; NaN, inf and wrong shapes raise ``ValueError``). The disturbance
+comes from the scene. Observations are float32 states with periodic dimensions (headings) wrapped to
+[-pi, pi). ``render_mode="rgb_array"`` draws cars, or for a system without cars the projection view
+(:mod:`reach_envs.projection`). An episode *terminates* on
 collision (``l(x) <= 0``, if the scene says so) or on leaving the arena, and is *truncated* at the
 horizon. The reward is -1 on a step that ends in collision and 0 otherwise: the env is a safety
 testbed, and reward shaping belongs in a wrapper.
@@ -33,24 +37,31 @@ from reach_envs.common import (
     check_state,
     make_renderer,
     observation_space,
+    render_frame,
+    trail_points,
 )
-from reach_envs.scenes import Scene, make_scene
+from reach_envs.scenes import Scene, env_scene
 from reach_envs.simulator import SceneSimulator
 
 
 class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
-    """A single environment of a :class:`~reach_envs.scenes.Scene`.
+    """A single environment of a :class:`~reach_envs.scenes.Scene`, or of any system.
 
     Args:
         scene: a :class:`Scene` or a named scene (``"air3d"``, ``"head-on"``, ...).
         render_mode: ``None`` or ``"rgb_array"``.
-        **overrides: scene fields to change, e.g. ``dt=0.01, integrator="euler", disturbance="random"``.
+        system: instead of ``scene``, any system: an instance, a registered name or an import path
+            ``"pkg.mod:Class"`` (:func:`~reach_envs.scenes.system_scene`). Exactly one of ``scene``
+            and ``system`` must be given (``ValueError`` otherwise).
+        **overrides: scene fields to set, e.g. ``dt=0.01, integrator="euler", disturbance="random"``.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 25}
 
-    def __init__(self, scene: str | Scene = "air3d", render_mode: str | None = None, **overrides: Any) -> None:
-        self.scene = make_scene(scene, **overrides)
+    def __init__(
+        self, scene: str | Scene | None = None, render_mode: str | None = None, *, system: Any = None, **overrides: Any
+    ) -> None:
+        self.scene = env_scene(scene, system, **overrides)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         self.render_mode = render_mode
@@ -67,6 +78,7 @@ class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
         self._max_steps = self.scene.max_steps
         self._terminate_on_collision = self.scene.terminate_on_collision
         self._record_trails = self.scene.trails and render_mode is not None
+        self._trail_points = trail_points(self.scene) if self._record_trails else None
         self._renderer = None
         self._state: list[float] = []
         self._time = 0.0
@@ -91,7 +103,7 @@ class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
         self._crashed = False
         self._over = None
         if self._record_trails:
-            self._trails = [[(float(px), float(py))] for px, py, _ in self.system.car_poses(self._state, FLOAT)]
+            self._trails = [[p] for p in self._trail_points(self._state)]
         margin = self.sim.margin(self._state)
         info = {"margin": margin, "collision": margin <= 0.0, "time": 0.0}
         return np.array(self._state, dtype=np.float32), info
@@ -121,8 +133,8 @@ class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
             self._over = "after the episode was " + ("terminated" if terminated else "truncated")
         self._crashed = collision
         if self._record_trails:
-            for trail, (px, py, _) in zip(self._trails, self.system.car_poses(x, FLOAT)):
-                trail.append((px, py))
+            for trail, p in zip(self._trails, self._trail_points(x)):
+                trail.append(p)
         info = {
             "margin": margin,
             "collision": collision,
@@ -139,9 +151,8 @@ class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
             return None
         if self._renderer is None:
             self._renderer = make_renderer(self.scene)
-        poses = self.system.car_poses(self._state, FLOAT)
-        crashed = [self._crashed and role == "control" for role in self.system.car_roles]
-        return self._renderer.render(poses, self._time, self._trails if self._record_trails else None, crashed)
+        trails = self._trails if self._record_trails else None
+        return render_frame(self._renderer, self.system, self._state, self._time, trails, self._crashed)
 
     def close(self) -> None:
         if self._renderer is not None:

@@ -3,6 +3,10 @@
 Built-in policies work on state columns with a backend, so one implementation serves the single
 environment (Python floats) and the vector environment (NumPy batches). Policies return
 disturbances in physical units; the simulator clips them to the system's disturbance box.
+
+``"pursue"`` means :class:`PursuitPolicy` for vehicle systems (disturbance cars chase control cars)
+and :class:`MarginPursuit` for any other system (the disturbance pushes the state down the failure
+margin's gradient, toward the failure set).
 """
 
 from __future__ import annotations
@@ -68,6 +72,35 @@ class PursuitPolicy:
         return out
 
 
+class MarginPursuit:
+    """The disturbance that drives ``l(x)`` down fastest, for any system: the corner of the disturbance
+    box that the system's own optimal-input rule picks for the costate ``p = grad l(x)`` (with the
+    usual ``disturbance_objective="min"``, the corner minimising ``grad l . G_d(x) d``; the box centre
+    along inputs that do not move ``l``).
+
+    The gradient is a central difference, taken only along the state dimensions the disturbance
+    enters (two ``l`` evaluations each), with a step of ``1e-6`` times each dimension's domain width.
+    """
+
+    def __init__(self, system: ControlAffineSystem, rel_step: float = 1e-6) -> None:
+        if not (math.isfinite(rel_step) and rel_step > 0):
+            raise ValueError(f"MarginPursuit: rel_step must be positive and finite, got {rel_step!r}")
+        self.system = system
+        self._steps = [rel_step * (hi - lo) for lo, hi in system.domain]
+
+    def columns(self, x: Sequence[Column], xp: Backend, rng: np.random.Generator) -> list[Column]:
+        system = self.system
+        margin = system.failure_margin_columns
+        p: list[Column] = [0.0] * system.state_dim
+        for i in sorted({i for i, _ in system.disturbance_matrix(x, xp)}):
+            h = self._steps[i]
+            up, down = list(x), list(x)
+            up[i] = x[i] + h
+            down[i] = x[i] - h
+            p[i] = (margin(up, xp) - margin(down, xp)) / (2.0 * h)
+        return system.optimal_inputs_columns(x, p, xp)[1]
+
+
 class RandomDisturbance:
     """Disturbance drawn uniformly from its box at every step (uses the environment's generator)."""
 
@@ -118,7 +151,7 @@ def make_disturbance_policy(system: ControlAffineSystem, spec: Any) -> Disturban
     if system.disturbance_dim == 0:
         raise ValueError(f"disturbance={spec!r} given, but system {system.name} has no disturbance input")
     if spec == "pursue":
-        return PursuitPolicy(system)
+        return PursuitPolicy(system) if hasattr(system, "car_poses") else MarginPursuit(system)
     if spec == "random":
         return RandomDisturbance(system)
     if hasattr(spec, "columns"):

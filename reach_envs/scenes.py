@@ -2,12 +2,15 @@
 
 A :class:`Scene` names a system (or a list of cars from which a :class:`MultiVehicle` system is
 built), how initial states are drawn, who drives the disturbance, and which effects are on:
-process noise, collision termination, arena bounds and trails. Environments build their step from
-the active effects only: no disturbance policy is evaluated without a disturbance, no random number
-is drawn without noise or a random policy, no trail is recorded unless asked for and rendered.
+process noise, collision termination, arena bounds, trails and the projection view of systems that
+are not cars. Environments build their step from the active effects only: no disturbance policy is
+evaluated without a disturbance, no random number is drawn without noise or a random policy, no
+trail is recorded unless asked for and rendered.
 
 Named scenes (:data:`SCENES`, :func:`make_scene`): ``air3d``, ``pursuit-evasion-6d``,
-``three-car-9d``, ``head-on``, ``crossing`` and ``three-car-merge``.
+``three-car-9d``, ``head-on``, ``crossing``, ``three-car-merge`` and ``three-car-crossing``. A scene
+of any other system (an instance, a registered name or an import path ``pkg.mod:Class``):
+:func:`system_scene`.
 """
 
 from __future__ import annotations
@@ -21,7 +24,15 @@ from typing import Any
 import numpy as np
 
 from reach.integrators import INTEGRATORS
-from reach.systems import Air3D, Car, ControlAffineSystem, MultiVehicle, MultiVehicle6D, MultiVehicle9D
+from reach.systems import (
+    Air3D,
+    Car,
+    ControlAffineSystem,
+    MultiVehicle,
+    MultiVehicle6D,
+    MultiVehicle9D,
+    make_system,
+)
 from reach_envs.policies import DISTURBANCE_KINDS, make_disturbance_policy
 
 
@@ -99,10 +110,14 @@ class Scene:
             to each state dimension (scalar or one per dimension).
         terminate_on_collision: end the episode when ``l(x) <= 0``.
         arena: ``None`` or a half-width; a car leaving ``[-arena, arena]^2`` ends the episode.
-        trails: record car trails for rendering (only when a render mode is set).
+        trails: record trails for rendering (only when a render mode is set): each car's position, or
+            for a system without cars the projected state.
         horizon: episode length in seconds (default: the system's horizon).
         dt: step length in seconds.
         integrator: ``"rk4"`` or ``"euler"``.
+        view_dims: for a system without cars, the two state dimensions (indices or state names) the
+            projection view draws; ``None``: the first two non-periodic dimensions, else ``(0, 1)``.
+            Vehicle systems are drawn as cars and take no ``view_dims``.
     """
 
     system: ControlAffineSystem
@@ -116,6 +131,7 @@ class Scene:
     horizon: float | None = None
     dt: float = 0.02
     integrator: str = "rk4"
+    view_dims: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.system, ControlAffineSystem):
@@ -148,6 +164,8 @@ class Scene:
             make_disturbance_policy(self.system, self.disturbance)
         except ValueError as err:
             raise ValueError(f"Scene: {err}") from None
+        if self.view_dims is not None:
+            object.__setattr__(self, "view_dims", _view_dims(self.system, self.view_dims))
         if not (hasattr(self.initial_state, "sample") or callable(self.initial_state)):
             try:
                 object.__setattr__(
@@ -172,11 +190,7 @@ class Scene:
 
     def replace(self, **changes: Any) -> Scene:
         """A copy with some fields changed (validated again)."""
-        unknown = set(changes) - {f.name for f in dataclasses.fields(self)}
-        if unknown:
-            raise ValueError(
-                f"Scene: unknown field(s) {sorted(unknown)}; fields are {[f.name for f in dataclasses.fields(self)]}"
-            )
+        _check_fields(changes)
         return dataclasses.replace(self, **changes)
 
     @property
@@ -190,6 +204,52 @@ class Scene:
 
     def sampler(self) -> Any:
         return self.initial_state if hasattr(self.initial_state, "sample") else CallableSampler(self.initial_state)
+
+
+def _check_fields(fields: dict[str, Any]) -> None:
+    """``ValueError`` naming the keys of ``fields`` that are not :class:`Scene` fields."""
+    names = [f.name for f in dataclasses.fields(Scene)]
+    unknown = set(fields) - set(names)
+    if unknown:
+        raise ValueError(f"Scene: unknown field(s) {sorted(unknown)}; fields are {names}")
+
+
+def _view_dims(system: ControlAffineSystem, dims: Any) -> tuple[int, int]:
+    """``view_dims`` checked and as two indices (state names are looked up)."""
+    if hasattr(system, "car_poses"):
+        raise ValueError(
+            f"Scene: view_dims is for the projection view of systems without cars; {system.name} is drawn as cars"
+        )
+    names = system.state_names
+    if isinstance(dims, (str, bytes)) or not isinstance(dims, Sequence) or len(dims) != 2:
+        raise ValueError(f"Scene: view_dims must be a pair of state dimensions (indices or names), got {dims!r}")
+    out = []
+    for d in dims:
+        if isinstance(d, str) and d in names:
+            d = names.index(d)
+        if isinstance(d, bool) or not isinstance(d, (int, np.integer)) or not 0 <= d < len(names):
+            raise ValueError(
+                f"Scene: view_dims entry {d!r} is not a state dimension of {system.name}: "
+                f"indices 0..{len(names) - 1} or names {list(names)}"
+            )
+        out.append(int(d))
+    if out[0] == out[1]:
+        raise ValueError(f"Scene: view_dims must name two different dimensions, got {dims!r}")
+    return out[0], out[1]
+
+
+def system_scene(system: Any, **fields: Any) -> Scene:
+    """A scene of any system: an instance, a registered name or an import path ``pkg.mod:Class``
+    (resolved by :func:`reach.systems.make_system`), named after the system unless ``name`` is given.
+
+    ``fields`` are :class:`Scene` fields (``dt``, ``disturbance``, ``initial_state``, ``process_noise``,
+    ``horizon``, ``view_dims``, ...); unknown ones raise ``ValueError`` naming them."""
+    if isinstance(system, Scene):
+        raise ValueError("system must be a system (an instance, a registered name or an import path), got a Scene")
+    instance = make_system(system)
+    _check_fields(fields)
+    fields.setdefault("name", instance.name)
+    return Scene(system=instance, **fields)
 
 
 # ---------------------------------------------------------------------- named scenes
@@ -278,3 +338,19 @@ def make_scene(scene: str | Scene, **overrides: Any) -> Scene:
     elif not isinstance(scene, Scene):
         raise ValueError(f"scene must be a Scene or a scene name, got {type(scene).__name__}")
     return scene.replace(**overrides) if overrides else scene
+
+
+def env_scene(scene: str | Scene | None = None, system: Any = None, **overrides: Any) -> Scene:
+    """The scene of an environment made from ``scene`` (:func:`make_scene`) or from ``system``
+    (:func:`system_scene`) with field overrides: exactly one of the two, else ``ValueError``."""
+    if scene is not None and system is not None:
+        given = repr(scene) if isinstance(scene, str) else type(scene).__name__
+        raise ValueError(f"give a scene or a system, not both (got scene {given} and system {system!r})")
+    if system is not None:
+        return system_scene(system, **overrides)
+    if scene is None:
+        raise ValueError(
+            "no system or scene given: pass system=... (an instance, a registered name or an import path "
+            f"'pkg.mod:Class', e.g. gym.make('Reach-v0', system=...)) or a scene (a Scene or one of {sorted(SCENES)})"
+        )
+    return make_scene(scene, **overrides)

@@ -1,6 +1,7 @@
 """Native vector environment: N copies of a scene advanced as one NumPy batch.
 
-``gym.make_vec("Air3D-v0", num_envs=N, vectorization_mode="vector_entry_point")`` builds it. Each
+``gym.make_vec("Air3D-v0", num_envs=N, vectorization_mode="vector_entry_point")`` builds it, and for any
+system ``gym.make_vec("Reach-v0", num_envs=N, system=...)`` or :func:`reach_envs.make_vector_env`. Each
 sub-environment ``i`` owns a generator seeded like Gymnasium's ``SyncVectorEnv`` seeds it
 (``seed + i``), so initial states, including those of automatic resets, equal those of single
 environments reset with the same seeds, and deterministic scenes match them step for step. Scenes
@@ -28,24 +29,35 @@ from reach_envs.common import (
     check_state,
     make_renderer,
     observation_space,
+    render_frame,
 )
-from reach_envs.scenes import Scene, make_scene
+from reach_envs.scenes import Scene, env_scene
 from reach_envs.simulator import SceneSimulator
 
 
 class ReachVectorEnv(VectorEnv):
-    """``num_envs`` environments of one scene stepped as a batch (see the module docstring)."""
+    """``num_envs`` environments of one scene stepped as a batch (see the module docstring).
+
+    ``scene`` (a :class:`Scene` or a named scene) or ``system`` (an instance, a registered name or an
+    import path): exactly one must be given, as for :class:`~reach_envs.env.ReachEnv`.
+    """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 25, "autoreset_mode": AutoresetMode.NEXT_STEP}
 
     def __init__(
-        self, num_envs: int = 1, scene: str | Scene = "air3d", render_mode: str | None = None, **overrides: Any
+        self,
+        num_envs: int = 1,
+        scene: str | Scene | None = None,
+        render_mode: str | None = None,
+        *,
+        system: Any = None,
+        **overrides: Any,
     ) -> None:
         if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
-        self.scene = make_scene(scene, **overrides)
+        self.scene = env_scene(scene, system, **overrides)
         self.num_envs = num_envs
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "render_fps": max(1, round(1.0 / self.scene.dt))}
@@ -171,13 +183,12 @@ class ReachVectorEnv(VectorEnv):
             return None
         if self._renderer is None:
             self._renderer = make_renderer(self.scene)
-        x = np.stack(self._state, axis=-1)
-        frames = []
-        for i in range(self.num_envs):
-            poses = self.system.car_poses(list(x[i]), NUMPY)
-            crashed = [bool(self._crashed[i]) and r == "control" for r in self.system.car_roles]
-            frames.append(self._renderer.render(poses, float(self._steps[i] * self.scene.dt), None, crashed))
-        return tuple(frames)
+        x = np.stack(self._state, axis=-1).tolist()
+        dt = self.scene.dt
+        return tuple(
+            render_frame(self._renderer, self.system, x[i], float(self._steps[i] * dt), None, bool(self._crashed[i]))
+            for i in range(self.num_envs)
+        )
 
     def close_extras(self, **kwargs: Any) -> None:
         if self._renderer is not None:
