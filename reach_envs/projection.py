@@ -28,11 +28,11 @@ GRID = 96
 
 
 def default_view_dims(system: ControlAffineSystem) -> tuple[int, int]:
-    """The first two non-periodic state dimensions, else ``(0, 1)``."""
+    """The system's own view (:meth:`~reach.systems.base.ControlAffineSystem.view_dims`: the first two
+    non-periodic state dimensions, else ``(0, 1)``, unless the system overrides it)."""
     if system.state_dim < 2:
         raise ValueError(f"a projection view needs two state dimensions; {system.name} has {system.state_dim}")
-    free = [i for i, periodic in enumerate(system.periodic) if not periodic]
-    return (free[0], free[1]) if len(free) >= 2 else (0, 1)
+    return system.view_dims()
 
 
 class ProjectionRenderer:
