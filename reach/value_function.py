@@ -63,3 +63,75 @@ def check_time_coverage(vf: object, low: float, high: float, what: str) -> None:
             f"{what} needs times-to-go [{low:g}, {high:g}], but the value function covers only [{rng[0]:g}, {rng[1]:g}]"
             + (" (solve the grid with --times from 0, e.g. the default of reach groundtruth)" if rng[0] > low else "")
         )
+
+
+def value_and_gradient(
+    vf: ValueFunction, x: torch.Tensor, t: float | torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(V(x, t), dV/dx)`` with one network pass where ``vf`` offers ``value_and_gradient``."""
+    fused = getattr(vf, "value_and_gradient", None)
+    if fused is not None:
+        return fused(x, t)
+    return vf.value(x, t), vf.gradient(x, t)
+
+
+class MinimumOf:
+    """``V(x, t) = min_k V_k(x, t)``: the pointwise minimum of value functions of one system's physics.
+
+    **Why.** Where a member is an *upper bound* on the true value, capping a learned network with it
+    can only help: if ``V_true <= U`` then ``|min(V_net, U) - V_true| <= |V_net - V_true|`` at every
+    state, and ``{min(V_net, U) <= 0}`` contains ``{U <= 0}``. The cooperative three-car system is
+    the example: a pair of cars that ignores the third can only do better, so the union of pairwise
+    BRTs (:class:`~groundtruth.pairwise.PairwiseUnion`) bounds its value from above, and
+    ``MinimumOf(network, union)`` misses none of the union's unsafe states.
+
+    **Gradient.** The minimising member's (a subgradient where two tie): the induced policy switches
+    to the bound's optimal inputs where the bound is active. :meth:`active` says where that is.
+
+    Members must share the physics (:meth:`~reach.systems.base.ControlAffineSystem.same_physics`);
+    the composition's ``system`` is the first member's, and its ``time_range`` the times every
+    member covers.
+    """
+
+    def __init__(self, *members: ValueFunction, labels: tuple[str, ...] | None = None) -> None:
+        if len(members) < 2:
+            raise ValueError(f"MinimumOf needs at least two value functions, got {len(members)}")
+        for k, member in enumerate(members):
+            if not isinstance(member, ValueFunction):
+                raise ValueError(f"MinimumOf: member {k} is not a value function ({type(member).__name__})")
+            if k:
+                members[0].system.require_same_physics(member.system, f"MinimumOf member {k}")
+        if labels is not None and len(labels) != len(members):
+            raise ValueError(f"MinimumOf: {len(labels)} labels for {len(members)} members")
+        self.members = tuple(members)
+        self.labels = labels
+        self.system = members[0].system
+        ranges = [r for r in (time_range(m) for m in members) if r is not None]
+        self.time_range = (max(r[0] for r in ranges), min(r[1] for r in ranges)) if ranges else None
+        if self.time_range is not None and self.time_range[0] > self.time_range[1]:
+            raise ValueError(f"MinimumOf: the members share no time-to-go ({ranges})")
+
+    def _check(self, t: float | torch.Tensor) -> None:
+        if self.time_range is not None:
+            check_time(t, *self.time_range)
+
+    def value(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        self._check(t)
+        return torch.stack([m.value(x, t) for m in self.members], dim=-1).min(dim=-1).values
+
+    def value_and_gradient(self, x: torch.Tensor, t: float | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        self._check(t)
+        both = [value_and_gradient(m, x, t) for m in self.members]
+        values = torch.stack([v for v, _ in both], dim=-1)
+        best = values.argmin(dim=-1, keepdim=True)
+        grads = torch.stack([g for _, g in both], dim=-2)
+        index = best.unsqueeze(-1).expand(*best.shape[:-1], 1, grads.shape[-1])
+        return values.gather(-1, best).squeeze(-1), grads.gather(-2, index).squeeze(-2)
+
+    def gradient(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        return self.value_and_gradient(x, t)[1]
+
+    def active(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        """Index of the minimising member at each state, ``(...)`` (ties go to the first)."""
+        self._check(t)
+        return torch.stack([m.value(x, t) for m in self.members], dim=-1).argmin(dim=-1)

@@ -28,16 +28,6 @@ Format = Literal["auto", "reach", "deepreach", "grid"]
 FORMATS = ("auto", "reach", "deepreach", "grid")
 
 
-def value_and_gradient(
-    vf: ValueFunction, x: torch.Tensor, t: float | torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(V(x, t), dV/dx)`` with one network pass where ``vf`` offers ``value_and_gradient``."""
-    fused = getattr(vf, "value_and_gradient", None)
-    if fused is not None:
-        return fused(x, t)
-    return vf.value(x, t), vf.gradient(x, t)
-
-
 @dataclass
 class LoadedValueFunction:
     """A value function with where it came from (for tables and error messages)."""
