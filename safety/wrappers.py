@@ -17,8 +17,9 @@ Threshold: a switch or smooth filter that acts once per environment step (zero-o
 (``threshold=None``) is ``2 * margin_rate_bound * dt`` (0.06 for Air3D at dt = 0.02; systems that
 declare no bound use a rate sampled from their own physics, :meth:`margin_rate_estimate`).
 With threshold 0 and a worst-case pursuer, the Air3D grid switch filter still lets most attacked
-episodes collide: the state rides the BRT boundary and slips in between decisions. The lookahead filter checks the state after the step, so its default threshold is 0
-(on Air3D it still lets 2.6 % of attacked episodes graze the failure set there; 0.03 lets none).
+episodes collide: the state rides the BRT boundary and slips in between decisions. The lookahead
+filter checks the state after the step, so its default threshold is 0 (on Air3D it still lets 2.6 %
+of attacked episodes graze the failure set there; 0.03 lets none).
 
 ``info`` gains ``filter_value`` (``V`` at the pre-step state), ``filter_intervened``,
 ``nominal_action`` and ``applied_action`` (normalised units).

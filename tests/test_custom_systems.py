@@ -51,7 +51,7 @@ def test_register_system_refuses_a_taken_name_and_defaults_the_name():
     class Another(DubinsAvoid):
         name = "dubins-avoid"
 
-    with pytest.raises(ValueError, match="dubinsavoid.*taken by my_systems:DubinsAvoid"):
+    with pytest.raises(ValueError, match=r"dubinsavoid.*taken by my_systems:DubinsAvoid"):
         register_system(Another)
     register_system(DubinsAvoid)  # the same class again (a module imported twice) is fine
 
@@ -94,7 +94,7 @@ def test_import_paths_read_from_files_are_imported_only_when_trusted(monkeypatch
     with pytest.raises(ValueError, match="not a ControlAffineSystem"):
         system_from_config(config)  # already imported: found, then refused as no system
     monkeypatch.delitem(sys.modules, "my_systems")
-    with pytest.raises(ValueError, match="importing 'my_systems' would run its code.*REACH_TRUSTED_MODULES"):
+    with pytest.raises(ValueError, match=r"importing 'my_systems' would run its code.*REACH_TRUSTED_MODULES"):
         system_from_config({"name": "my_systems:DubinsAvoid", "parameters": {}})
     monkeypatch.setenv("REACH_TRUSTED_MODULES", "other, my_systems")
     assert system_from_config({"name": "my_systems:DubinsAvoid", "parameters": {}}).name == "dubinsavoid"
