@@ -6,11 +6,12 @@ solution can stand in for a learned network as the reference policy or a control
 
 from __future__ import annotations
 
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import torch
 
-from reach.systems.base import ControlAffineSystem
+if TYPE_CHECKING:  # reach.systems re-exports this module's protocol
+    from reach.systems.base import ControlAffineSystem
 
 
 @runtime_checkable

@@ -10,18 +10,20 @@ network, a DeepReach import or a grid solution; :func:`load_value_function` load
   across many checkpoints on the same states.
 """
 
+from reach.value_function import MinimumOf, value_and_gradient
 from safety.evaluate import evaluate_many, load_results, markdown_table
 from safety.filter import FilterInfo, SafetyFilter
 from safety.metrics import scenario_epsilon, violation_statistics, wilson_interval
 from safety.policy import OptimalPolicy
 from safety.rollout import RolloutResult, rollout
-from safety.value_functions import LoadedValueFunction, as_value_function, load_value_function, value_and_gradient
+from safety.value_functions import LoadedValueFunction, as_value_function, load_value_function
 from safety.verify import VerifySettings, sample_states, sample_superlevel_set, verify
 from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper, SafetyFilterWrapper
 
 __all__ = [
     "FilterInfo",
     "LoadedValueFunction",
+    "MinimumOf",
     "OptimalPolicy",
     "RolloutResult",
     "SafetyFilter",

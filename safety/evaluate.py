@@ -27,7 +27,7 @@ from reach.validation import check_output_path
 from safety.metrics import containment_statistics
 from safety.results_io import markdown_table as format_table
 from safety.results_io import write_results
-from safety.value_functions import load_value_function, resolve_checkpoint
+from safety.value_functions import MIN_PREFIX, load_value_function, resolve_checkpoint
 from safety.verify import VerifySettings, sample_states, values_at, verify
 from training.evaluate import ReferenceEvaluator
 
@@ -69,11 +69,14 @@ def expand_sources(patterns: Sequence[str]) -> list[str]:
             out.extend(matches)
         else:
             out.append(pattern)
-    return list(dict.fromkeys(os.path.normpath(p) for p in out))
+    return list(dict.fromkeys(p if p.startswith(MIN_PREFIX) else os.path.normpath(p) for p in out))
 
 
 def fingerprint(path: str) -> dict[str, Any]:
-    """What identifies one version of a source: resolved file, size, modification time."""
+    """What identifies one version of a source: resolved file, size, modification time (of every
+    member of a ``min:A,B`` source)."""
+    if path.startswith(MIN_PREFIX):
+        return {"members": [fingerprint(p.strip()) for p in path[len(MIN_PREFIX) :].split(",") if p.strip()]}
     try:
         p = resolve_checkpoint(path)
     except ValueError:

@@ -9,8 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from reach.value_function import ValueFunction
-from safety.value_functions import value_and_gradient
+from reach.value_function import ValueFunction, value_and_gradient
 
 
 def check_states(x: torch.Tensor, state_dim: int, what: str = "states") -> None:

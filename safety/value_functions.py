@@ -1,9 +1,8 @@
 """Loading any value function (our checkpoints, DeepReach state dicts, grid solutions) by path.
 
 Everything in :mod:`safety` takes a :class:`~reach.value_function.ValueFunction`;
-this module turns what users have on disk into one, and gives the one call the rollout engine and
-the filter need per step, :func:`value_and_gradient`, which uses a fused implementation where the
-value function has one (neural networks) and falls back to two calls otherwise (grid solutions).
+this module turns what users have on disk into one (the one call the rollout engine and the filter
+need per step, ``value_and_gradient``, lives with the interface in :mod:`reach.value_function`).
 """
 
 from __future__ import annotations
@@ -19,13 +18,15 @@ import torch
 from groundtruth.pairwise import PairwiseUnion
 from groundtruth.solution import GridSolution
 from reach.systems import ControlAffineSystem, MultiVehicle, RelativePair, make_system
-from reach.value_function import ValueFunction
+from reach.value_function import MinimumOf, ValueFunction
 from training.checkpoint import load_network
 from training.deepreach import load_deepreach
 from training.network import NeuralValueFunction
 
 Format = Literal["auto", "reach", "deepreach", "grid"]
 FORMATS = ("auto", "reach", "deepreach", "grid")
+#: ``"min:A,B"``: the pointwise minimum of sources A and B (:class:`~reach.value_function.MinimumOf`)
+MIN_PREFIX = "min:"
 
 
 @dataclass
@@ -104,6 +105,10 @@ def load_value_function(
 
     A grid solution of a :class:`RelativePair` loaded for a multi-vehicle ``system`` becomes the
     union of pairwise BRTs (:class:`~groundtruth.pairwise.PairwiseUnion`, kind ``"pairwise"``).
+
+    ``"min:A,B,..."`` loads the pointwise minimum of the sources (:class:`~reach.value_function.MinimumOf`,
+    kind ``"min"``): ``A`` as asked, the others for ``A``'s system, so ``"min:RUN,pair.npz"`` caps a
+    9D network with the union of pairwise BRTs, an upper bound on the cooperative value.
     Grid solutions load with ``outside="clamp"``: states that leave the grid (which closed-loop
     rollouts and episodes do) get the nearest edge value instead of an error.
     """
@@ -111,12 +116,35 @@ def load_value_function(
         raise ValueError(f"format must be one of {FORMATS}, got {format!r}")
     if system is not None:
         system = make_system(system)  # an instance, a registered name or an import path
+    if str(path).startswith(MIN_PREFIX):
+        return _load_minimum(str(path), format, system, layout, device, label)
     p = resolve_checkpoint(path)
     try:
         return _load(p, format, system, layout, device, label)
     except (OSError, EOFError, KeyError, TypeError, RuntimeError, zipfile.BadZipFile) as err:
         # whatever a damaged or foreign file raises, the caller gets one ValueError naming the file
         raise ValueError(f"{p}: cannot be loaded as a value function ({type(err).__name__}: {err})") from err
+
+
+def _load_minimum(
+    spec: str,
+    format: Format,
+    system: ControlAffineSystem | None,
+    layout: str | None,
+    device: str | torch.device,
+    label: str | None,
+) -> LoadedValueFunction:
+    parts = [part.strip() for part in spec[len(MIN_PREFIX) :].split(",") if part.strip()]
+    if len(parts) < 2:
+        raise ValueError(f"{spec!r}: a minimum needs at least two sources, 'min:A,B'")
+    if any(part.startswith(MIN_PREFIX) for part in parts):
+        raise ValueError(f"{spec!r}: minimums do not nest")
+    first = load_value_function(parts[0], format=format, system=system, layout=layout, device=device)
+    rest = [load_value_function(part, system=first.value_function.system, device=device) for part in parts[1:]]
+    members = [first, *rest]
+    vf = MinimumOf(*(m.value_function for m in members), labels=tuple(m.label for m in members))
+    name = label or f"min({', '.join(m.label for m in members)})"
+    return LoadedValueFunction(vf, first.path, "min", first.layout, name)
 
 
 def _load(

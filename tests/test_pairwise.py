@@ -131,3 +131,53 @@ def test_the_2021_figure_slice_is_drawn_and_its_cars_sit_in_the_union(pair_grid)
     x[2, :2] = torch.tensor([0.0, -0.9])  # car 1 far below both, heading away (-2.54 rad)
     v = union.value(x, 1.0)
     assert v[0] <= 0 and v[1] <= 0 and v[2] > 0
+
+
+def test_network_capped_by_the_union_misses_none_of_it_and_follows_the_active_gradient(pair_grid, tmp_path):
+    """min(V_net, V_union): never above either member, unsafe wherever the union is (no misses),
+    the gradient of whichever member is smaller, loadable as a "min:RUN,pair.npz" source."""
+    from reach.value_function import MinimumOf, value_and_gradient
+    from training import TrainConfig, Trainer
+    from training.network import NeuralValueFunction
+    from training.trainer import build_network
+
+    system = MultiVehicle9D()
+    union = PairwiseUnion(system, pair_grid)
+    net = NeuralValueFunction(build_network(TrainConfig(system="multivehicle9d", width=16, steps=1)))
+    capped = MinimumOf(net, union)
+    x = system.sample_states(400, generator=torch.Generator().manual_seed(3)) * 0.5
+    t = 0.8
+    v, g = capped.value_and_gradient(x, t)
+    vn, gn = value_and_gradient(net, x, t)
+    vu, gu = union.value(x, t), union.gradient(x, t)
+    assert torch.equal(v, torch.minimum(vn, vu))
+    assert bool(((vu <= 0) <= (v <= 0)).all())  # every state the union calls unsafe stays unsafe
+    active = capped.active(x, t)
+    assert 0 < int(active.sum()) < len(x)  # both members are active somewhere: the test sees both
+    torch.testing.assert_close(g, torch.where(active[:, None] == 1, gu, gn))
+    with pytest.raises(ValueError, match="at least two"):
+        MinimumOf(net)
+    with pytest.raises(ValueError, match="member 1"):
+        MinimumOf(net, load_value_function(_air3d_grid(tmp_path)).value_function)
+    with pytest.raises(ValueError, match="lies outside"):
+        capped.value(x, 1.5)
+
+    run = tmp_path / "run"
+    Trainer(TrainConfig(system="multivehicle9d", width=16, points=64, steps=2, checkpoint_every_s=0.0), run,
+            progress=False).train()
+    pair = tmp_path / "pair.npz"
+    pair_grid.save(pair)
+    loaded = load_value_function(f"min:{run},{pair}")
+    assert loaded.kind == "min" and loaded.label == "min(run, pair)"
+    assert isinstance(loaded.value_function.members[1], PairwiseUnion)
+    with pytest.raises(ValueError, match="at least two sources"):
+        load_value_function(f"min:{run}")
+
+
+def _air3d_grid(tmp_path):
+    from groundtruth import solve
+    from reach.systems import Air3D
+
+    path = tmp_path / "air3d.npz"
+    solve(Air3D(), 11, [0.0, 1.0], compile=False, progress=False).save(path)
+    return path
