@@ -80,7 +80,7 @@ def test_evaluate_errors_are_clear(tmp_path: Path, capsys):
     assert "matched no file" in capsys.readouterr().err
     (tmp_path / "dr.pth").write_bytes(b"x")
     assert main(["evaluate", str(tmp_path / "dr.pth"), "--out", str(tmp_path / "r.csv")]) == 2
-    assert "give --system" in capsys.readouterr().err
+    assert "stores neither system nor layout" in capsys.readouterr().err
 
 
 def test_grid_solution_evaluates_as_control_experiment(air3d_grid, tmp_path: Path):
