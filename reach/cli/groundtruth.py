@@ -47,7 +47,12 @@ def add_parser(sub: Any) -> None:
     )
     p.add_argument("--dtype", choices=["float32", "float64"], default=None, help="default float32")
     p.add_argument("--device", type=device_arg, default=None, help="cpu or cuda (default cpu)")
-    p.add_argument("--compile", choices=["auto", "on", "off"], default="auto", help="torch.compile the solver step")
+    p.add_argument(
+        "--compile",
+        choices=["auto", "on", "off"],
+        default="auto",
+        help="torch.compile the solver step (auto: on CPU from 1e8 node updates, eager on GPUs)",
+    )
     p.add_argument("--out", required=True, help="output .npz")
     p.add_argument("--plot", default=None, help="also draw zero-level slices to this PNG")
     p.set_defaults(func=run)
