@@ -214,3 +214,19 @@ def test_cli_writes_file_and_plot(tmp_path, capsys):
 def test_plot_helper(air3d_coarse, tmp_path):
     path = plot_zero_level_slices(air3d_coarse, tmp_path / "s.png", slice_values=[math.pi / 2])
     assert path.stat().st_size > 5_000
+
+
+def test_auto_compile_decides_from_the_work(monkeypatch):
+    """compile=None compiles on CPU only from COMPILE_MIN_NODE_UPDATES node updates: a small solve
+    stays eager (no 20-30 s compilation for a 2 s job), a large one compiles; explicit choices win."""
+    import groundtruth.solver as solver
+    from reach.systems import Air3D
+
+    seen = []
+    monkeypatch.setattr(solver, "maybe_compile", lambda fn, compile, what: seen.append(compile) or fn)
+    solver.solve(Air3D(), 11, [0.0, 0.1], progress=False)
+    monkeypatch.setattr(solver, "COMPILE_MIN_NODE_UPDATES", 100)
+    solver.solve(Air3D(), 11, [0.0, 0.1], progress=False)
+    solver.solve(Air3D(), 11, [0.0, 0.1], progress=False, compile=False)
+    solver.solve(Air3D(), 11, [0.0, 0.1], progress=False, compile=True)
+    assert seen == [False, None, False, True]
