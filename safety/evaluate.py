@@ -27,7 +27,7 @@ from reach.validation import check_output_path
 from safety.metrics import containment_statistics
 from safety.results_io import markdown_table as format_table
 from safety.results_io import write_results
-from safety.value_functions import MIN_PREFIX, load_value_function, resolve_checkpoint
+from safety.value_functions import MIN_PREFIX, load_value_function, min_sources, resolve_checkpoint
 from safety.verify import VerifySettings, sample_states, values_at, verify
 from training.evaluate import ReferenceEvaluator
 
@@ -76,7 +76,7 @@ def fingerprint(path: str) -> dict[str, Any]:
     """What identifies one version of a source: resolved file, size, modification time (of every
     member of a ``min:A,B`` source)."""
     if path.startswith(MIN_PREFIX):
-        return {"members": [fingerprint(p.strip()) for p in path[len(MIN_PREFIX) :].split(",") if p.strip()]}
+        return {"members": [fingerprint(p) for p in min_sources(path)]}
     try:
         p = resolve_checkpoint(path)
     except ValueError:

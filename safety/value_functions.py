@@ -126,6 +126,11 @@ def load_value_function(
         raise ValueError(f"{p}: cannot be loaded as a value function ({type(err).__name__}: {err})") from err
 
 
+def min_sources(spec: str) -> list[str]:
+    """The member sources of a ``"min:A,B,..."`` source."""
+    return [part.strip() for part in spec[len(MIN_PREFIX) :].split(",") if part.strip()]
+
+
 def _load_minimum(
     spec: str,
     format: Format,
@@ -134,7 +139,7 @@ def _load_minimum(
     device: str | torch.device,
     label: str | None,
 ) -> LoadedValueFunction:
-    parts = [part.strip() for part in spec[len(MIN_PREFIX) :].split(",") if part.strip()]
+    parts = min_sources(spec)
     if len(parts) < 2:
         raise ValueError(f"{spec!r}: a minimum needs at least two sources, 'min:A,B'")
     if any(part.startswith(MIN_PREFIX) for part in parts):
