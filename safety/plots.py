@@ -152,14 +152,14 @@ def record_filtered_episode(
 
     from reach_envs.env import ReachEnv
     from reach_envs.recording import record_episode
-    from reach_envs.scenes import Scene
+    from reach_envs.scenes import system_scene
     from safety.filter_eval import worst_case_disturbance
     from safety.value_functions import as_value_function
     from safety.wrappers import SafetyFilterWrapper
 
     vf = as_value_function(value_function)
     if scene is None:
-        scene = "air3d" if vf.system.name == "air3d" else Scene(system=vf.system, name=vf.system.name)
+        scene = "air3d" if vf.system.name == "air3d" else system_scene(vf.system)
     overrides: dict[str, Any] = {"trails": True}
     if adversary and vf.system.disturbance_dim:
         overrides["disturbance"] = worst_case_disturbance(vf)

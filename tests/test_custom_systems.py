@@ -228,9 +228,9 @@ def test_user_system_through_grid_training_verification_filter_and_sweep(tmp_pat
 
 
 def _scene(system):
-    from reach_envs.scenes import Scene
+    from reach_envs.scenes import system_scene
 
-    return Scene(system=system, name=system.name)
+    return system_scene(system)
 
 
 def test_cli_and_a_fresh_process_reload_a_user_system_run(tmp_path):
@@ -253,3 +253,21 @@ def test_cli_and_a_fresh_process_reload_a_user_system_run(tmp_path):
     assert done.returncode == 0, done.stderr
     assert "dubinsaccel" in (tmp_path / "ev.json").read_text().lower()
     assert my_systems.DubinsAccel  # the module stays importable here too
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (["--scene", "air3d", "--system", "my_systems:DubinsAvoid"], "not both"),
+        (["--system", "my_systems:NoSuchSystem"], "has no 'NoSuchSystem'"),
+        (["--system", "my_systems:DubinsAvoid", "--nominal", "math:pi"], "--nominal 'math:pi' is not callable"),
+        (["--system", "my_systems:DubinsAvoid", "--nominal", "no_such_module_xyz:f"], "cannot import module"),
+        (["--system", "my_systems:DubinsAvoid", "--nominal", "cruise"], "looks like 'package.module:Name'"),
+    ],
+)
+def test_filter_eval_refuses_bad_system_and_nominal_options_before_work(options, message, tmp_path, capsys):
+    out = tmp_path / "fe.csv"
+    assert main(["filter-eval", "--episodes", "4", *options, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()

@@ -79,22 +79,14 @@ def parse_time_to_go(text: str | None) -> float | str | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from reach_envs.scenes import make_scene
+    from reach_envs.scenes import env_scene
     from safety.evaluate import expand_sources
     from safety.filter_eval import filter_table, run_filter_study
     from safety.value_functions import load_value_function
 
     # checks first: scene, numbers, output paths, then the value functions (their time ranges too)
-    if args.scene is not None and args.system is not None:
-        raise ValueError(f"give --scene or --system, not both (got {args.scene!r} and {args.system!r})")
-    if args.system is not None:
-        from reach.systems import make_system
-        from reach_envs.scenes import Scene
-
-        built = make_system(args.system)
-        scene = Scene(system=built, name=built.name)
-    else:
-        scene = make_scene(args.scene or "air3d")
+    # a named scene or a plain scene of --system (not both); air3d when neither is given
+    scene = env_scene(args.scene if args.scene or args.system else "air3d", args.system)
     system = scene.system
     nominal = None
     if args.nominal is not None:
