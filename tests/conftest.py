@@ -38,3 +38,53 @@ def pair_grid():
 
     (solution,) = solve_pairs(MultiVehicle9D(), 45, compile=False, progress=False).values()
     return solution
+
+
+@pytest.fixture
+def created_figures(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """A list that grows by one for every Matplotlib figure created while the test runs (renderers
+    must not build one unless something is rendered)."""
+    import matplotlib.figure
+
+    created: list[int] = []
+    original = matplotlib.figure.Figure.__init__
+
+    def counting_init(self, *args, **kwargs):
+        created.append(1)
+        original(self, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "__init__", counting_init)
+    return created
+
+
+def step_in_lockstep(venv, singles, steps: int, action_range: float, check_info=None) -> int:
+    """Step a vector env and its single-env twins with the same random actions (in
+    ``[-action_range, action_range]``), asserting equal observations, rewards and end flags under
+    NEXT_STEP autoreset; ``check_info(info)`` sees each vector step's info. Returns the resets."""
+    import numpy as np
+
+    n = len(singles)
+    rng = np.random.default_rng(0)
+    done = np.zeros(n, dtype=bool)
+    resets = 0
+    for _ in range(steps):
+        actions = rng.uniform(-action_range, action_range, size=venv.action_space.shape).astype(np.float32)
+        obs, rewards, terminated, truncated, info = venv.step(actions)
+        if check_info is not None:
+            check_info(info)
+        for i, env in enumerate(singles):
+            if done[i]:  # NEXT_STEP autoreset: this step resets sub-env i
+                o, r, te, tr = env.reset()[0], 0.0, False, False
+                resets += 1
+            else:
+                o, r, te, tr, _ = env.step(actions[i])
+            np.testing.assert_allclose(obs[i], o, rtol=0, atol=1e-6)
+            assert (rewards[i], terminated[i], truncated[i]) == (r, te, tr)
+        done = terminated | truncated
+    return resets
+
+
+@pytest.fixture
+def lockstep():
+    """:func:`step_in_lockstep`, for tests comparing a vector env with single envs."""
+    return step_in_lockstep

@@ -9,7 +9,6 @@ import warnings
 from pathlib import Path
 
 import gymnasium as gym
-import matplotlib.figure
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
@@ -119,29 +118,18 @@ def test_bad_input_fails_naming_it(make, message):
 
 
 # ---------------------------------------------------------------------- vector env
-def test_vector_env_steps_auto_resets_and_matches_single_envs():
+def test_vector_env_steps_auto_resets_and_matches_single_envs(lockstep):
     n = 4
     venv = gym.make_vec("Reach-v0", num_envs=n, system=DubinsAvoid(), disturbance="pursue", horizon=0.4)
     assert type(venv).__name__ == "ReachVectorEnv" and venv.observation_space.shape == (n, 3)
     singles = [make_env(DubinsAvoid(), disturbance="pursue", horizon=0.4) for _ in range(n)]
     obs, _ = venv.reset(seed=3)
     np.testing.assert_array_equal(obs, np.stack([env.reset(seed=3 + i)[0] for i, env in enumerate(singles)]))
-    rng = np.random.default_rng(0)
-    done = np.zeros(n, dtype=bool)
-    resets = 0
-    for _ in range(50):
-        actions = rng.uniform(-1.2, 1.2, size=venv.action_space.shape).astype(np.float32)
-        obs, rewards, terminated, truncated, info = venv.step(actions)
+
+    def check_info(info):
         assert info["disturbance"].shape == (n, 2)
-        for i, env in enumerate(singles):
-            if done[i]:  # NEXT_STEP autoreset
-                o, r, te, tr = env.reset()[0], 0.0, False, False
-                resets += 1
-            else:
-                o, r, te, tr, _ = env.step(actions[i])
-            np.testing.assert_allclose(obs[i], o, rtol=0, atol=1e-6)
-            assert (rewards[i], terminated[i], truncated[i]) == (r, te, tr)
-        done = terminated | truncated
+
+    resets = lockstep(venv, singles, 50, 1.2, check_info)
     assert resets >= n  # every sub-env reached the 20-step horizon at least once
 
 
@@ -237,15 +225,8 @@ def test_default_view_dims_skip_periodic_dimensions():
 
 
 # ---------------------------------------------------------------------- scene guarantees, user system
-def test_trails_of_a_user_system_only_when_asked_for_and_rendered(monkeypatch):
-    created = []
-    original = matplotlib.figure.Figure.__init__
-
-    def counting_init(self, *args, **kwargs):
-        created.append(1)
-        original(self, *args, **kwargs)
-
-    monkeypatch.setattr(matplotlib.figure.Figure, "__init__", counting_init)
+def test_trails_of_a_user_system_only_when_asked_for_and_rendered(created_figures):
+    created = created_figures
     env = make_env(DubinsAvoid(), trails=True)  # trails asked for, but nothing is rendered
     env.reset(seed=0)
     _run(env, 10)

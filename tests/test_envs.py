@@ -168,7 +168,7 @@ def test_seeded_episodes_are_reproducible():
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)
-def test_vector_env_matches_single_envs_step_for_step(env_id):
+def test_vector_env_matches_single_envs_step_for_step(env_id, lockstep):
     n = 5
     venv = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point")
     assert type(venv).__name__ == "ReachVectorEnv"
@@ -176,21 +176,7 @@ def test_vector_env_matches_single_envs_step_for_step(env_id):
     obs, _ = venv.reset(seed=11)
     single_obs = np.stack([env.reset(seed=11 + i)[0] for i, env in enumerate(singles)])
     np.testing.assert_array_equal(obs, single_obs)
-    rng = np.random.default_rng(0)
-    done = np.zeros(n, dtype=bool)
-    resets = 0
-    for _ in range(150):
-        actions = rng.uniform(-1.3, 1.3, size=venv.action_space.shape).astype(np.float32)
-        obs, rewards, terminated, truncated, _ = venv.step(actions)
-        for i, env in enumerate(singles):
-            if done[i]:  # NEXT_STEP autoreset: this step resets sub-env i
-                o, r, te, tr = env.reset()[0], 0.0, False, False
-                resets += 1
-            else:
-                o, r, te, tr, _ = env.step(actions[i])
-            np.testing.assert_allclose(obs[i], o, rtol=0, atol=1e-6)
-            assert (rewards[i], terminated[i], truncated[i]) == (r, te, tr)
-        done = terminated | truncated
+    resets = lockstep(venv, singles, 150, 1.3)
     assert resets > 0
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 import gymnasium as gym
-import matplotlib.figure
 import numpy as np
 import pytest
 
@@ -60,15 +59,8 @@ def test_no_disturbance_policy_call_without_a_disturbance(monkeypatch):
     assert len(calls) == env.unwrapped.sim.calls["disturbance_policy"] > 0
 
 
-def test_no_figure_without_render_mode(monkeypatch):
-    created = []
-    original = matplotlib.figure.Figure.__init__
-
-    def counting_init(self, *args, **kwargs):
-        created.append(1)
-        original(self, *args, **kwargs)
-
-    monkeypatch.setattr(matplotlib.figure.Figure, "__init__", counting_init)
+def test_no_figure_without_render_mode(created_figures):
+    created = created_figures
     env = gym.make("Air3D-v0", scene="head-on")  # a scene with trails on
     env.reset(seed=0)
     _run(env)
