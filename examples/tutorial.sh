@@ -4,7 +4,8 @@
 #
 # Usage (from the repository root): bash examples/tutorial.sh [OUT]   (default OUT: runs/tutorial)
 # FROM=STEP bash examples/tutorial.sh skips the steps before STEP (e.g. FROM=avoid-sweep).
-# Output: OUT/*.log, one per step, and the files the docs page shows. About 15 CPU minutes on 2 cores.
+# Output: OUT/*.log, one per step, and the files the docs page shows. It took 23 minutes on a
+# 2-core machine shared with a background training run.
 set -euo pipefail
 out=${1:-runs/tutorial}
 mkdir -p "$out"
