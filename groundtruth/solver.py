@@ -39,9 +39,10 @@ MAX_DIM = 4
 CFL_STABLE = 1.0
 #: ``compile=None`` compiles the step on CPU only for at least this many node updates (nodes x RK3
 #: steps): torch.compile costs 20-30 s once per new system or grid, and pays off only on large work.
-#: Measured (Air3D to t = 1, fresh processes, 2 CPU cores): 51^3 (5e7 updates) eager 16 s against
-#: 34 s compiled; 71^3 (1.8e8) eager 97 s against 47 s; 101^3 (7e8) eager 283 s against 51 s; a
-#: user-defined Dubins system at 51^3 (7e6) eager 2.3 s against 29.7 s on a first run.
+#: Measured (Air3D to t = 1, fresh processes, 2 CPU cores): 51^3 (4.3e7 updates) eager 16 s against
+#: 34 s compiled; 71^3 (1.6e8) eager 97 s against 47 s; 101^3 (6.7e8) eager 283 s against 51 s; a
+#: user-defined Dubins system at 51^3 (about 6e6, as examples/my_systems.py's DubinsAvoid) eager
+#: 2.3 s against 29.7 s on a first run.
 COMPILE_MIN_NODE_UPDATES = 1e8
 
 
