@@ -19,6 +19,7 @@ from groundtruth.pairwise import PairwiseUnion
 from groundtruth.solution import GridSolution
 from reach.systems import ControlAffineSystem, MultiVehicle, RelativePair, make_system
 from reach.value_function import MinimumOf, ValueFunction
+from training import pretrained
 from training.checkpoint import load_network
 from training.deepreach import load_deepreach
 from training.network import NeuralValueFunction
@@ -41,7 +42,10 @@ class LoadedValueFunction:
 
 
 def resolve_checkpoint(path: str | os.PathLike) -> Path:
-    """A run directory means its ``checkpoint.pt``; files are returned as they are."""
+    """A run directory means its ``checkpoint.pt``, ``"pretrained:NAME"`` the shipped model's file
+    (:mod:`training.pretrained`); files are returned as they are."""
+    if pretrained.is_pretrained(path):
+        return pretrained.checkpoint_path(str(path))
     p = Path(path)
     if p.is_symlink() and not p.exists():
         raise ValueError(f"{p}: a broken symbolic link or a link loop")
@@ -95,7 +99,8 @@ def load_value_function(
     """Load a value function from disk; mismatches and corrupt files raise ``ValueError``.
 
     Args:
-        path: a run directory, a checkpoint ``.pt``, a DeepReach ``.pth`` or a grid ``.npz``.
+        path: a run directory, a checkpoint ``.pt``, a DeepReach ``.pth``, a grid ``.npz`` or a
+            shipped model, ``"pretrained:NAME"`` (``reach pretrained`` lists them).
         format: ``auto`` guesses from the suffix (see :func:`detect_format`).
         system: the expected system (required for DeepReach files, which do not store it); a
             stored system with the same physics (:meth:`physics_config`: horizon and sampling box
@@ -119,6 +124,8 @@ def load_value_function(
     if str(path).startswith(MIN_PREFIX):
         return _load_minimum(str(path), format, system, layout, device, label)
     p = resolve_checkpoint(path)
+    if pretrained.is_pretrained(path):
+        format, label = "reach", label or str(path)
     try:
         return _load(p, format, system, layout, device, label)
     except (OSError, EOFError, KeyError, TypeError, RuntimeError, zipfile.BadZipFile) as err:

@@ -16,6 +16,7 @@ from typing import Any
 import torch
 
 from reach.systems import ControlAffineSystem
+from reach.threads import thread_policy
 from reach.value_function import ValueFunction
 from safety.metrics import robust_level_search, scenario_epsilon, violation_statistics, wilson_interval
 from safety.rollout import rollout
@@ -125,7 +126,17 @@ def verify(
     device: str | torch.device = "cpu",
     progress: bool = True,
 ) -> dict[str, Any]:
-    """Violation statistics of ``vf`` on ``states`` and, if asked, the certified delta-level."""
+    """Violation statistics of ``vf`` on ``states`` and, if asked, the certified delta-level.
+
+    Unless the caller chose a thread count, torch uses the cores other processes leave free while
+    it runs (:func:`reach.threads.thread_policy`)."""
+    with thread_policy():
+        return _verify(vf, states, settings, device, progress)
+
+
+def _verify(
+    vf: ValueFunction, states: torch.Tensor, settings: VerifySettings, device: str | torch.device, progress: bool
+) -> dict[str, Any]:
     start = time.perf_counter()
     horizon = vf.system.horizon if settings.horizon is None else settings.horizon
     precision = settings.matmul_precision if hasattr(vf, "with_matmul_dtype") else "float32"

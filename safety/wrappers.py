@@ -39,6 +39,7 @@ from pettingzoo.utils.wrappers import BaseParallelWrapper
 from reach.value_function import ValueFunction, check_time_coverage
 from safety.filter import DEFAULT_GAMMA, FilterInfo, SafetyFilter
 from safety.value_functions import as_value_function
+from training import pretrained
 
 
 def _check_time_to_go(time_to_go: float | str | None) -> None:
@@ -123,6 +124,17 @@ class _Adapter:
         return (applied.astype(dtype) if dtype.kind == "f" else applied), info
 
 
+def _env_id(env: Any) -> str | None:
+    """The Gymnasium id of ``env`` (from its spec, else from its named scene), or None."""
+    from reach_envs import ENV_SCENES
+
+    spec = getattr(env, "spec", None)
+    if getattr(spec, "id", None):
+        return spec.id
+    scene = getattr(getattr(env.unwrapped, "scene", None), "name", None)
+    return next((env_id for env_id, name in ENV_SCENES.items() if name == scene), None)
+
+
 class _FilterAdapterMixin:
     """The one set-up every wrapper shares: an :class:`_Adapter` for the wrapped env's system."""
 
@@ -131,7 +143,7 @@ class _FilterAdapterMixin:
     def __init__(
         self,
         env: Any,
-        value_function: ValueFunction | str,
+        value_function: ValueFunction | str | None = None,
         threshold: float | None = None,
         time_to_go: float | str | None = None,
         device: str = "cpu",
@@ -144,7 +156,7 @@ class _FilterAdapterMixin:
     def _attach_filter(
         self,
         env: Any,
-        value_function: ValueFunction | str,
+        value_function: ValueFunction | str | None,
         threshold: float | None,
         time_to_go: Any,
         device: str,
@@ -152,6 +164,8 @@ class _FilterAdapterMixin:
         gamma: float = DEFAULT_GAMMA,
     ) -> None:
         base = env.unwrapped
+        if value_function is None:
+            value_function = pretrained.for_env(_env_id(env), base.system)
         self._adapter = _Adapter(base.system, value_function, threshold, time_to_go, base.scene, device, kind, gamma)
 
     @property
@@ -163,6 +177,9 @@ class _FilterAdapterMixin:
 class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordConstructorArgs):
     """A Gymnasium env whose actions pass through a safety filter (``kind``: switch, lookahead, smooth).
 
+    Without ``value_function`` the filter uses the model shipped for the env
+    (:func:`training.pretrained.for_env`: ``SafetyFilterWrapper(gym.make("Air3D-v0"))`` filters with
+    ``"pretrained:air3d"``); an env no shipped model fits raises ``ValueError``.
     ``value_function`` may be a path (run directory, checkpoint, ``.npz``), which keeps
     ``env.spec`` serialisable, so ``gym.make(env.spec)`` rebuilds the wrapped env.
     """
@@ -170,7 +187,7 @@ class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordCons
     def __init__(
         self,
         env: gym.Env,
-        value_function: ValueFunction | str,
+        value_function: ValueFunction | str | None = None,
         threshold: float | None = None,
         time_to_go: float | str | None = None,
         device: str = "cpu",

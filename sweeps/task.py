@@ -79,14 +79,13 @@ def run_task(
     Rows hold ``layout``, ``seed``, ``snapshot``, ``fraction`` (of the run), ``step``, ``wall``
     (training seconds, evaluation excluded), ``steps_per_s`` and the scorer's metrics.
     """
-    import torch
-
+    from reach.threads import apply_thread_policy
     from safety.evaluate import fingerprint
     from safety.value_functions import load_value_function
     from sweeps.spec import SweepSpec
 
     if threads:
-        torch.set_num_threads(threads)
+        apply_thread_policy(threads)  # the sweep's per-run count, which training then keeps
     if not Path(out).is_dir():
         raise ValueError(f"sweep directory {out} is not visible here (on a cluster it must be on shared storage)")
     spec = SweepSpec.from_dict(spec_dict)

@@ -63,3 +63,32 @@ def test_threads_given_before_or_after_the_subcommand_are_kept(argv, threads):
     from reach.cli.common import finish_namespace
 
     assert finish_namespace(build_parser().parse_args(argv)).threads == threads
+
+
+def test_library_entry_points_keep_a_chosen_thread_count_and_restore_it(monkeypatch):
+    """thread_policy replaces only torch's blind default, and gives the caller's count back."""
+    import torch
+
+    from reach import threads
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    before = torch.get_num_threads()
+    monkeypatch.setattr(threads, "free_cores", lambda: 1)  # a busy machine
+    monkeypatch.setattr(threads, "_applied", None)
+    monkeypatch.setattr(threads, "_default_counts", lambda: {before})
+    try:
+        with threads.thread_policy() as n:  # nobody chose: the free cores
+            assert n == 1 and torch.get_num_threads() == 1
+        assert torch.get_num_threads() == before
+        threads.apply_thread_policy(before)  # reach --threads N chose this count
+        with threads.thread_policy() as n:
+            assert n == before and torch.get_num_threads() == before
+        monkeypatch.setattr(threads, "_applied", None)
+        monkeypatch.setenv("OMP_NUM_THREADS", str(before))  # the environment chose
+        with threads.thread_policy() as n:
+            assert n == before
+        with threads.thread_policy(1) as n:  # an explicit count always wins
+            assert n == 1 and torch.get_num_threads() == 1
+        assert torch.get_num_threads() == before
+    finally:
+        torch.set_num_threads(before)

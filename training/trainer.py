@@ -33,6 +33,7 @@ from tqdm.auto import tqdm
 
 from reach.atomic import atomic_path
 from reach.locking import run_lock
+from reach.threads import thread_policy
 from reach.validation import check_output_dir
 from training.checkpoint import network_from_payload, read_checkpoint, save_checkpoint
 from training.config import TrainConfig
@@ -326,9 +327,11 @@ class Trainer:
         The run directory is locked for the whole call (a second process training into it gets a
         ``ValueError`` naming this one). SIGINT (Ctrl-C) and SIGTERM finish the current step, save a
         checkpoint and raise :class:`TrainingInterrupted`; :meth:`resume` continues from there.
-        Raises :class:`TrainingDivergedError` when the loss becomes NaN or inf."""
+        Raises :class:`TrainingDivergedError` when the loss becomes NaN or inf. Unless the caller
+        chose a thread count, torch uses the cores other processes leave free
+        (:func:`reach.threads.thread_policy`)."""
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        with run_lock(self.run_dir), _deferred_signals() as stop:
+        with run_lock(self.run_dir), _deferred_signals() as stop, thread_policy():
             return self._train(stop)
 
     def _train(self, stop: dict[str, int]) -> dict[str, Any]:

@@ -2,7 +2,8 @@
 
 ``<!-- generated: environment table -->`` becomes one row per registered environment (spaces,
 dynamics summary, horizon) built from its scene and system; ``<!-- generated: cli reference -->``
-becomes every subcommand's ``--help``, defaults included (they come from the library's dataclasses).
+becomes every subcommand's ``--help``, defaults included (they come from the library's dataclasses);
+``<!-- generated: pretrained cards -->`` becomes the shipped models' card table (package data).
 """
 
 from __future__ import annotations
@@ -56,9 +57,40 @@ def _cli_reference() -> str:
     return "\n".join(out)
 
 
+def _pretrained_cards() -> str:
+    from training import pretrained
+
+    rows = [
+        "| model | system, envs | trained | violation % | false safe % | collision % | certified vol. | "
+        "misses union % | IoU vol. |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    commands = []
+    for card in pretrained.cards():
+        t, m = card.training, card.metrics
+
+        def cell(key: str, scale: float = 1.0, m: dict = m) -> str:
+            value = m.get(key)
+            return f"{value * scale:.3g}" if isinstance(value, (int, float)) else "-"
+
+        rows.append(
+            f"| `pretrained:{card.name}` | {card.system}; {', '.join(card.env_ids) or '-'} | "
+            f"{t.get('steps')} steps, {t.get('wall_time_s', 0) / 60:.0f} min | {cell('violation_rate', 100)} | "
+            f"{cell('false_safe_rate', 100)} | {cell('collision_rate', 100)} | {cell('certified_volume')} | "
+            f"{cell('containment_miss_rate', 100)} | {cell('iou_volume')} |"
+        )
+        commands.append(
+            f"**`{card.name}`**: {card.summary}\n\n```bash\n{t.get('command', '')}\n"
+            f"{card.evaluation.get('command', '')}\n```\n\nHardware: {t.get('hardware', '?')}; "
+            f"commit {t.get('commit', '?')}; evaluated on {card.evaluation.get('samples', '?')} states."
+        )
+    return "\n".join(rows) + "\n\n" + "\n\n".join(commands) + "\n"
+
+
 GENERATORS = {
     "<!-- generated: environment table -->": _environment_table,
     "<!-- generated: cli reference -->": _cli_reference,
+    "<!-- generated: pretrained cards -->": _pretrained_cards,
 }
 
 

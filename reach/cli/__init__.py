@@ -1,11 +1,12 @@
 """``reach``: the command line of the reach toolkit.
 
 Each subcommand is one module of this package holding its parser beside its handler: ``envs``
-(list environments and scenes), ``record`` (an episode as a GIF), ``groundtruth`` (grid BRT solve),
-``train`` (value networks), ``evaluate`` (rollout verification across checkpoints), ``filter-eval``
-(what a safety filter changes in episodes of a task), ``plot`` (BRT slices, union overlays,
-violation bars, filtered-episode GIFs), ``sweep`` (layouts x seeds on a budget, with a report) and
-``demo`` (all of it on Air3D).
+(list environments and scenes), ``pretrained`` (the shipped value networks and their cards),
+``record`` (an episode as a GIF), ``groundtruth`` (grid BRT solve), ``train`` (value networks),
+``evaluate`` (rollout verification across checkpoints), ``filter-eval`` (what a safety filter
+changes in episodes of a task), ``plot`` (BRT slices, union overlays, violation bars,
+filtered-episode GIFs), ``sweep`` (layouts x seeds on a budget, with a report) and ``demo`` (all of
+it on Air3D).
 
 Handlers only parse and call library functions. Options that mirror a library setting default to
 ``None`` and fall back to the library's dataclass, so every default has one source; ``--help``
@@ -23,12 +24,12 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from reach.cli import demo, envs, evaluate, filter_eval, groundtruth, plot, record, sweep, train
+from reach.cli import demo, envs, evaluate, filter_eval, groundtruth, plot, pretrained, record, sweep, train
 from reach.cli.common import OneLineParser, common_options, finish_namespace
 from reach.threads import apply_thread_policy
 
 #: subcommand modules, in the order ``reach --help`` lists them
-COMMANDS = (envs, record, groundtruth, train, evaluate, filter_eval, plot, sweep, demo)
+COMMANDS = (envs, pretrained, record, groundtruth, train, evaluate, filter_eval, plot, sweep, demo)
 
 #: exit status of an expected failure (bad input, unreadable file), as argparse uses for usage errors
 EXIT_USAGE = 2

@@ -59,7 +59,11 @@ def add_parser(sub: Any) -> None:
     p = add_subparser(
         sub, "evaluate", help="verify value functions by rollouts: violations, delta-level, scenario guarantee"
     )
-    p.add_argument("sources", nargs="+", help="run directories, checkpoints (.pt), DeepReach (.pth), grid (.npz)")
+    p.add_argument(
+        "sources",
+        nargs="+",
+        help="run directories, checkpoints (.pt), pretrained:NAME, DeepReach (.pth), grid (.npz), min:A,B",
+    )
     for option, field, kwargs, text in VERIFY_OPTIONS:
         p.add_argument(
             option, dest=field, default=None, help=f"{text} (default: {default(VerifySettings, field)})", **kwargs

@@ -22,7 +22,11 @@ def add_parser(sub: Any) -> None:
     p = add_subparser(
         sub, "filter-eval", help="episodes of a goal-seeking task with and without the safety filter: safety vs task"
     )
-    p.add_argument("value_functions", nargs="*", help="value functions to filter with (runs, .pt, .pth, .npz)")
+    p.add_argument(
+        "value_functions",
+        nargs="*",
+        help="value functions to filter with (runs, .pt, pretrained:NAME, .pth, .npz, min:A,B)",
+    )
     p.add_argument(
         "--scene", default=None, help="named scene (air3d, three-car-merge, three-car-crossing, ...; default air3d)"
     )

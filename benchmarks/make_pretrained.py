@@ -1,0 +1,180 @@
+"""Add or refresh a shipped value network (package data in ``training/pretrained``), for maintainers.
+
+Two steps, each rerunnable:
+
+1. ``export`` copies a finished training run's network (no optimizer state) to
+   ``training/pretrained/NAME.pt`` and writes its model card with how it was trained::
+
+       python benchmarks/make_pretrained.py export runs/air3d-10m --name air3d --env-ids Air3D-v0 \\
+           --summary "..." --command "reach train --system air3d --budget 10m --seed 0 --out runs/air3d-10m" \\
+           --commit cd6e1f2 --hardware "2 CPU cores (shared VM), torch 2.13.0+cpu"
+
+2. ``evaluate`` runs ``reach evaluate`` on ``pretrained:NAME`` (the shipped file, so the card
+   scores exactly what ships) and records the command, the sample sizes and the metrics::
+
+       python benchmarks/make_pretrained.py evaluate air3d --samples 100000 --certify-samples 100000 \\
+           --ground-truth runs/air3d_gt.npz
+
+The test suite (``tests/test_pretrained.py``) reloads every shipped model and checks its card's
+rates on a fresh small sample.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+import tempfile
+from pathlib import Path
+
+from reach.atomic import atomic_path
+from training import pretrained
+from training.checkpoint import ARCHITECTURE_KEYS, network_from_payload, read_checkpoint, save_checkpoint
+
+#: the ``reach evaluate`` columns a card keeps
+CARD_COLUMNS = (
+    "samples",
+    "violation_rate",
+    "false_safe_rate",
+    "false_unsafe_rate",
+    "collision_rate",
+    "collision_ci_low",
+    "collision_ci_high",
+    "delta",
+    "eps",
+    "certified_samples",
+    "certified_failures",
+    "certified_volume",
+    "robust_level",
+    "robust_eps",
+    "robust_failures",
+    "robust_certified_volume",
+    "iou_volume",
+    "mse_volume",
+    "iou_slice",
+    "mse_slice",
+    "containment_miss_rate",
+    "union_fraction",
+)
+
+
+def write_card(card: pretrained.ModelCard) -> None:
+    path = pretrained.DIRECTORY / f"{card.name}{pretrained.CARD_SUFFIX}"
+    with atomic_path(path) as tmp, open(tmp, "w") as fh:
+        json.dump(card.to_dict(), fh, indent=2)
+        fh.write("\n")
+
+
+def export(args: argparse.Namespace) -> int:
+    from safety.value_functions import resolve_checkpoint
+
+    source = resolve_checkpoint(args.run)
+    payload = read_checkpoint(source)
+    network = network_from_payload(source, payload)
+    meta = payload["metadata"]
+    keep = {k: v for k, v in meta.items() if k not in (*ARCHITECTURE_KEYS, "format", "integrity")}
+    target = pretrained.DIRECTORY / f"{args.name}.pt"
+    save_checkpoint(target, network, metadata=keep)
+    config = meta.get("config", {})
+    card = pretrained.ModelCard(
+        name=args.name,
+        system=network.system.reference(),
+        env_ids=tuple(e for e in args.env_ids.split(",") if e),
+        summary=args.summary,
+        training={
+            "command": args.command,
+            "commit": args.commit,
+            "wall_time_s": meta.get("wall_time_s"),
+            "steps": meta.get("steps"),
+            "hardware": args.hardware,
+            "layout": meta["layout"],
+            "width": meta["width"],
+            "points": config.get("points"),
+            "seed": meta.get("seed"),
+            "versions": meta.get("versions"),
+        },
+        evaluation={},
+        sha256=pretrained.file_sha256(target),
+    )
+    write_card(card)
+    print(f"wrote {target} ({target.stat().st_size / 1024:.0f} KB) and its card; now run: evaluate {args.name}")
+    return 0
+
+
+def evaluate(args: argparse.Namespace) -> int:
+    from safety.evaluate import evaluate_many
+    from safety.verify import VerifySettings
+
+    card = pretrained.card(args.name)
+    source = pretrained.PREFIX + args.name
+    settings = VerifySettings(
+        samples=args.samples,
+        certify_samples=args.certify_samples,
+        robust_samples=args.robust_samples,
+        seed=args.seed,
+    )
+    command = ["reach", "evaluate", source, "--samples", str(args.samples)]
+    command += ["--certify-samples", str(args.certify_samples), "--seed", str(args.seed)]
+    if args.robust_samples is not None:
+        command += ["--robust-samples", str(args.robust_samples)]
+    if args.ground_truth:
+        command += ["--ground-truth", args.ground_truth]
+    if args.pairwise:
+        command += ["--pairwise", args.pairwise]
+    with tempfile.TemporaryDirectory() as tmp:
+        rows = evaluate_many(
+            [source],
+            Path(tmp) / "card.csv",
+            settings,
+            system=card.system,
+            ground_truth=args.ground_truth,
+            pairwise=args.pairwise,
+        )
+    row = rows[0]
+    if row.get("error"):
+        print(f"evaluation failed: {row['error']}", file=sys.stderr)
+        return 1
+    metrics = {k: row[k] for k in CARD_COLUMNS if row.get(k) is not None and row.get(k) == row.get(k)}
+    evaluation = {
+        "command": " ".join(shlex.quote(c) for c in command) + " --out results.csv",
+        "samples": args.samples,
+        "certify_samples": args.certify_samples,
+        "robust_samples": args.robust_samples,
+        "seed": args.seed,
+        "hardware": args.hardware,
+        "metrics": metrics,
+    }
+    write_card(pretrained.ModelCard(**{**card.__dict__, "evaluation": evaluation}))
+    print(pretrained.card(args.name).describe())
+    return 0
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="step", required=True)
+    e = sub.add_parser("export", help="copy a run's network into the package and write its card")
+    e.add_argument("run", help="training run directory or checkpoint")
+    e.add_argument("--name", required=True)
+    e.add_argument("--env-ids", default="", help="comma-separated Gymnasium ids this model filters by default")
+    e.add_argument("--summary", required=True)
+    e.add_argument("--command", required=True, help="the command that trained it")
+    e.add_argument("--commit", required=True)
+    e.add_argument("--hardware", required=True)
+    e.set_defaults(func=export)
+    v = sub.add_parser("evaluate", help="score the shipped file with reach evaluate and record it in the card")
+    v.add_argument("name")
+    v.add_argument("--samples", type=int, default=100_000)
+    v.add_argument("--certify-samples", type=int, default=100_000)
+    v.add_argument("--robust-samples", type=int, default=None)
+    v.add_argument("--seed", type=int, default=0)
+    v.add_argument("--ground-truth", default=None)
+    v.add_argument("--pairwise", default=None)
+    v.add_argument("--hardware", default="2 CPU cores (shared VM), torch 2.13.0+cpu")
+    v.set_defaults(func=evaluate)
+    args = parser.parse_args()
+    return int(args.func(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,194 @@
+"""Value networks that ship with the package, each with a model card.
+
+A pretrained model is two package-data files in this directory: ``NAME.pt``, a reach checkpoint
+without optimizer state (read with ``weights_only=True`` and checked against its SHA-256 digest like
+any checkpoint), and ``NAME.card.json``, its model card:
+
+- ``system``: the registered system it was trained for; ``env_ids``: the Gymnasium ids whose
+  filter uses it when no value function is given;
+- ``training``: the command that trained it, the commit, wall time, steps and hardware;
+- ``evaluation``: the ``reach evaluate`` command, its sample sizes and the metrics it printed;
+- ``sha256``: the digest of ``NAME.pt``, so a swapped or damaged file is refused by name.
+
+Anything that takes a value function takes ``"pretrained:NAME"`` (:data:`PREFIX`), through
+:func:`safety.value_functions.load_value_function`. ``reach pretrained`` lists the cards.
+Maintainers add or replace a model with ``benchmarks/make_pretrained.py``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+#: a source naming a shipped model: ``"pretrained:air3d"``
+PREFIX = "pretrained:"
+#: where the model files live (package data)
+DIRECTORY = Path(__file__).resolve().parent
+CARD_SUFFIX = ".card.json"
+
+
+@dataclass(frozen=True)
+class ModelCard:
+    """What a shipped model is, how it was made and how it scored (see the module docstring)."""
+
+    name: str
+    system: str
+    env_ids: tuple[str, ...]
+    summary: str
+    training: dict[str, Any] = field(default_factory=dict)
+    evaluation: dict[str, Any] = field(default_factory=dict)
+    sha256: str = ""
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], where: str) -> ModelCard:
+        try:
+            return cls(
+                name=str(data["name"]),
+                system=str(data["system"]),
+                env_ids=tuple(str(e) for e in data.get("env_ids", ())),
+                summary=str(data.get("summary", "")),
+                training=dict(data.get("training", {})),
+                evaluation=dict(data.get("evaluation", {})),
+                sha256=str(data["sha256"]),
+            )
+        except (KeyError, TypeError, ValueError) as err:
+            raise ValueError(f"{where}: not a model card ({type(err).__name__}: {err})") from err
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "system": self.system,
+            "env_ids": list(self.env_ids),
+            "summary": self.summary,
+            "training": self.training,
+            "evaluation": self.evaluation,
+            "sha256": self.sha256,
+        }
+
+    @property
+    def metrics(self) -> dict[str, Any]:
+        """The ``reach evaluate`` row the card records (empty before evaluation)."""
+        return dict(self.evaluation.get("metrics", {}))
+
+    def describe(self) -> str:
+        """A few lines for ``reach pretrained``: what, how trained, how it scored."""
+        t, e, m = self.training, self.evaluation, self.metrics
+        lines = [f"{PREFIX}{self.name}  ({self.system}; envs: {', '.join(self.env_ids) or '-'})", f"  {self.summary}"]
+        if t:
+            lines.append(
+                f"  trained: {t.get('steps', '?')} steps, {_minutes(t.get('wall_time_s'))} on {t.get('hardware', '?')}"
+                f" (commit {str(t.get('commit', '?'))[:10]})"
+            )
+            if t.get("command"):
+                lines.append(f"    {t['command']}")
+        if m:
+            shown = ", ".join(
+                f"{label} {_number(m.get(key), scale)}"
+                for key, label, scale in _CARD_METRICS
+                if m.get(key) is not None
+            )
+            lines.append(f"  evaluated on {e.get('samples', '?')} states: {shown}")
+            if e.get("command"):
+                lines.append(f"    {e['command']}")
+        return "\n".join(lines)
+
+
+#: (row key, label, scale) shown by :meth:`ModelCard.describe`
+_CARD_METRICS = (
+    ("violation_rate", "violation %", 100.0),
+    ("false_safe_rate", "false safe %", 100.0),
+    ("collision_rate", "collision %", 100.0),
+    ("delta", "delta", 1.0),
+    ("certified_volume", "certified vol.", 1.0),
+    ("iou_volume", "IoU vol.", 1.0),
+    ("containment_miss_rate", "misses union %", 100.0),
+)
+
+
+def _minutes(seconds: Any) -> str:
+    return f"{float(seconds) / 60:.1f} min" if isinstance(seconds, (int, float)) else "?"
+
+
+def _number(value: Any, scale: float) -> str:
+    return f"{value * scale:.3g}" if isinstance(value, (int, float)) else str(value)
+
+
+def names() -> list[str]:
+    """The shipped models' names, sorted."""
+    return sorted(p.name[: -len(CARD_SUFFIX)] for p in DIRECTORY.glob(f"*{CARD_SUFFIX}"))
+
+
+def is_pretrained(source: Any) -> bool:
+    """Whether ``source`` is a ``"pretrained:NAME"`` string."""
+    return isinstance(source, str) and source.startswith(PREFIX)
+
+
+def _check_name(name: str) -> str:
+    available = names()
+    if name not in available:
+        raise ValueError(
+            f"no pretrained model {name!r}; shipped: {', '.join(available) or 'none'} (reach pretrained lists them)"
+        )
+    return name
+
+
+def card(name: str) -> ModelCard:
+    """The model card of a shipped model; an unknown name raises ``ValueError`` listing the known ones."""
+    path = DIRECTORY / f"{_check_name(name)}{CARD_SUFFIX}"
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: unreadable model card ({err})") from err
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: not a model card (a JSON object expected)")
+    return ModelCard.from_dict(data, str(path))
+
+
+def cards() -> list[ModelCard]:
+    """Every shipped model's card, by name."""
+    return [card(n) for n in names()]
+
+
+def file_sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def checkpoint_path(source: str) -> Path:
+    """The checkpoint file of ``"pretrained:NAME"`` (or ``NAME``), after checking it is the file its
+    card describes: a replaced or damaged file raises ``ValueError`` instead of loading."""
+    name = source[len(PREFIX) :] if is_pretrained(source) else source
+    c = card(name)
+    path = DIRECTORY / f"{name}.pt"
+    if not path.is_file():
+        raise ValueError(f"{PREFIX}{name}: its checkpoint {path} is missing from the installed package")
+    if file_sha256(path) != c.sha256:
+        raise ValueError(f"{PREFIX}{name}: {path} is not the file its model card describes (SHA-256 mismatch)")
+    return path
+
+
+def for_env(env_id: str | None, system: Any) -> str:
+    """The ``"pretrained:NAME"`` source a filter on env ``env_id`` uses when given no value function.
+
+    A card listing ``env_id`` wins; otherwise a model trained for a system of the same physics as
+    ``system`` (:meth:`~reach.systems.base.ControlAffineSystem.same_physics`). None raises
+    ``ValueError`` naming the env and the shipped models."""
+    from reach.systems import make_system
+
+    all_cards = cards()
+    for c in all_cards:
+        if env_id is not None and env_id in c.env_ids:
+            return PREFIX + c.name
+    wanted = make_system(system)
+    for c in all_cards:
+        if wanted.same_physics(make_system(c.system)):
+            return PREFIX + c.name
+    raise ValueError(
+        f"no pretrained value function for env {env_id or '(no id)'} ({wanted.name}); shipped: "
+        f"{', '.join(f'{c.name} ({c.system})' for c in all_cards) or 'none'}; pass a value function"
+    )
+
+
+__all__ = ["DIRECTORY", "PREFIX", "ModelCard", "card", "cards", "checkpoint_path", "for_env", "is_pretrained", "names"]
