@@ -1,6 +1,8 @@
 """Grid solver performance: wall time, peak memory and throughput for Air3D to horizon 1.0.
 
 Run: ``python benchmarks/bench_groundtruth.py`` (``--grids 51 101``; ``--quick`` for 31 only).
+``--against hj_reachability`` compares first and second runs, each a fresh process, with
+hj_reachability on Air3D 31^3-101^3 and user-defined 3D and 4D systems (``benchmarks/hj_comparison.py``).
 
 Each grid is solved twice in one process when compiling: the first run includes torch.compile's
 one-off compilation (from a fresh inductor cache unless ``--reuse-compile-cache``; a later process
@@ -16,6 +18,7 @@ import argparse
 import os
 import platform
 import resource
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -43,7 +46,9 @@ def slice_error(solution) -> tuple[float, float] | None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--grids", type=int, nargs="+", default=[51, 101])
+    parser.add_argument(
+        "--grids", type=int, nargs="+", default=None, help="grid sizes (default 51 101; with --against: all)"
+    )
     parser.add_argument("--compile", choices=["on", "off"], default="on")
     parser.add_argument("--dissipation", choices=["local", "global"], default="local")
     parser.add_argument("--tube", choices=["min_with_target", "min_over_time"], default="min_with_target")
@@ -51,11 +56,21 @@ def main() -> None:
     parser.add_argument(
         "--reuse-compile-cache", action="store_true", help="keep torch inductor's on-disk cache (default: a fresh one)"
     )
+    parser.add_argument(
+        "--against", choices=["hj_reachability"], default=None, help="compare with another solver (fresh processes)"
+    )
+    parser.add_argument("--hj-python", default=None, help="an interpreter with hj_reachability (default: install one)")
     args = parser.parse_args()
+    if args.against:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from hj_comparison import compare
+
+        raise SystemExit(compare(args.quick, args.hj_python, args.grids))
     if not args.reuse_compile_cache:  # so that "cold" really includes compilation from scratch
         os.environ["TORCHINDUCTOR_CACHE_DIR"] = tempfile.mkdtemp(prefix="reach-inductor-")
     if args.quick:
         args.grids = [31]
+    args.grids = args.grids or [51, 101]
     print(
         f"# Ground-truth solver benchmark: Air3D, horizon 1.0, WENO5 + {args.dissipation} LF + TVD-RK3, "
         f"CFL 0.75, float32, tube {args.tube}"

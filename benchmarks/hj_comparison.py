@@ -1,0 +1,213 @@
+"""The grid solver against hj_reachability (JAX) on the same systems, grids and horizons.
+
+Run: ``python benchmarks/bench_groundtruth.py --against hj_reachability`` (``--quick`` for two small
+cases; ``--hj-python PATH`` to use an interpreter that already has hj_reachability).
+
+Every solve is a fresh process, timed from the parent with interpreter start-up and imports
+included, as a user meets it:
+
+- ``reach`` first run: an empty torch inductor cache (a new or changed system); second run: the
+  same cache again (``groundtruth.solve`` defaults, so compiling only where its rule says so).
+- hj_reachability first and second run: JAX keeps no compile cache between processes by default,
+  so both compile; the second shows the spread.
+
+The two solvers run the same scheme (HJ-WENO5, local Lax-Friedrichs, TVD-RK3, CFL 0.75, float32)
+on the same nodes, from ``l`` at time-to-go 0 to the horizon; hj_reachability freezes the value
+where the Hamiltonian would lower it past zero (``backwards_reachable_tube``), reach takes
+``min(V, l)``: the same BRT. The table reports the IoU of the two BRTs, so a mismatch in the
+systems' definitions shows.
+
+hj_reachability is installed only for this benchmark, in a virtual environment of its own
+(``~/.cache/reach-bench/hj-venv`` unless ``--hj-python`` is given); it is never a dependency.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+HJ_VENV = Path.home() / ".cache" / "reach-bench" / "hj-venv"
+HJ_REQUIREMENTS = ("hj_reachability==0.7.0", "jax[cpu]")
+
+#: (label, reach system, hj system key, grid sizes, horizon)
+CASES = (
+    ("Air3D", "air3d", "air3d", (31, 51, 71, 101), 1.0),
+    ("DubinsAvoid (3D, user-defined)", "my_systems:DubinsAvoid", "dubins_avoid", (51,), 1.0),
+    ("DubinsAccel (4D, user-defined)", "my_systems:DubinsAccel", "dubins_accel", (21, 31, 41), 1.0),
+)
+QUICK_CASES = (
+    ("Air3D", "air3d", "air3d", (31,), 1.0),
+    ("DubinsAccel (4D, user-defined)", "my_systems:DubinsAccel", "dubins_accel", (21,), 1.0),
+)
+
+REACH_CHILD = r"""
+import json, sys, time
+t0 = time.perf_counter()
+sys.path.insert(0, sys.argv[4])
+import numpy as np
+from groundtruth import solve
+from reach.systems import make_system
+system = make_system(sys.argv[1])
+t1 = time.perf_counter()
+sol = solve(system, int(sys.argv[2]), [0.0, float(sys.argv[3])], progress=False)
+t2 = time.perf_counter()
+np.save(sys.argv[5], sol.values[-1].numpy())
+print(json.dumps({"import_s": t1 - t0, "solve_s": t2 - t1, "compiled": sol.metadata["scheme"]["compiled"],
+                  "steps": sol.metadata["scheme"]["steps"]}))
+"""
+
+# The three systems in hj_reachability's terms: the same dynamics, input boxes, domains and
+# failure sets as reach.systems.Air3D and examples/my_systems.py (checked by the BRT IoU).
+HJ_CHILD = r"""
+import json, sys, time
+t0 = time.perf_counter()
+import jax.numpy as jnp
+import numpy as np
+import hj_reachability as hj
+from hj_reachability import dynamics as hjd, sets
+
+class Air3D(hjd.ControlAndDisturbanceAffineDynamics):
+    def __init__(self):
+        super().__init__("max", "min", sets.Box(jnp.array([-3.0]), jnp.array([3.0])),
+                         sets.Box(jnp.array([-3.0]), jnp.array([3.0])))
+    def open_loop_dynamics(self, x, t):
+        return jnp.array([-0.75 + 0.75 * jnp.cos(x[2]), 0.75 * jnp.sin(x[2]), 0.0])
+    def control_jacobian(self, x, t):
+        return jnp.array([[x[1]], [-x[0]], [-1.0]])
+    def disturbance_jacobian(self, x, t):
+        return jnp.array([[0.0], [0.0], [1.0]])
+
+class DubinsAvoid(hjd.ControlAndDisturbanceAffineDynamics):
+    def __init__(self):
+        super().__init__("max", "min", sets.Box(jnp.array([-1.5]), jnp.array([1.5])),
+                         sets.Box(jnp.array([-0.1, -0.1]), jnp.array([0.1, 0.1])))
+    def open_loop_dynamics(self, x, t):
+        return jnp.array([0.8 * jnp.cos(x[2]), 0.8 * jnp.sin(x[2]), 0.0])
+    def control_jacobian(self, x, t):
+        return jnp.array([[0.0], [0.0], [1.0]])
+    def disturbance_jacobian(self, x, t):
+        return jnp.array([[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]])
+
+class DubinsAccel(hjd.ControlAndDisturbanceAffineDynamics):
+    def __init__(self):
+        super().__init__("max", "min", sets.Box(jnp.array([-1.5, -1.0]), jnp.array([1.5, 1.0])),
+                         sets.Box(jnp.array([-0.05, -0.05]), jnp.array([0.05, 0.05])))
+    def open_loop_dynamics(self, x, t):
+        return jnp.array([x[3] * jnp.cos(x[2]), x[3] * jnp.sin(x[2]), 0.0, 0.0])
+    def control_jacobian(self, x, t):
+        return jnp.array([[0.0, 0.0], [0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    def disturbance_jacobian(self, x, t):
+        return jnp.array([[1.0, 0.0], [0.0, 1.0], [0.0, 0.0], [0.0, 0.0]])
+
+SYSTEMS = {
+    "air3d": (Air3D, [-1.0, -1.0, -np.pi], [1.0, 1.0, np.pi], 2,
+              lambda s: jnp.hypot(s[..., 0], s[..., 1]) - 0.25),
+    "dubins_avoid": (DubinsAvoid, [-1.5, -1.5, -np.pi], [1.5, 1.5, np.pi], 2,
+                     lambda s: jnp.sqrt((s[..., 0] - 0.3) ** 2 + (s[..., 1] - 0.2) ** 2) - 0.4),
+    "dubins_accel": (DubinsAccel, [-1.5, -1.5, -np.pi, 0.0], [1.5, 1.5, np.pi, 1.2], 2,
+                     lambda s: jnp.sqrt(s[..., 0] ** 2 + s[..., 1] ** 2) - 0.4),
+}
+make, lo, hi, periodic, margin = SYSTEMS[sys.argv[1]]
+n, horizon = int(sys.argv[2]), float(sys.argv[3])
+grid = hj.Grid.from_lattice_parameters_and_boundary_conditions(
+    sets.Box(jnp.array(lo), jnp.array(hi)), (n,) * len(lo), periodic_dims=periodic)
+settings = hj.SolverSettings.with_accuracy("very_high", hamiltonian_postprocessor=hj.solver.backwards_reachable_tube)
+l = margin(grid.states)
+t1 = time.perf_counter()
+values = hj.solve(settings, make(), grid, jnp.array([0.0, -horizon]), l, progress_bar=False)
+values.block_until_ready()
+t2 = time.perf_counter()
+np.save(sys.argv[5], np.asarray(values[-1]))
+print(json.dumps({"import_s": t1 - t0, "solve_s": t2 - t1}))
+"""
+
+
+def hj_python(given: str | None) -> str:
+    """An interpreter with hj_reachability: ``given``, or this benchmark's own virtual environment."""
+    if given:
+        return given
+    python = HJ_VENV / "bin" / "python"
+    if not python.exists():
+        print(f"# installing {', '.join(HJ_REQUIREMENTS)} into {HJ_VENV} (for this benchmark only)", flush=True)
+        subprocess.run([sys.executable, "-m", "venv", str(HJ_VENV)], check=True)
+        subprocess.run([str(python), "-m", "pip", "install", "-q", *HJ_REQUIREMENTS], check=True)
+    return str(python)
+
+
+def run_child(python: str, code: str, system: str, n: int, horizon: float, env: dict[str, str]) -> dict:
+    """One solve in a fresh process; returns its own timings, the parent's wall time and the values."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "values.npy"
+        start = time.perf_counter()
+        done = subprocess.run(
+            [python, "-c", code, system, str(n), str(horizon), str(ROOT / "examples"), str(out)],
+            capture_output=True,
+            text=True,
+            env=env,
+        )
+        wall = time.perf_counter() - start
+        if done.returncode:
+            raise RuntimeError(f"{system} {n}: child failed:\n{done.stderr[-2000:]}")
+        result = json.loads(done.stdout.strip().splitlines()[-1])
+        result.update(wall_s=wall, values=np.load(out))
+    return result
+
+
+def brt_iou(a: np.ndarray, b: np.ndarray) -> float:
+    inside_a, inside_b = a <= 0, b <= 0
+    union = (inside_a | inside_b).sum()
+    return float((inside_a & inside_b).sum() / union) if union else 1.0
+
+
+def compare(quick: bool, hj_python_path: str | None, sizes: list[int] | None = None) -> int:
+    import platform
+
+    import torch
+
+    python = hj_python(hj_python_path)
+    hj_version = subprocess.run(
+        [python, "-c", "import hj_reachability, jax; print(hj_reachability.__version__, jax.__version__)"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.split()
+    print(
+        f"# Grid solver against hj_reachability {hj_version[0]} (jax {hj_version[1]}): fresh processes, "
+        f"start-up included; python {platform.python_version()}, torch {torch.__version__}, {os.cpu_count()} CPUs\n"
+    )
+    print(
+        "| system | grid | hj first s | hj second s | reach first s | reach second s | reach mode "
+        "| first ratio | second ratio | hj start-up + solve s | reach start-up + solve s | BRT IoU |"
+    )
+    print("|---|---|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|")
+    base_env = {**os.environ, "TQDM_DISABLE": "1", "PYTHONPATH": str(ROOT)}
+    worst = 0.0
+    for label, system, hj_key, grids, horizon in QUICK_CASES if quick else CASES:
+        for n in (m for m in grids if sizes is None or m in sizes):
+            hj_runs = [run_child(python, HJ_CHILD, hj_key, n, horizon, base_env) for _ in range(2)]
+            with tempfile.TemporaryDirectory(prefix="reach-inductor-") as cache:
+                env = {**base_env, "TORCHINDUCTOR_CACHE_DIR": cache}
+                reach_runs = [run_child(sys.executable, REACH_CHILD, system, n, horizon, env) for _ in range(2)]
+            first = reach_runs[0]["wall_s"] / hj_runs[0]["wall_s"]
+            second = reach_runs[1]["wall_s"] / hj_runs[1]["wall_s"]
+            worst = max(worst, first, second)
+            dims = len(hj_runs[0]["values"].shape)
+            print(
+                f"| {label} | {n}^{dims} | {hj_runs[0]['wall_s']:.1f} | {hj_runs[1]['wall_s']:.1f} | "
+                f"{reach_runs[0]['wall_s']:.1f} | {reach_runs[1]['wall_s']:.1f} | "
+                f"{'compiled' if reach_runs[0]['compiled'] else 'eager'} | {first:.2f} | {second:.2f} | "
+                f"{hj_runs[1]['import_s']:.1f} + {hj_runs[1]['solve_s']:.1f} | "
+                f"{reach_runs[1]['import_s']:.1f} + {reach_runs[1]['solve_s']:.1f} | "
+                f"{brt_iou(hj_runs[0]['values'], reach_runs[0]['values']):.4f} |",
+                flush=True,
+            )
+    print(f"\n# worst ratio reach / hj_reachability: {worst:.2f} (ratio < 1: reach is faster)")
+    return 0
