@@ -304,12 +304,44 @@ def worst_case_disturbance(value_function: ValueFunction, time_to_go: float | No
     return attack
 
 
-def outside_states(value_function: ValueFunction, episodes: int, margin: float, seed: int) -> np.ndarray:
-    """``episodes`` states drawn uniformly from ``{V(x, T) > margin}`` (float64), seeded."""
-    from safety.verify import sample_superlevel_set
+#: where :func:`outside_states` draws candidate starts: the system's whole domain, or the scene's own starts
+START_FROM = ("domain", "scene")
 
-    x, _ = sample_superlevel_set(value_function, margin, episodes, seed, value_function.system.horizon)
-    return x.double().numpy()
+
+def outside_states(
+    value_function: ValueFunction,
+    episodes: int,
+    margin: float,
+    seed: int,
+    scene: Scene | None = None,
+    max_draws_per_episode: int = 100,
+) -> np.ndarray:
+    """``episodes`` states of ``{V(x, T) > margin}`` (float64), seeded: uniform over the system's
+    domain, or, given ``scene``, the scene's own starts (its initial-state sampler) that lie there,
+    so a merge stays a merge. Too few such starts raise ``ValueError`` saying how many were found."""
+    import torch
+
+    from safety.verify import sample_superlevel_set, values_at
+
+    horizon = value_function.system.horizon
+    if scene is None:
+        x, _ = sample_superlevel_set(value_function, margin, episodes, seed, horizon)
+        return x.double().numpy()
+    rng = np.random.default_rng(seed)
+    sampler, kept, draws = scene.sampler(), [], 0
+    have = 0
+    while have < episodes:
+        if draws >= max_draws_per_episode * episodes:
+            raise ValueError(
+                f"only {have} of {episodes} starts of scene {scene.name} lie in {{V > {margin:g}}} after "
+                f"{draws} draws; lower --start-margin or start from the domain"
+            )
+        batch = np.stack([sampler.sample(scene.system, rng) for _ in range(2 * episodes)])  # the scene's API
+        draws += len(batch)
+        v = values_at(value_function, torch.as_tensor(batch, dtype=torch.float32), horizon).numpy()
+        kept.append(batch[v > margin])
+        have += int((v > margin).sum())
+    return np.concatenate(kept)[:episodes]
 
 
 def record_side_by_side(
@@ -391,6 +423,7 @@ def run_filter_study(
     pursuer: str | ValueFunction | None = None,
     start_outside: ValueFunction | None = None,
     start_margin: float = 0.1,
+    start_from: str = "domain",
     gif: str | os.PathLike | None = None,
     gif_threshold: float | None = None,
     pettingzoo: bool = False,
@@ -407,7 +440,9 @@ def run_filter_study(
             at every threshold (and, for ``"smooth"``, every ``gamma`` in ``gammas``).
         pursuer: ``None`` keeps the scene's disturbance; a name (``"pursue"``, ``"random"``) replaces
             it; a value function makes the pursuer play its worst-case ``d*``.
-        start_outside: draw the episodes' starts from ``{V > start_margin}`` of this value function.
+        start_outside: draw the episodes' starts from ``{V > start_margin}`` of this value function:
+            uniform over the system's domain (``start_from="domain"``) or among the scene's own
+            starts (``"scene"``: the merge's starts that lie outside the learned BRT).
         gif: also record three episodes (nominal, then the first value function under each kind,
             side by side), preferring episodes in which the nominal policy crashed; ``gif_threshold``
             (default: the first threshold) is the filters' threshold there.
@@ -423,7 +458,13 @@ def run_filter_study(
         if not sc.system.disturbance_dim:
             raise ValueError(f"pursuer {pursuer!r}: scene {sc.name} has no disturbance input")
         overrides["disturbance"] = pursuer if isinstance(pursuer, str) else worst_case_disturbance(pursuer)
-    starts = None if start_outside is None else outside_states(start_outside, episodes, start_margin, seed)
+    if start_from not in START_FROM:
+        raise ValueError(f"start_from must be one of {START_FROM}, got {start_from!r}")
+    starts = (
+        None
+        if start_outside is None
+        else outside_states(start_outside, episodes, start_margin, seed, sc if start_from == "scene" else None)
+    )
     task = make_task(sc.system, nominal)
     configs = [FilterConfig("nominal")]
     for label, vf in value_functions:

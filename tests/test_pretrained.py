@@ -98,3 +98,24 @@ def test_cli_lists_cards_and_evaluates_a_shipped_model(capsys, tmp_path) -> None
     out = tmp_path / "eval.csv"
     assert main(["evaluate", "pretrained:air3d", "--samples", "300", "--certify-samples", "0", "--out", str(out)]) == 0
     assert "pretrained:air3d" in out.read_text()
+
+
+def test_starts_outside_the_learned_brt_come_from_the_scene() -> None:
+    """--start-from scene keeps the scene's own starts (a merge stays a merge) that lie in {V > margin}."""
+    import numpy as np
+    import torch
+
+    from reach_envs.scenes import make_scene
+    from safety.filter_eval import outside_states
+    from safety.verify import values_at
+
+    vf = load_value_function("pretrained:multivehicle9d").value_function
+    scene = make_scene("three-car-merge")
+    starts = outside_states(vf, 40, 0.1, seed=3, scene=scene)
+    assert starts.shape == (40, 9)
+    assert (values_at(vf, torch.as_tensor(starts, dtype=torch.float32), vf.system.horizon) > 0.1).all()
+    fixed = np.array(scene.initial_state.state)
+    jitter = np.broadcast_to(np.asarray(scene.initial_state.jitter, dtype=float), fixed.shape)
+    assert (np.abs(starts - fixed) <= jitter + 1e-12).all()
+    with pytest.raises(ValueError, match="starts of scene three-car-merge lie in"):
+        outside_states(vf, 5, 50.0, seed=0, scene=scene, max_draws_per_episode=2)

@@ -61,6 +61,12 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--adversary", default=None, help="value function whose d* the worst-case pursuer plays")
     p.add_argument("--start-outside", default=None, help="value function: start only from {V > margin}")
     p.add_argument("--start-margin", type=nonnegative_float_arg, default=0.1)
+    p.add_argument(
+        "--start-from",
+        choices=["domain", "scene"],
+        default="domain",
+        help="--start-outside draws uniformly over the system's domain, or among the scene's own starts",
+    )
     p.add_argument("--format", choices=["auto", "reach", "deepreach", "grid"], default="auto")
     p.add_argument("--layout", default=None, help="layout (needed for DeepReach files)")
     p.add_argument("--pettingzoo", action="store_true", help="run through the PettingZoo parallel env instead")
@@ -137,6 +143,7 @@ def run(args: argparse.Namespace) -> int:
         pursuer=pursuer,
         start_outside=start,
         start_margin=args.start_margin,
+        start_from=args.start_from,
         gif=args.gif,
         pettingzoo=args.pettingzoo,
         kinds=kinds,
@@ -153,6 +160,7 @@ def run(args: argparse.Namespace) -> int:
             "time_to_go": args.time_to_go or "value function horizon",
             "start_outside": args.start_outside,
             "start_margin": args.start_margin if args.start_outside else None,
+            "start_from": args.start_from if args.start_outside else None,
             "path": "pettingzoo" if args.pettingzoo else "vector",
         },
     )
