@@ -22,6 +22,7 @@ rates on a fresh small sample.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import shlex
 import sys
@@ -145,7 +146,7 @@ def evaluate(args: argparse.Namespace) -> int:
         "hardware": args.hardware,
         "metrics": metrics,
     }
-    write_card(pretrained.ModelCard(**{**card.__dict__, "evaluation": evaluation}))
+    write_card(dataclasses.replace(card, evaluation=evaluation))
     print(pretrained.card(args.name).describe())
     return 0
 

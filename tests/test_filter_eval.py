@@ -99,3 +99,18 @@ def test_filter_eval_cli(air3d_grid, tmp_path: Path, capsys):
     assert (tmp_path / "fe.gif").stat().st_size > 10000
     assert main(["filter-eval", "--scene", "three-car-merge", "--pursuer", "random", "--out", str(out)]) == 2
     assert "no disturbance" in capsys.readouterr().err
+
+
+def test_unknown_start_source_is_refused_before_any_episode(tmp_path: Path, capsys):
+    """start_from names where --start-outside draws from; anything else fails with the bad value."""
+    from safety.filter_eval import run_filter_study
+
+    vf = NeuralValueFunction(ValueNetwork(MultiVehicle9D(), "ssssl", width=16))
+    with pytest.raises(ValueError, match=r"start_from must be one of .*'nowhere'"):
+        run_filter_study("three-car-merge", [], tmp_path / "f.csv", episodes=2, start_outside=vf, start_from="nowhere")
+    assert not (tmp_path / "f.csv").exists()
+    argv = ["filter-eval", "--scene", "three-car-merge", "--start-from", "nowhere", "--out", str(tmp_path / "g.csv")]
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    assert "--start-from" in capsys.readouterr().err

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -58,15 +58,7 @@ class ModelCard:
             raise ValueError(f"{where}: not a model card ({type(err).__name__}: {err})") from err
 
     def to_dict(self) -> dict[str, Any]:
-        return {
-            "name": self.name,
-            "system": self.system,
-            "env_ids": list(self.env_ids),
-            "summary": self.summary,
-            "training": self.training,
-            "evaluation": self.evaluation,
-            "sha256": self.sha256,
-        }
+        return {**asdict(self), "env_ids": list(self.env_ids)}
 
     @property
     def metrics(self) -> dict[str, Any]:
