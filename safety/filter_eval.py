@@ -29,7 +29,7 @@ import numpy as np
 from reach.value_function import ValueFunction
 from reach_envs.scenes import Scene, make_scene
 from reach_envs.vector import ReachVectorEnv
-from safety.filter import DEFAULT_GAMMA
+from safety.filter import DEFAULT_GAMMA, check_filter_settings
 from safety.metrics import wilson_interval
 from safety.results_io import markdown_table, write_results
 from safety.tasks import GoalTask, NominalPolicy, make_task
@@ -39,13 +39,19 @@ from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapp
 @dataclass
 class FilterConfig:
     """One configuration: a label, a value function (``None``: nominal policy alone), a threshold,
-    the filter kind (``switch``, ``lookahead``, ``smooth``) and the smooth filter's ``gamma``."""
+    the filter kind (``switch``, ``lookahead``, ``smooth``), the smooth filter's ``gamma`` and the
+    lookahead's ``backup_horizon`` (seconds; ``None``: the system's horizon)."""
 
     label: str
     value_function: ValueFunction | None = None
     threshold: float | None = None
     kind: str = "switch"
     gamma: float = DEFAULT_GAMMA
+    backup_horizon: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.value_function is not None:  # refused before any episode runs
+            check_filter_settings(self.kind, self.gamma, self.backup_horizon)
 
 
 class _Tally:
@@ -105,6 +111,7 @@ class _Tally:
             "infeasible_rate": self.infeasible / max(1, self.running_steps),
             "kind": config.kind if config.value_function is not None else None,
             "gamma": config.gamma if config.value_function is not None and config.kind == "smooth" else None,
+            "backup_horizon": _backup_horizon(config),
             "goal_rate": float(reached.mean()) if task.has_goal else float("nan"),
             "mean_goal_time": float(np.nanmean(task.reach_time[reached])) if reached.any() else float("nan"),
             "wall_time": wall,
@@ -150,7 +157,13 @@ def evaluate_filters(
         threshold = None
         if config.value_function is not None:
             env = SafetyFilterVectorWrapper(
-                base, config.value_function, config.threshold, time_to_go, kind=config.kind, gamma=config.gamma
+                base,
+                config.value_function,
+                config.threshold,
+                time_to_go,
+                kind=config.kind,
+                gamma=config.gamma,
+                backup_horizon=config.backup_horizon,
             )
             threshold = env.safety_filter.threshold
         options = None if initial_states is None else {"state": initial_states}
@@ -178,6 +191,13 @@ def evaluate_filters(
         env.close()
         rows.append(tally.row(config, task, system.control_dim, threshold, time.perf_counter() - start))
     return rows
+
+
+def _backup_horizon(config: FilterConfig) -> float | None:
+    """The lookahead's backup rollout in seconds (its default resolved), None for other kinds."""
+    if config.value_function is None or config.kind != "lookahead":
+        return None
+    return config.value_function.system.horizon if config.backup_horizon is None else float(config.backup_horizon)
 
 
 def _labelled(row: dict[str, Any]) -> dict[str, Any]:
@@ -217,7 +237,13 @@ def evaluate_filter_parallel(
         env: Any = base
         if config.value_function is not None:
             env = SafetyFilterParallelWrapper(
-                base, config.value_function, config.threshold, time_to_go, kind=config.kind, gamma=config.gamma
+                base,
+                config.value_function,
+                config.threshold,
+                time_to_go,
+                kind=config.kind,
+                gamma=config.gamma,
+                backup_horizon=config.backup_horizon,
             )
             threshold = env.safety_filter.threshold
         env.reset(seed=seed + i)
@@ -356,6 +382,7 @@ def record_side_by_side(
     initial_states: np.ndarray | None = None,
     kinds: Sequence[str] = ("switch",),
     gamma: float = DEFAULT_GAMMA,
+    backup_horizon: float | None = None,
 ) -> str:
     """A GIF of a few episodes from the same starts: the nominal policy (left), then the same policy
     under each filter kind in ``kinds``, side by side."""
@@ -369,7 +396,13 @@ def record_side_by_side(
     envs: list[Any] = [ReachEnv(sc, render_mode="rgb_array")]
     envs += [
         SafetyFilterWrapper(
-            ReachEnv(sc, render_mode="rgb_array"), value_function, threshold, time_to_go, kind=k, gamma=gamma
+            ReachEnv(sc, render_mode="rgb_array"),
+            value_function,
+            threshold,
+            time_to_go,
+            kind=k,
+            gamma=gamma,
+            backup_horizon=backup_horizon,
         )
         for k in kinds
     ]
@@ -432,6 +465,7 @@ def run_filter_study(
     kinds: Sequence[str] = ("switch",),
     gammas: Sequence[float] = (DEFAULT_GAMMA,),
     nominal: NominalPolicy | None = None,
+    backup_horizon: float | None = None,
 ) -> FilterStudy:
     """The one filter-evaluation pipeline: episodes, results, trade-off plot and a side-by-side GIF.
 
@@ -446,6 +480,7 @@ def run_filter_study(
         gif: also record three episodes (nominal, then the first value function under each kind,
             side by side), preferring episodes in which the nominal policy crashed; ``gif_threshold``
             (default: the first threshold) is the filters' threshold there.
+        backup_horizon: the lookahead's backup rollout in seconds (default: the system's horizon).
         nominal: the nominal policy (float64 states ``(N, n)`` -> normalised actions ``(N, m_u)``);
             default: the scene system's goal task (:func:`~safety.tasks.make_task`), which for a
             system without goals keeps the centre of the control box.
@@ -471,7 +506,7 @@ def run_filter_study(
         for kind in kinds:
             for th in thresholds:
                 for gamma in gammas if kind == "smooth" else (DEFAULT_GAMMA,):
-                    configs.append(FilterConfig(label, vf, th, kind, gamma))
+                    configs.append(FilterConfig(label, vf, th, kind, gamma, backup_horizon))
     if pettingzoo:
         if starts is not None:
             raise ValueError("the PettingZoo path samples its own starts; drop start_outside or pettingzoo")
@@ -501,6 +536,7 @@ def run_filter_study(
             initial_states=None if starts is None else starts[picks],
             kinds=kinds,
             gamma=gammas[0],
+            backup_horizon=backup_horizon,
             task=task,
         )
         paths.append(str(gif))

@@ -10,7 +10,8 @@ value function was trained for; a number fixes another horizon; ``"remaining"`` 
 in the episode (``horizon - elapsed``, floored at 0).
 
 Filters: ``kind="switch"`` (default), ``"lookahead"`` (predicts one env step with the env's ``dt``
-and integrator) or ``"smooth"`` (``gamma``: the barrier rate); see :mod:`safety.filter`.
+and integrator, then ``backup_horizon`` seconds of the backup policy; default: the system's horizon)
+or ``"smooth"`` (``gamma``: the barrier rate); see :mod:`safety.filter`.
 
 Threshold: a switch or smooth filter that acts once per environment step (zero-order hold) lets
 ``V`` fall by up to about ``|dl/dt|_max * dt`` before it can react, so their default threshold
@@ -78,6 +79,7 @@ class _Adapter:
         device: str,
         kind: str = "switch",
         gamma: float = DEFAULT_GAMMA,
+        backup_horizon: float | None = None,
     ) -> None:
         _check_time_to_go(time_to_go)
         episode_horizon = scene.episode_horizon
@@ -86,7 +88,15 @@ class _Adapter:
         vf = as_value_function(
             value_function, system, device, "value function (the environment simulates another system)"
         )
-        self.filter = SafetyFilter(vf, threshold, kind=kind, dt=scene.dt, integrator=scene.integrator, gamma=gamma)
+        self.filter = SafetyFilter(
+            vf,
+            threshold,
+            kind=kind,
+            dt=scene.dt,
+            integrator=scene.integrator,
+            gamma=gamma,
+            backup_horizon=backup_horizon,
+        )
         # the times the filter will ask for, checked now rather than mid-episode
         if time_to_go is None:
             check_time_coverage(vf, vf.system.horizon, vf.system.horizon, "the filter (time_to_go=None)")
@@ -149,9 +159,10 @@ class _FilterAdapterMixin:
         device: str = "cpu",
         kind: str = "switch",
         gamma: float = DEFAULT_GAMMA,
+        backup_horizon: float | None = None,
     ) -> None:
         super().__init__(env)  # the wrapper base class of the env kind
-        self._attach_filter(env, value_function, threshold, time_to_go, device, kind, gamma)
+        self._attach_filter(env, value_function, threshold, time_to_go, device, kind, gamma, backup_horizon)
 
     def _attach_filter(
         self,
@@ -162,11 +173,14 @@ class _FilterAdapterMixin:
         device: str,
         kind: str = "switch",
         gamma: float = DEFAULT_GAMMA,
+        backup_horizon: float | None = None,
     ) -> None:
         base = env.unwrapped
         if value_function is None:
             value_function = pretrained.for_env(_env_id(env), base.system)
-        self._adapter = _Adapter(base.system, value_function, threshold, time_to_go, base.scene, device, kind, gamma)
+        self._adapter = _Adapter(
+            base.system, value_function, threshold, time_to_go, base.scene, device, kind, gamma, backup_horizon
+        )
 
     @property
     def safety_filter(self) -> SafetyFilter:
@@ -193,6 +207,7 @@ class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordCons
         device: str = "cpu",
         kind: str = "switch",
         gamma: float = DEFAULT_GAMMA,
+        backup_horizon: float | None = None,
     ) -> None:
         gym.utils.RecordConstructorArgs.__init__(
             self,
@@ -202,9 +217,10 @@ class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordCons
             device=device,
             kind=kind,
             gamma=gamma,
+            backup_horizon=backup_horizon,
         )
         gym.Wrapper.__init__(self, env)
-        self._attach_filter(env, value_function, threshold, time_to_go, device, kind, gamma)
+        self._attach_filter(env, value_function, threshold, time_to_go, device, kind, gamma, backup_horizon)
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         base = self.env.unwrapped

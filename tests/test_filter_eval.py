@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from reach.cli import main
-from reach.systems import MultiVehicle9D
+from reach.systems import Air3D, MultiVehicle9D
 from safety.filter_eval import (
     FilterConfig,
     evaluate_filter_parallel,
@@ -114,3 +114,23 @@ def test_unknown_start_source_is_refused_before_any_episode(tmp_path: Path, caps
         main(argv)
     assert exit_info.value.code == 2
     assert "--start-from" in capsys.readouterr().err
+
+
+def test_a_bad_backup_horizon_is_refused_before_any_episode(tmp_path: Path, capsys):
+    """The lookahead's backup horizon is checked when the configuration is made (library) and when
+    the arguments are parsed (CLI), before the nominal episodes run."""
+    from safety.filter_eval import FilterConfig, run_filter_study
+
+    vf = NeuralValueFunction(ValueNetwork(Air3D(), "ssssl", width=16))
+    with pytest.raises(ValueError, match=r"backup_horizon .*-0.5"):
+        FilterConfig("air3d", vf, 0.0, kind="lookahead", backup_horizon=-0.5)
+    with pytest.raises(ValueError, match=r"backup_horizon .*nan"):
+        run_filter_study(
+            "air3d", [("air3d", vf)], tmp_path / "f.csv", episodes=2, kinds=("lookahead",), backup_horizon=float("nan")
+        )
+    assert not (tmp_path / "f.csv").exists()
+    argv = ["filter-eval", "--scene", "air3d", "--backup-horizon", "-1", "--out", str(tmp_path / "g.csv")]
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    assert "--backup-horizon" in capsys.readouterr().err

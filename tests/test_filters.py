@@ -11,6 +11,7 @@ import reach_envs  # noqa: F401  (registers the environments)
 from reach.systems import Air3D, MultiVehicle9D
 from safety import SafetyFilter, SafetyFilterWrapper
 from safety.filter_eval import FilterConfig, evaluate_filters, outside_states, worst_case_disturbance
+from safety.value_functions import load_value_function
 from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper
 from training import NeuralValueFunction, ValueNetwork
 
@@ -69,32 +70,42 @@ def test_lookahead_keeps_the_nominal_input_only_when_the_next_state_stays_safe(a
     system = Air3D()
     x = system.sample_states(2000, generator=torch.Generator().manual_seed(5))
     nominal = torch.full((2000, 1), 3.0, dtype=torch.float32)
-    filt = SafetyFilter(air3d_grid, kind="lookahead", dt=0.02)
+    filt = SafetyFilter(air3d_grid, kind="lookahead", dt=0.02, backup_horizon=0.2)
     u, info = filt(x, 1.1, nominal)
     _, p = air3d_grid.value_and_gradient(x, 1.1)
     kept = ~info.intervened
     assert kept.any() and info.intervened.any()
+    assert torch.equal(u[kept], nominal[kept].to(u.dtype)) and torch.equal(u[~kept], info.applied[~kept])
     # where the nominal input was kept, V one step ahead under the worst-case d* stayed above 0
     ahead = filt._ahead(x, nominal, system.optimal_disturbance(x, p))
     assert (air3d_grid.value(ahead[kept], 1.1) > 0).all()
 
 
-def test_lookahead_is_safer_than_the_switch_at_a_small_threshold(air3d_grid):
-    """Attacked Air3D episodes from outside the (51^3) grid BRT: at threshold 0.01 the switch still
-    lets episodes collide, the lookahead none (the full 101^3, 1,000-episode table is in the docs)."""
-    starts = outside_states(air3d_grid, 300, 0.1, 0)
+def test_the_robust_lookahead_keeps_the_nominal_input_no_more_often_than_the_model_one():
+    """The robust check adds a second predicted path to the model's, so it can only keep less (with
+    a network, whose d* is not always the worst corner, it does keep less); a longer backup rollout
+    can only keep less than a shorter one."""
+    vf = load_value_function("pretrained:air3d").value_function
+    x = Air3D().sample_states(3000, generator=torch.Generator().manual_seed(7)).double()
+    nominal = torch.rand(3000, 1, generator=torch.Generator().manual_seed(8), dtype=torch.float64) * 6 - 3
+    keep = {}
+    for disturbance, horizon in [("model", 0.2), ("robust", 0.2), ("model", 0.4)]:
+        filt = SafetyFilter(vf, kind="lookahead", dt=0.02, backup_horizon=horizon, disturbance=disturbance)
+        keep[disturbance, horizon] = ~filt(x, 1.1, nominal)[1].intervened
+    assert (keep["robust", 0.2] <= keep["model", 0.2]).all() and (keep["model", 0.4] <= keep["model", 0.2]).all()
+    assert (keep["robust", 0.2] < keep["model", 0.2]).any() and keep["robust", 0.2].any()
+
+
+def test_the_lookahead_is_safe_at_threshold_zero_where_one_step_is_not(air3d_grid):
+    """Attacked Air3D episodes from outside the (51^3) grid BRT at threshold 0: checking the nominal
+    step alone (backup_horizon=0) lets many graze the failure set, half a second of the backup
+    policy none (the 101^3, 1,000-episode table with the default horizon is in the docs)."""
+    starts = outside_states(air3d_grid, 200, 0.1, 0)
     overrides = {"disturbance": worst_case_disturbance(air3d_grid)}
-    rows = evaluate_filters(
-        "air3d",
-        [FilterConfig("switch", air3d_grid, 0.01), FilterConfig("lookahead", air3d_grid, 0.01, kind="lookahead")],
-        300,
-        0,
-        scene_overrides=overrides,
-        initial_states=starts,
-    )
-    switch, lookahead = rows
-    assert switch["collision_rate"] > 0.02
-    assert lookahead["collision_rate"] == 0.0
+    configs = [FilterConfig(f"lookahead {h}", air3d_grid, 0.0, kind="lookahead", backup_horizon=h) for h in (0.0, 0.5)]
+    one_step, rollout = evaluate_filters("air3d", configs, 200, 0, scene_overrides=overrides, initial_states=starts)
+    assert one_step["collision_rate"] > 0.05 and one_step["backup_horizon"] == 0.0
+    assert rollout["collision_rate"] == 0.0 and rollout["min_margin"] > 0 and rollout["backup_horizon"] == 0.5
 
 
 def test_smooth_filter_chatters_less_than_the_switch(air3d_grid):
@@ -147,6 +158,9 @@ def test_every_kind_through_every_adapter(kind):
         ({"kind": "lookahead", "dt": 0.0}, "dt"),
         ({"kind": "lookahead", "dt": 0.02, "integrator": "midpoint"}, "midpoint"),
         ({"threshold": float("nan")}, "threshold"),
+        ({"kind": "lookahead", "dt": 0.02, "backup_horizon": -1.0}, "backup_horizon"),
+        ({"kind": "lookahead", "dt": 0.02, "backup_horizon": float("inf")}, "backup_horizon"),
+        ({"kind": "lookahead", "dt": 0.02, "disturbance": "optimistic"}, "optimistic"),
     ],
 )
 def test_nonsense_settings_are_refused(kwargs, match):

@@ -56,6 +56,13 @@ def add_parser(sub: Any) -> None:
         default=None,
         help=f"smooth filter: comma-separated barrier rates gamma >= 0 (default: {DEFAULT_GAMMA:g})",
     )
+    p.add_argument(
+        "--backup-horizon",
+        type=nonnegative_float_arg,
+        default=None,
+        help="lookahead filter: seconds of the backup policy checked after the nominal step "
+        "(default: the system's horizon)",
+    )
     p.add_argument("--time-to-go", default=None, help="None (value function horizon), a number, or 'remaining'")
     p.add_argument("--pursuer", choices=["scene", "pursue", "random", "worst-case"], default="scene")
     p.add_argument("--adversary", default=None, help="value function whose d* the worst-case pursuer plays")
@@ -149,9 +156,11 @@ def run(args: argparse.Namespace) -> int:
         kinds=kinds,
         gammas=gammas,
         nominal=nominal,
+        backup_horizon=args.backup_horizon,
         header={
             "filters": kinds,
             "gammas": gammas if "smooth" in kinds else None,
+            "backup_horizon": args.backup_horizon if "lookahead" in kinds else None,
             "format": "reach.filter-eval.v1",
             "scene": scene.name,
             "system": system.reference(),
