@@ -13,6 +13,7 @@ gradient pulled back through the relative-coordinate map (autograd on that small
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 
 import torch
@@ -142,6 +143,33 @@ class PairwiseUnion:
             mask = torch.nn.functional.one_hot(best, len(self.pairs)).to(x.dtype).unsqueeze(-1)
             (g,) = torch.autograd.grad(rel, xg, grad_outputs=grads * mask)
         return g
+
+    def value_where_known(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        """The union's value using only the pairs whose relative state lies inside their grid's box;
+        ``+inf`` where none does. An upper bound of the multi-vehicle value that never rests on a
+        clamped edge value (which under-states a pair's value beyond the box): what a training
+        penalty may push a network below."""
+        self._check(x)
+        rel = self.relative_states(x)
+        values = []
+        for k, sol in enumerate(self._solutions):
+            r = rel[..., k, :]
+            low = torch.tensor(sol.grid.low, dtype=r.dtype, device=r.device)
+            high = torch.tensor(sol.grid.high, dtype=r.dtype, device=r.device)
+            periodic = torch.tensor(sol.grid.periodic, device=r.device)
+            inside = (periodic | ((r >= low) & (r <= high))).all(-1)
+            values.append(torch.where(inside, sol.value(r, t), torch.full_like(r[..., 0], torch.inf)))
+        return torch.stack(values, dim=-1).min(dim=-1).values
+
+    @classmethod
+    def load(cls, system: MultiVehicle, path: str | os.PathLike) -> PairwiseUnion:
+        """The union from a pair grid solution file (``reach groundtruth relativepair``); a file of
+        another problem, or a system that is not multi-vehicle, raises ``ValueError`` naming it."""
+        solution = GridSolution.load(path, outside="clamp")
+        if not isinstance(solution.system, RelativePair):
+            what = solution.system.name
+            raise ValueError(f"{path}: a grid solution of {what}, not of a two-car (relativepair) problem")
+        return cls(system, solution)
 
     def _check(self, x: torch.Tensor) -> None:
         if x.ndim == 0 or x.shape[-1] != self.system.state_dim:

@@ -181,3 +181,20 @@ def _air3d_grid(tmp_path):
     path = tmp_path / "air3d.npz"
     solve(Air3D(), 11, [0.0, 1.0], compile=False, progress=False).save(path)
     return path
+
+
+def test_the_union_where_known_drops_pairs_beyond_their_grid(pair_grid):
+    """value_where_known agrees with the union where every pair lies inside its grid, skips a pair
+    beyond it (whose clamped edge value would under-state it), and is +inf where none is inside."""
+    system = MultiVehicle9D()
+    union = PairwiseUnion(system, pair_grid)
+    x = system.sample_states(3000, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 0.4
+    assert torch.allclose(union.value_where_known(x, 1.0), union.value(x, 1.0))
+    far = x.clone()
+    far[:, 4] += 10.0  # car 2 far away in x: pairs (0, 2) and (1, 2) leave their grids
+    values = union.pair_values(far, 1.0)
+    pair_01 = union.pairs.index((0, 1))
+    assert torch.allclose(union.value_where_known(far, 1.0), values[:, pair_01])
+    apart = far.clone()
+    apart[:, 2] -= 10.0  # car 1 far away in the other direction: no pair inside
+    assert torch.isinf(union.value_where_known(apart, 1.0)).all()

@@ -406,6 +406,37 @@ def test_gradient_bound_penalises_only_slopes_above_it(tmp_path):
         TrainConfig(steps=1, gradient_bound=-1.0).validate()
 
 
+def test_upper_bound_term_charges_only_values_above_a_known_bound(tmp_path, pair_grid):
+    """The union-of-pairs penalty: mean(relu(V - bound)) where the bound is known, nothing where it
+    is +inf; a 9D run with a pair solution file logs it; misuse is refused before training."""
+    from training.loss import training_loss
+
+    torch.manual_seed(0)
+    network = ValueNetwork(Air3D(), "ssl", width=32)
+    x, t = torch.rand(256, 3) * 2 - 1, torch.rand(256)
+    v = network(x, t).detach()
+    bound = torch.where(torch.arange(256) % 2 == 0, v - 0.1, torch.inf)  # half the points: V is 0.1 too high
+    loss, terms = training_loss(network, x, t, pde=False, upper_bound=bound, upper_bound_weight=3.0)
+    assert terms["upper_bound"] == pytest.approx(0.05, rel=1e-4)
+    assert float(loss.detach()) == pytest.approx(0.15, rel=1e-4)
+    loss.backward()  # the penalty's gradient lowers V at the charged points only
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in network.parameters())
+    _, terms = training_loss(network, x, t, pde=False, upper_bound=v + 0.1)
+    assert terms["upper_bound"] == 0.0
+    path = pair_grid.save(tmp_path / "pair.npz")
+    config = TrainConfig(system="multivehicle9d", steps=3, upper_bound=str(path), **TINY)
+    Trainer(config, tmp_path / "run", progress=False).train()
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert rows and all(row["upper_bound"] >= 0 for row in rows)
+    with pytest.raises(ValueError, match="multi-vehicle systems only, not air3d"):
+        Trainer(TrainConfig(steps=1, upper_bound=str(path), **TINY), tmp_path / "a", progress=False)
+    with pytest.raises(ValueError, match=r"no such file 'missing\.npz'"):
+        Trainer(TrainConfig(system="multivehicle9d", steps=1, upper_bound="missing.npz"), tmp_path / "b")
+    with pytest.raises(ValueError, match="upper_bound_weight"):
+        TrainConfig(steps=1, upper_bound_weight=-1.0).validate()
+    assert not (tmp_path / "a").exists() or not any((tmp_path / "a").iterdir())
+
+
 def test_runs_from_before_new_defaults_resume_as_they_were_trained(tmp_path):
     """A config.json without the later keys resumes without the gradient bound and with radius-1 (sin, cos)."""
     run = tmp_path / "old"

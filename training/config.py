@@ -58,6 +58,10 @@ class TrainConfig(SystemSpecified):
     loss: str = "l1"  # "l1" or "l2" on the HJI residual
     gradient_bound: float | None = 3.0  # penalise |dV/dx| above this many times l's steepest slope: no cliffs
     gradient_weight: float = 1.0
+    # multi-vehicle systems: a pair grid solution (.npz) whose union of pairwise values bounds V from
+    # above; the loss adds upper_bound_weight * mean(relu(V - V_union)) where a pair's grid covers the state
+    upper_bound: str | None = None
+    upper_bound_weight: float = 1.0
     gradients: str = "fused"  # input derivatives: "fused" (hand-carried, one backward) or "autograd" (double backward)
     compile: bool | None = None  # torch.compile the fused residual; None: when the run is long enough (see below)
     curriculum: float = 0.5  # share of the run over which the sampled time range grows to the horizon
@@ -92,6 +96,7 @@ class TrainConfig(SystemSpecified):
             "sincos_radius": self.sincos_radius > 0,
             "gradient_bound": self.gradient_bound is None or self.gradient_bound > 0,
             "gradient_weight": self.gradient_weight >= 0,
+            "upper_bound_weight": self.upper_bound_weight >= 0,
             "curriculum": 0 <= self.curriculum <= 1,
             "pretrain": 0 <= self.pretrain < 1,
             "boundary_fraction": 0 < self.boundary_fraction < 1,
@@ -112,6 +117,7 @@ class TrainConfig(SystemSpecified):
             "sincos_radius",
             "gradient_bound",
             "gradient_weight",
+            "upper_bound_weight",
             "curriculum",
             "pretrain",
             "boundary_fraction",
@@ -146,6 +152,8 @@ class TrainConfig(SystemSpecified):
             raise ValueError(f"compile must be true, false or null (auto), got {self.compile!r}")
         if self.compile and self.gradients != "fused":
             raise ValueError("compile needs gradients='fused' (torch.compile does not take double backward)")
+        if self.upper_bound is not None and (not isinstance(self.upper_bound, str) or not self.upper_bound):
+            raise ValueError(f"upper_bound must be the path of a pair grid solution, got {self.upper_bound!r}")
         if self.loss not in ("l1", "l2"):
             raise ValueError(f"loss must be 'l1' or 'l2', got {self.loss!r}")
         return self

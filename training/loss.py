@@ -30,9 +30,7 @@ Terms = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 ResidualFunction = Callable[[torch.Tensor, torch.Tensor], Terms]
 
 
-def hji_residual(
-    network: ValueNetwork, x: torch.Tensor, t: torch.Tensor, gradients: str = "autograd"
-) -> Terms:
+def hji_residual(network: ValueNetwork, x: torch.Tensor, t: torch.Tensor, gradients: str = "autograd") -> Terms:
     """``(residual, V, dV/dx)`` at states ``(N, n)`` and times ``(N,)``; keeps the graph for training."""
     if gradients not in GRADIENTS:
         raise ValueError(f"gradients must be one of {GRADIENTS}, got {gradients!r}")
@@ -79,9 +77,7 @@ def residual_function(
             raise ValueError("compile needs gradients='fused' (torch.compile does not take double backward)")
         return lambda x, t: hji_residual(network, x, t, "autograd")
 
-    def fused(
-        x: torch.Tensor, t: torch.Tensor, margin: torch.Tensor, dmargin: torch.Tensor
-    ) -> Terms:
+    def fused(x: torch.Tensor, t: torch.Tensor, margin: torch.Tensor, dmargin: torch.Tensor) -> Terms:
         v, dv_dx, dv_dt = network.value_and_derivatives(x, t, margin, dmargin)
         return _residual(network, x, v, dv_dx, dv_dt, margin), v, dv_dx
 
@@ -106,6 +102,8 @@ def training_loss(
     residual_fn: ResidualFunction | None = None,
     gradient_bound: float | None = None,
     gradient_weight: float = 1.0,
+    upper_bound: torch.Tensor | None = None,
+    upper_bound_weight: float = 1.0,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Scalar loss and its terms (``pde``, ``boundary``, ``gradient``) as floats for logging.
 
@@ -117,6 +115,10 @@ def training_loss(
     ``V`` drops by a finite amount and continues on a wrong branch. The wall violates the PDE only on a
     sliver of the domain, which the mean residual barely sees; the bound removes it (see the README's
     training section for the Air3D case that motivated it).
+
+    ``upper_bound`` (per point, ``+inf`` where unknown) adds ``upper_bound_weight * mean(relu(V -
+    upper_bound))`` over all points: a known upper bound of the true value (the union of pairwise
+    BRTs for a multi-vehicle system), which the residual alone does not enforce.
     """
     terms: dict[str, float] = {}
     total = x.new_zeros(())
@@ -132,6 +134,11 @@ def training_loss(
             terms["gradient"] = float(excess.detach())
     else:
         v = network(x, t)
+    if upper_bound is not None:
+        known = torch.isfinite(upper_bound)
+        excess = torch.where(known, torch.relu(v - torch.where(known, upper_bound, v.detach())), 0.0).mean()
+        total = total + upper_bound_weight * excess
+        terms["upper_bound"] = float(excess.detach())
     if network.parameterisation == "vanilla" and boundary_mask is not None and boundary_mask.any():
         gap = v[boundary_mask] - network.system.failure_margin(x[boundary_mask])
         boundary = gap.abs().mean() if norm == "l1" else gap.square().mean()

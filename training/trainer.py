@@ -123,6 +123,26 @@ def _clean_metrics(path: Path, last_step: int) -> None:
         Path(tmp).write_text("".join(f"{line}\n" for line in kept))
 
 
+def _upper_bound(config: TrainConfig, system: Any) -> Any:
+    """The union of pairwise BRTs that ``config.upper_bound`` names, loaded (and refused) before training."""
+    if config.upper_bound is None:
+        return None
+    from groundtruth.pairwise import PairwiseUnion
+    from reach.systems import MultiVehicle
+
+    if not isinstance(system, MultiVehicle):
+        raise ValueError(f"upper_bound: a pairwise union bounds multi-vehicle systems only, not {system.name}")
+    if not Path(config.upper_bound).is_file():
+        raise ValueError(f"upper_bound: no such file {config.upper_bound!r}")
+    union = PairwiseUnion.load(system, config.upper_bound)
+    if union.system.horizon < system.horizon:
+        raise ValueError(
+            f"upper_bound {config.upper_bound}: its pair solution reaches t = {union.system.horizon:g}, "
+            f"the system's horizon is {system.horizon:g}"
+        )
+    return union
+
+
 class Trainer:
     """Runs one training run in ``run_dir`` (see the module docstring)."""
 
@@ -159,6 +179,7 @@ class Trainer:
         self.gradient_bound = (
             None if config.gradient_bound is None else config.gradient_bound * self.network.margin_slope()
         )
+        self.upper_bound = _upper_bound(config, self.system)
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(config.seed)
         self.step = 0
@@ -166,6 +187,12 @@ class Trainer:
         self.loss_ema: float | None = None
         box = self.system.domain_tensor(torch.float32, self.device)
         self._low, self._span = box[:, 0], box[:, 1] - box[:, 0]
+
+    def _upper_bound_at(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """The union's value at the sampled points (``+inf`` where no pair grid covers them)."""
+        with torch.no_grad():
+            bound = self.upper_bound.value_where_known(x.detach().to("cpu", torch.float32), t.detach().to("cpu"))
+        return bound.to(x.device, x.dtype)
 
     # ------------------------------------------------------------------ persistence
     @property
@@ -376,6 +403,8 @@ class Trainer:
                     residual_fn=self.residual_fn,
                     gradient_bound=self.gradient_bound,
                     gradient_weight=c.gradient_weight,
+                    upper_bound=None if self.upper_bound is None else self._upper_bound_at(x, t),
+                    upper_bound_weight=c.upper_bound_weight,
                 )
                 if not math.isfinite(terms["loss"]):
                     raise TrainingDivergedError(

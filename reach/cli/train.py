@@ -60,6 +60,14 @@ TRAIN_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
     ),
     ("--gradient-weight", "gradient_weight", {"type": nonnegative_float_arg}, "weight of the gradient-bound penalty"),
     (
+        "--upper-bound",
+        "upper_bound",
+        {},
+        "multi-vehicle systems: a pair grid solution (.npz) whose union of pairwise values V may not exceed "
+        "(penalised where a pair's grid covers the state)",
+    ),
+    ("--upper-bound-weight", "upper_bound_weight", {"type": nonnegative_float_arg}, "weight of that penalty"),
+    (
         "--gradients",
         "gradients",
         {"choices": ["fused", "autograd"]},
@@ -76,6 +84,7 @@ TRAIN_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
     ("--eval-every", "eval_every_s", {"type": nonnegative_float_arg}, "seconds between evaluations"),
     ("--snapshots", "snapshots", {"type": nonnegative_int_arg}, "save the network after every 1/N of the run"),
 )
+
 
 def add_parser(sub: Any) -> None:
     from training import TrainConfig
