@@ -98,19 +98,79 @@ def score(args: argparse.Namespace) -> int:
     )
 
 
+#: the columns the report prints and plots, with their plot titles
+METRICS = (
+    ("violation_rate", "violation rate"),
+    ("false_safe_rate", "false-safe rate"),
+    ("collision_rate", "collision rate"),
+    ("containment_miss_rate", "misses of the pairwise union"),
+    ("certified_volume", "delta-level certified volume"),
+    ("robust_certified_volume", "robust certified volume"),
+)
+
+
+def read_results(path: Path) -> list[dict[str, str]]:
+    """The scored rows of a results table, error rows left out."""
+    with open(path) as fh:
+        return [r for r in csv.DictReader(fh) if not r.get("error")]
+
+
+def print_table(rows: list[dict[str, str]]) -> None:
+    keys = [k for k, _ in METRICS if rows and k in rows[0]]
+    print("| run | " + " | ".join(keys) + " |")
+    print("|---|" + "---:|" * len(keys))
+    for r in rows:
+        print(f"| {r['label']} | " + " | ".join(r.get(k, "") for k in keys) + " |")
+
+
+def plot(rows: list[dict[str, str]], path: Path) -> Path | None:
+    """Each metric against the training budget (minutes, log scale): one dot per seed, a line
+    through the seeds' means."""
+    import re
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    points = []
+    for r in rows:
+        m = re.fullmatch(r"ssssl-([0-9.]+)m-seed(\d+)", r["label"])
+        if m:
+            points.append((float(m.group(1)), r))
+    if not points:
+        return None
+    keys = [(k, title) for k, title in METRICS if k in points[0][1]]
+    fig, axes = plt.subplots(2, (len(keys) + 1) // 2, figsize=(4 * ((len(keys) + 1) // 2), 6.5), squeeze=False)
+    for ax, (key, title) in zip(axes.flat, keys):
+        xs = [m for m, r in points if r.get(key) not in (None, "")]
+        ys = [float(r[key]) for m, r in points if r.get(key) not in (None, "")]
+        ax.plot(xs, ys, "o", alpha=0.6)
+        budgets = sorted(set(xs))
+        ax.plot(budgets, [sum(y for x, y in zip(xs, ys) if x == b) / xs.count(b) for b in budgets], "-")
+        ax.set_xscale("log")
+        ax.set_xticks(budgets, [f"{b:g}" for b in budgets])
+        ax.set_title(title)
+        ax.set_xlabel("training budget (min, quiet 2-core CPU)")
+    for ax in list(axes.flat)[len(keys) :]:
+        ax.axis("off")
+    fig.suptitle("9D default recipe: accuracy against training time (one dot per seed)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def report(args: argparse.Namespace) -> int:
     path = args.out / "results.csv"
     if not path.exists():
         print(f"{path}: run the score stage first", file=sys.stderr)
         return 1
-    with open(path) as fh:
-        rows = [r for r in csv.DictReader(fh) if not r.get("error")]
-    keys = ("violation_rate", "false_safe_rate", "collision_rate", "containment_miss_rate", "certified_volume")
-    keys += ("robust_certified_volume",) if rows and "robust_certified_volume" in rows[0] else ()
-    print("| run | steps | " + " | ".join(keys) + " |")
-    print("|---|---:|" + "---:|" * len(keys))
-    for r in rows:
-        print(f"| {r['label']} | {r.get('steps', '')} | " + " | ".join(r.get(k, "") for k in keys) + " |")
+    rows = read_results(path)
+    print_table(rows)
+    figure = plot(rows, args.out / "accuracy_vs_time.png")
+    if figure is not None:
+        print(f"\nwrote {figure}")
     return 0
 
 

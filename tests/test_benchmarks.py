@@ -25,3 +25,33 @@ def test_run_all_quick_and_compare(tmp_path: Path):
     assert second.returncode == 0, second.stderr
     assert "| previous wall (s) | ratio |" in second.stdout
     assert "## rollouts:" in (tmp_path / "b" / "report.md").read_text()
+
+
+def _results(path: Path, labels: list[str]) -> None:
+    keys = ["violation_rate", "false_safe_rate", "collision_rate", "containment_miss_rate", "certified_volume"]
+    lines = [",".join(["label", *keys])]
+    lines += [",".join([label, *(f"{0.01 * (i + 1) + 0.001 * k:.4f}" for k in range(len(keys)))]) for i, label in
+              enumerate(labels)]  # fmt: skip
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_nine_d_study_and_ablation_reports_read_the_scored_runs(tmp_path: Path):
+    """The 9D accuracy-against-time report plots each metric against the budget; the ablation report
+    averages each change over its seeds, taking the baseline from the study's runs."""
+    study, ablation = tmp_path / "study", tmp_path / "ablation"
+    _results(study / "results.csv", ["ssssl-10m-seed0", "ssssl-10m-seed1", "ssssl-30m-seed0"])
+    run = [sys.executable, str(ROOT / "benchmarks" / "nine_d_accuracy_vs_time.py"), "report", "--out", str(study)]
+    out = subprocess.run(run, capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert "| ssssl-30m-seed0 | 0.0300 |" in out.stdout
+    assert (study / "accuracy_vs_time.png").stat().st_size > 10_000
+    for seed in (0, 1):
+        (study / "runs" / f"ssssl-10m-seed{seed}").mkdir(parents=True)
+        (study / "runs" / f"ssssl-10m-seed{seed}" / "checkpoint.pt").write_bytes(b"")
+    _results(ablation / "results.csv", ["ssssl-10m-seed0", "ssssl-10m-seed1", "upper-bound-10m-seed0"])
+    run = [sys.executable, str(ROOT / "benchmarks" / "nine_d_ablation.py"), "report", "--out", str(ablation)]
+    out = subprocess.run([*run, "--study", str(study)], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert "| baseline | 2 | 0.015 (0.01, 0.02) |" in out.stdout
+    assert "| upper-bound | 1 | 0.03 (0.03) |" in out.stdout

@@ -1,0 +1,143 @@
+"""9D ablation: each change to the default recipe is one row, same seeds, same steps, scored the same way.
+
+Run (resumable; every stage skips what is already done)::
+
+    python benchmarks/nine_d_ablation.py train  --out studies/9d-ablation
+    python benchmarks/nine_d_ablation.py score  --out studies/9d-ablation
+    python benchmarks/nine_d_ablation.py report --out studies/9d-ablation
+
+Rows (``--rows``, default all): ``baseline`` (the defaults) and each change of :data:`ROWS`, trained
+for ``--minutes`` of the quiet 2-core rate (as steps: ``minutes x --steps-per-minute``, so a run that
+shares the cores trains what a quiet one trains in that time) for every seed in ``--seeds``. The
+baseline reuses the 9D accuracy-against-time study's run of the same budget and seed where one
+exists (``--study``; same command, same defaults), so the study and the ablation share their
+baseline. ``score`` runs ``reach evaluate`` with the study's settings (``--samples`` uniform
+states, ``--certify-samples`` fresh ones, the union of pairwise BRTs); ``report`` prints one row per
+change, the mean over seeds and each seed's value.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from nine_d_accuracy_vs_time import METRICS, QUIET_STEPS_PER_MINUTE, read_results
+from nine_d_accuracy_vs_time import run_dir as study_run_dir
+
+from reach.cli import main as reach_main
+
+#: the changes, each as the `reach train` options that make it (the baseline adds none)
+ROWS: dict[str, list[str]] = {
+    "baseline": [],
+    # a known upper bound of the true value: V may not exceed the union of pairwise values
+    "upper-bound": ["--upper-bound", "{pairwise}"],
+}
+
+
+def run_dir(args: argparse.Namespace, row: str, seed: int) -> Path:
+    """The run of a row and seed: the study's for the baseline where it exists, else the ablation's."""
+    if row == "baseline":
+        study = study_run_dir(args.study, args.minutes, seed)
+        if (study / "checkpoint.pt").exists():
+            return study
+    return args.out / "runs" / f"{row}-{args.minutes:g}m-seed{seed}"
+
+
+def train(args: argparse.Namespace) -> int:
+    steps = round(args.minutes * args.steps_per_minute)
+    for row in args.rows:
+        extra = [option.format(pairwise=args.pairwise) for option in ROWS[row]]
+        for seed in args.seeds:
+            run = run_dir(args, row, seed)
+            if (run / "checkpoint.pt").exists():
+                code = reach_main(["train", "--resume", str(run), "--steps", str(steps)])
+            else:
+                code = reach_main(
+                    [
+                        "train",
+                        "--system",
+                        "multivehicle9d",
+                        "--steps",
+                        str(steps),
+                        "--seed",
+                        str(seed),
+                        *extra,
+                        "--out",
+                        str(run),
+                    ]
+                )
+            if code:
+                return code
+    return 0
+
+
+def score(args: argparse.Namespace) -> int:
+    runs = [run_dir(args, row, seed) for row in args.rows for seed in args.seeds]
+    done = [str(r) for r in runs if (r / "checkpoint.pt").exists()]
+    if not done:
+        print("no finished runs yet", file=sys.stderr)
+        return 1
+    return reach_main(
+        [
+            "evaluate",
+            *done,
+            "--samples",
+            str(args.samples),
+            "--certify-samples",
+            str(args.certify_samples),
+            "--pairwise",
+            args.pairwise,
+            "--out",
+            str(args.out / "results.csv"),
+        ]
+    )
+
+
+def report(args: argparse.Namespace) -> int:
+    path = args.out / "results.csv"
+    if not path.exists():
+        print(f"{path}: run the score stage first", file=sys.stderr)
+        return 1
+    rows = read_results(path)
+    keys = [k for k, _ in METRICS if rows and k in rows[0]]
+    print(f"# 9D ablation, {args.minutes:g} min of the quiet 2-core rate per run; mean over seeds (each seed)")
+    print("| change | seeds | " + " | ".join(keys) + " |")
+    print("|---|---:|" + "---:|" * len(keys))
+    for row in args.rows:
+        labels = {run_dir(args, row, seed).name for seed in args.seeds}  # evaluate labels a run by its folder
+        scored = [r for r in rows if r["label"] in labels]
+        if not scored:
+            continue
+        cells = []
+        for key in keys:
+            values = [float(r[key]) for r in scored if r.get(key) not in (None, "")]
+            each = ", ".join(f"{v:.4g}" for v in values)
+            cells.append(f"{sum(values) / len(values):.4g} ({each})" if values else "-")
+        print(f"| {row} | {len(scored)} | " + " | ".join(cells) + " |")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("stage", choices=["train", "score", "report"])
+    parser.add_argument("--out", type=Path, default=Path("studies/9d-ablation"))
+    parser.add_argument("--study", type=Path, default=Path("studies/9d-time"), help="the accuracy-vs-time study")
+    parser.add_argument("--rows", type=lambda s: s.split(","), default=list(ROWS))
+    parser.add_argument("--minutes", type=float, default=10.0)
+    parser.add_argument("--seeds", type=lambda s: [int(v) for v in s.split(",")], default=[0, 1])
+    parser.add_argument("--steps-per-minute", type=float, default=QUIET_STEPS_PER_MINUTE)
+    parser.add_argument("--samples", type=int, default=100_000)
+    parser.add_argument("--certify-samples", type=int, default=1_000_000)
+    parser.add_argument("--pairwise", default="runs/pair_gt.npz")
+    args = parser.parse_args(argv)
+    unknown = [r for r in args.rows if r not in ROWS]
+    if unknown:
+        parser.error(f"--rows: unknown {unknown}; known: {', '.join(ROWS)}")
+    return {"train": train, "score": score, "report": report}[args.stage](args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
