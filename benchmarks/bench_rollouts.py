@@ -12,7 +12,8 @@ Three ways to roll out the same states under the optimal policy of the same netw
 * ``reach, no early exit``: our fused value-and-gradient pass (no autograd graph of the network),
   still every state for every step;
 * ``reach``: the default engine, which also stops trajectories whose outcome is decided (collided,
-  or too far from any collision to close the gap in the time left);
+  or unable to reach a collision in the time left whatever the inputs: the system's margin floor,
+  which for cars accounts for their headings and turn rates);
 * ``reach, bfloat16 matmuls`` (opt-in ``matmul_precision="bfloat16"``): the default engine with the
   network's hidden products in bfloat16; not exact, so the script counts the states whose outcome
   differs from float32.
@@ -29,6 +30,7 @@ import argparse
 import os
 import platform
 import time
+from pathlib import Path
 
 import torch
 
@@ -58,6 +60,18 @@ def deepreach_style(net: ValueNetwork, states: torch.Tensor, dt: float, chunk: i
     return torch.cat(collided)
 
 
+def cpu_description() -> str:
+    """The CPU's model name and its widest vector / bfloat16 instruction sets (Linux), for the header."""
+    try:
+        info = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return platform.processor() or platform.machine()
+    model = next((line.split(":", 1)[1].strip() for line in info.splitlines() if line.startswith("model name")), "")
+    flags = set(next((line.split(":", 1)[1].split() for line in info.splitlines() if line.startswith("flags")), []))
+    wanted = ("avx2", "avx512f", "avx512_bf16", "amx_bf16")
+    return f"{model or platform.machine()} ({', '.join(f for f in wanted if f in flags) or 'no AVX2'})"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--system", default="multivehicle9d")
@@ -68,6 +82,11 @@ def main() -> None:
     parser.add_argument("--chunk-size", type=int, default=16384)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--skip-baseline", action="store_true", help="time only our engine")
+    parser.add_argument(
+        "--skip-bfloat16",
+        action="store_true",
+        help="leave out the bfloat16 row (CPUs without bf16 dot products emulate it, many times slower)",
+    )
     parser.add_argument("--quick", action="store_true", help="smoke run: 500 states, width 64")
     args = parser.parse_args()
     if args.quick:
@@ -81,15 +100,14 @@ def main() -> None:
     print(
         f"# {args.system}, {args.layout} width {args.width}, {args.states} states x {steps} Euler steps "
         f"(dt {args.dt}), chunk {args.chunk_size}; torch {torch.__version__}, {os.cpu_count()} CPUs, "
-        f"{platform.processor() or platform.machine()}, threads {torch.get_num_threads()}"
+        f"{cpu_description()}, threads {torch.get_num_threads()}"
     )
     rows = []
     results = {}
-    for label, early, precision in (
-        ("reach", True, "float32"),
-        ("reach, no early exit", False, "float32"),
-        ("reach, bfloat16 matmuls", True, "bfloat16"),
-    ):
+    engines = [("reach", True, "float32"), ("reach, no early exit", False, "float32")]
+    if not args.skip_bfloat16:
+        engines.append(("reach, bfloat16 matmuls", True, "bfloat16"))
+    for label, early, precision in engines:
         r = rollout(
             vf,
             states,

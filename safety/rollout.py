@@ -9,10 +9,13 @@ of a step constant and integrates the dynamics with RK4 instead.
 It simulates only what is still undecided:
 
 * a trajectory that has collided is finished (and states already in collision never start);
-* where the system declares :meth:`~reach.systems.base.ControlAffineSystem.margin_rate_bound`
-  (``|dl/dt| <= c``), a trajectory with ``l(x) > c * (time_left + dt)`` can no longer reach the
-  failure set under *any* inputs, so its outcome (no collision) is decided and it stops too. Exact
-  for Euler (each step moves ``l`` by at most ``c dt``); the extra ``dt`` covers RK4's truncation.
+* where the system bounds how fast ``l`` can fall
+  (:meth:`~reach.systems.base.ControlAffineSystem.margin_floor`: by default
+  ``l(x) - c * time`` from a declared ``|dl/dt| <= c``; multi-vehicle systems also use the cars'
+  headings, since cars facing apart must turn before they can close), a trajectory whose floor over
+  ``time_left + dt`` is positive can no longer reach the failure set under *any* inputs, so its
+  outcome (no collision) is decided and it stops too. Exact for Euler (a held step moves ``l`` by
+  at most what the floor allows); the extra ``dt`` covers RK4's truncation.
 
 States go through in chunks (bounded memory), the network runs without an autograd graph (one
 fused value-and-gradient pass per state and step, see ``ValueNetwork.value_and_gradient``), and a
@@ -133,7 +136,7 @@ def rollout(
     n_steps = num_steps(horizon, dt)
     if record and states.shape[0] > 100_000:
         raise ValueError(f"record=True keeps every state; {states.shape[0]} states is too many (<= 100000)")
-    bound = system.margin_rate_bound() if (early_exit and not record) else None
+    floor_exit = early_exit and not record
     use_disturbance = system.disturbance_dim > 0 and disturbance != "none"
 
     advance = make_stepper(system, dt, integrator, TORCH)
@@ -196,8 +199,9 @@ def rollout(
                     trajectories[k + 1, idx.cpu()] = x.cpu()
                 hit = margin <= 0
                 done = hit
-                if bound is not None:
-                    done = hit | (margin > bound * (horizon - elapsed + dt))
+                floor = system.margin_floor(x, horizon - elapsed + dt) if floor_exit else None
+                if floor is not None:
+                    done = hit | (floor > 0)
                 if bool(done.any()):
                     if bool(hit.any()):
                         where = idx[hit].cpu()

@@ -157,6 +157,19 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
         """
         return None
 
+    def margin_floor(self, x: torch.Tensor, time: float) -> torch.Tensor | None:
+        """A lower bound of ``l`` over the next ``time`` seconds from states ``x`` ``(..., n)``, under
+        *any* admissible inputs (held over Euler steps or not), or ``None`` where none is known.
+
+        Default: ``l(x) - margin_rate_bound() * time``. A system that knows more of its geometry may
+        return a tighter bound (multi-vehicle systems use the cars' headings and turn rates). A
+        rollout stops a trajectory whose floor over the time left is positive: no input can reach
+        the failure set any more."""
+        bound = self.margin_rate_bound()
+        if bound is None:
+            return None
+        return self.failure_margin(x) - bound * time
+
     # ------------------------------------------------------------------ per-system defaults (hooks)
     # Built-in systems override these with the choices of the literature; a user system inherits
     # generic fallbacks derived from its declared physics.

@@ -20,6 +20,8 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
+import torch
+
 from reach.systems.backend import Backend, Column
 from reach.systems.base import Box, ControlAffineSystem, DeepReachNormalisation, InputMatrix
 
@@ -129,6 +131,43 @@ class MultiVehicle(ControlAffineSystem):
     def margin_rate_bound(self) -> float:
         """The largest ``v_i + v_j`` over failure pairs: how fast two cars at constant speeds can close."""
         return max(self.cars[i].speed + self.cars[j].speed for i, j in self.failure_pairs)
+
+    def margin_floor(self, x: torch.Tensor, time: float) -> torch.Tensor:
+        """A lower bound of ``l`` over the next ``time`` seconds under any turn rates, from the
+        headings: cars that face away from each other must turn before they can close.
+
+        For a pair at distance ``d`` along the unit vector ``e`` from car ``i`` to car ``j``, the
+        distance at any later time is at least its projection on ``e``, ``d - D_i - D_j``, where
+        ``D_i`` is the farthest car ``i`` can move along ``e`` (``-e`` for car ``j``) in that time.
+        With heading ``a`` off ``e`` and turn bound ``w``, turning towards ``e`` at full rate is
+        best: ``D = v/w (sin a - sin(a - w s))`` while it turns (``s <= a / w``), then straight on.
+        ``D`` is convex in time, so the closest approach bound over ``[0, time]`` is
+        ``d - max(0, D_i + D_j)`` at ``time``; an explicit Euler step moves a car along ``e`` by
+        at most the integral over it (the integrand grows as the car turns), so held steps obey
+        the bound too. Never below the default ``l - (v_i + v_j) time``."""
+        n = self.num_cars
+        floor = None
+        for i, j in self.failure_pairs:
+            dx, dy = x[..., 2 * j] - x[..., 2 * i], x[..., 2 * j + 1] - x[..., 2 * i + 1]
+            toward = torch.atan2(dy, dx)
+            closing = self._farthest_along(x[..., 2 * n + i] - toward, self.cars[i], time) + self._farthest_along(
+                x[..., 2 * n + j] - toward - math.pi, self.cars[j], time
+            )
+            m = torch.hypot(dx, dy) - self.collision_radius - closing.clamp_min(0.0)
+            floor = m if floor is None else torch.minimum(floor, m)
+        return floor
+
+    @staticmethod
+    def _farthest_along(offset: torch.Tensor, car: Car, time: float) -> torch.Tensor:
+        """The farthest a car can move along a direction ``offset`` radians off its heading in ``time``."""
+        a = torch.remainder(offset + math.pi, 2 * math.pi) - math.pi
+        a = a.abs()
+        v, w = car.speed, car.max_turn_rate
+        if w == 0:
+            return v * time * torch.cos(a)
+        turning = v / w * (torch.sin(a) - torch.sin(a - w * time))
+        straight = v / w * torch.sin(a) + v * (time - a / w)
+        return torch.where(w * time <= a, turning, straight)
 
     def pair_margin(self, x: Sequence[Column], i: int, j: int, xp: Backend) -> Column:
         """``||p_i - p_j|| - R`` for cars ``i`` and ``j``."""
