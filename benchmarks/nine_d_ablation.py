@@ -24,10 +24,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from nine_d_accuracy_vs_time import METRICS, QUIET_STEPS_PER_MINUTE, read_results
+from nine_d_accuracy_vs_time import METRICS, QUIET_STEPS_PER_MINUTE, evaluate_runs, read_results, train_or_resume
 from nine_d_accuracy_vs_time import run_dir as study_run_dir
-
-from reach.cli import main as reach_main
 
 #: the changes, each as the `reach train` options that make it (the baseline adds none)
 ROWS: dict[str, list[str]] = {
@@ -49,51 +47,16 @@ def run_dir(args: argparse.Namespace, row: str, seed: int) -> Path:
 def train(args: argparse.Namespace) -> int:
     steps = round(args.minutes * args.steps_per_minute)
     for row in args.rows:
-        extra = [option.format(pairwise=args.pairwise) for option in ROWS[row]]
+        options = [option.format(pairwise=args.pairwise) for option in ROWS[row]]
         for seed in args.seeds:
-            run = run_dir(args, row, seed)
-            if (run / "checkpoint.pt").exists():
-                code = reach_main(["train", "--resume", str(run), "--steps", str(steps)])
-            else:
-                code = reach_main(
-                    [
-                        "train",
-                        "--system",
-                        "multivehicle9d",
-                        "--steps",
-                        str(steps),
-                        "--seed",
-                        str(seed),
-                        *extra,
-                        "--out",
-                        str(run),
-                    ]
-                )
+            code = train_or_resume(run_dir(args, row, seed), steps, seed, options)
             if code:
                 return code
     return 0
 
 
 def score(args: argparse.Namespace) -> int:
-    runs = [run_dir(args, row, seed) for row in args.rows for seed in args.seeds]
-    done = [str(r) for r in runs if (r / "checkpoint.pt").exists()]
-    if not done:
-        print("no finished runs yet", file=sys.stderr)
-        return 1
-    return reach_main(
-        [
-            "evaluate",
-            *done,
-            "--samples",
-            str(args.samples),
-            "--certify-samples",
-            str(args.certify_samples),
-            "--pairwise",
-            args.pairwise,
-            "--out",
-            str(args.out / "results.csv"),
-        ]
-    )
+    return evaluate_runs([run_dir(args, row, seed) for row in args.rows for seed in args.seeds], args)
 
 
 def report(args: argparse.Namespace) -> int:

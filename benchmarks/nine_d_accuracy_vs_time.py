@@ -41,61 +41,43 @@ def run_dir(out: Path, minutes: float, seed: int) -> Path:
     return out / "runs" / f"ssssl-{minutes:g}m-seed{seed}"
 
 
+def train_or_resume(run: Path, steps: int, seed: int, options: list[str] | None = None) -> int:
+    """``reach train`` of the 9D defaults (plus ``options``) for ``steps`` steps into ``run``, or
+    ``--resume`` where a checkpoint is already there."""
+    if (run / "checkpoint.pt").exists():
+        return reach_main(["train", "--resume", str(run), "--steps", str(steps)])
+    base = ["train", "--system", "multivehicle9d", "--steps", str(steps), "--seed", str(seed)]
+    return reach_main([*base, *(options or []), "--out", str(run)])
+
+
 def train(args: argparse.Namespace) -> int:
     for minutes in args.minutes:
         for seed in args.seeds:
-            run = run_dir(args.out, minutes, seed)
-            steps = round(minutes * args.steps_per_minute)
-            if (run / "checkpoint.pt").exists():
-                code = reach_main(["train", "--resume", str(run), "--steps", str(steps)])
-            else:
-                code = reach_main(
-                    [
-                        "train",
-                        "--system",
-                        "multivehicle9d",
-                        "--steps",
-                        str(steps),
-                        "--seed",
-                        str(seed),
-                        "--out",
-                        str(run),
-                    ]
-                )
+            code = train_or_resume(run_dir(args.out, minutes, seed), round(minutes * args.steps_per_minute), seed)
             if code:
                 return code
     return 0
 
 
-def score(args: argparse.Namespace) -> int:
+def evaluate_runs(runs: list[Path], args: argparse.Namespace) -> int:
+    """``reach evaluate`` of the runs that have a checkpoint, with the study's settings (solving the
+    pairwise union first if missing), into ``args.out / results.csv``."""
     pairwise = Path(args.pairwise)
     if not pairwise.exists():
         code = reach_main(["groundtruth", "relativepair", "--grid", "101", "--out", str(pairwise)])
         if code:
             return code
-    runs = [
-        str(run_dir(args.out, m, s))
-        for m in args.minutes
-        for s in args.seeds
-        if (run_dir(args.out, m, s) / "checkpoint.pt").exists()
-    ]
-    if not runs:
+    done = [str(run) for run in runs if (run / "checkpoint.pt").exists()]
+    if not done:
         print("no finished runs yet", file=sys.stderr)
         return 1
-    return reach_main(
-        [
-            "evaluate",
-            *runs,
-            "--samples",
-            str(args.samples),
-            "--certify-samples",
-            str(args.certify_samples),
-            "--pairwise",
-            str(pairwise),
-            "--out",
-            str(args.out / "results.csv"),
-        ]
-    )
+    samples = ["--samples", str(args.samples), "--certify-samples", str(args.certify_samples)]
+    out = ["--pairwise", str(pairwise), "--out", str(args.out / "results.csv")]
+    return reach_main(["evaluate", *done, *samples, *out])
+
+
+def score(args: argparse.Namespace) -> int:
+    return evaluate_runs([run_dir(args.out, m, s) for m in args.minutes for s in args.seeds], args)
 
 
 #: the columns the report prints and plots, with their plot titles

@@ -53,6 +53,10 @@ class FilterConfig:
         if self.value_function is not None:  # refused before any episode runs
             check_filter_settings(self.kind, self.gamma, self.backup_horizon)
 
+    def filter_options(self) -> dict[str, Any]:
+        """The keyword arguments every filter wrapper takes for this configuration's filter."""
+        return {"kind": self.kind, "gamma": self.gamma, "backup_horizon": self.backup_horizon}
+
 
 class _Tally:
     """Per-configuration counters over running episodes."""
@@ -161,9 +165,7 @@ def evaluate_filters(
                 config.value_function,
                 config.threshold,
                 time_to_go,
-                kind=config.kind,
-                gamma=config.gamma,
-                backup_horizon=config.backup_horizon,
+                **config.filter_options(),
             )
             threshold = env.safety_filter.threshold
         options = None if initial_states is None else {"state": initial_states}
@@ -241,9 +243,7 @@ def evaluate_filter_parallel(
                 config.value_function,
                 config.threshold,
                 time_to_go,
-                kind=config.kind,
-                gamma=config.gamma,
-                backup_horizon=config.backup_horizon,
+                **config.filter_options(),
             )
             threshold = env.safety_filter.threshold
         env.reset(seed=seed + i)
