@@ -19,8 +19,9 @@ Threshold: a switch or smooth filter that acts once per environment step (zero-o
 declare no bound use a rate sampled from their own physics, :meth:`margin_rate_estimate`).
 With threshold 0 and a worst-case pursuer, the Air3D grid switch filter still lets most attacked
 episodes collide: the state rides the BRT boundary and slips in between decisions. The lookahead
-filter checks the state after the step, so its default threshold is 0 (on Air3D it still lets 2.6 %
-of attacked episodes graze the failure set there; 0.03 lets none).
+filter checks the state after the step and a rollout of the backup policy after it, so its default
+threshold is 0 (on Air3D, 1,000 attacked episodes: no collision with the grid truth, 0.1 % with the
+10-minute network).
 
 ``info`` gains ``filter_value`` (``V`` at the pre-step state), ``filter_intervened``,
 ``nominal_action`` and ``applied_action`` (normalised units).
