@@ -13,7 +13,7 @@ kinds, one interface (every env adapter in :mod:`safety.wrappers` takes each):
   BRT speaks for), and keep ``u_nominal`` only if ``min(V, l)`` stays above ``threshold`` at every
   predicted state; else apply ``u*``. Checking one step of ``u*`` is not enough at threshold 0: near
   the BRT's edge a held ``u*`` loses a little value each step, and states ride the failure set's
-  edge into a graze. ``disturbance="robust"`` (default) checks two predicted paths: the value
+  edge into a graze. ``backup_disturbance="robust"`` (default) checks two predicted paths: the value
   function's ``d*``, and a greedy worst case that each step takes whichever of ``d*`` and the
   disturbance box's corners leaves the least ``min(V, l)`` (the real disturbance need not be the
   model's ``d*``, e.g. a pursuer steered by another value function); ``"model"`` checks the first
@@ -59,7 +59,10 @@ def _non_negative(value: object) -> bool:
 
 
 def check_filter_settings(
-    kind: str, gamma: float = DEFAULT_GAMMA, backup_horizon: float | None = None, disturbance: str = "robust"
+    kind: str,
+    gamma: float = DEFAULT_GAMMA,
+    backup_horizon: float | None = None,
+    backup_disturbance: str = "robust",
 ) -> None:
     """Refuse a filter kind, barrier rate, backup horizon or lookahead disturbance that makes no
     sense, naming it (called before any episode runs, and by :class:`SafetyFilter`)."""
@@ -69,8 +72,8 @@ def check_filter_settings(
         raise ValueError(f"gamma must be a finite number >= 0, got {gamma!r}")
     if backup_horizon is not None and not _non_negative(backup_horizon):
         raise ValueError(f"backup_horizon must be a finite number of seconds >= 0, got {backup_horizon!r}")
-    if disturbance not in LOOKAHEAD_DISTURBANCES:
-        raise ValueError(f"lookahead disturbance must be one of {LOOKAHEAD_DISTURBANCES}, got {disturbance!r}")
+    if backup_disturbance not in LOOKAHEAD_DISTURBANCES:
+        raise ValueError(f"backup_disturbance must be one of {LOOKAHEAD_DISTURBANCES}, got {backup_disturbance!r}")
 
 
 @dataclass
@@ -101,7 +104,7 @@ class SafetyFilter:
         integrator: how the lookahead predicts (``"rk4"``, the envs' default, or ``"euler"``).
         backup_horizon: how long (s) the lookahead rolls the backup policy ``u*`` after the nominal
             step (``None``: the system's horizon; 0: the nominal step alone).
-        disturbance: the lookahead's predicted disturbance paths, ``"robust"`` or ``"model"``.
+        backup_disturbance: the lookahead's predicted disturbance paths, ``"robust"`` or ``"model"``.
         gamma: the smooth filter's barrier rate (1/s, finite, >= 0; 0 forbids any decrease of ``V``).
     """
 
@@ -114,11 +117,11 @@ class SafetyFilter:
         integrator: str = "rk4",
         gamma: float = DEFAULT_GAMMA,
         backup_horizon: float | None = None,
-        disturbance: str = "robust",
+        backup_disturbance: str = "robust",
     ) -> None:
         if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not math.isfinite(threshold):
             raise ValueError(f"threshold must be a finite number, got {threshold!r}")
-        check_filter_settings(kind, gamma, backup_horizon, disturbance)
+        check_filter_settings(kind, gamma, backup_horizon, backup_disturbance)
         if kind == "lookahead":
             if dt is None or isinstance(dt, bool) or not (math.isfinite(dt) and dt > 0):
                 raise ValueError(f"the lookahead filter needs a step dt > 0, got {dt!r}")
@@ -127,7 +130,7 @@ class SafetyFilter:
         # steps of the backup rollout (the lookahead only): enough held steps to cover the horizon
         self.backup_steps = math.ceil(horizon / dt - 1e-9) if kind == "lookahead" else 0
         self.backup_horizon = float(horizon)
-        self.disturbance = disturbance
+        self.backup_disturbance = backup_disturbance
         self.value_function = value_function
         self.system = value_function.system
         self.policy = OptimalPolicy(value_function)
@@ -201,7 +204,7 @@ class SafetyFilter:
         n = system.state_dim
         batch = x.shape[:-1]
         x = x.reshape(-1, n)
-        paths = 2 if self.disturbance == "robust" and system.disturbance_dim > 0 else 1
+        paths = 2 if self.backup_disturbance == "robust" and system.disturbance_dim > 0 else 1
         start = x.repeat(paths, 1)
         greedy = torch.arange(len(start), device=x.device) >= len(x)  # the second half of the batch
         d = None if d_star is None else d_star.reshape(-1, system.disturbance_dim).repeat(paths, 1)

@@ -48,14 +48,20 @@ class FilterConfig:
     kind: str = "switch"
     gamma: float = DEFAULT_GAMMA
     backup_horizon: float | None = None
+    backup_disturbance: str = "robust"
 
     def __post_init__(self) -> None:
         if self.value_function is not None:  # refused before any episode runs
-            check_filter_settings(self.kind, self.gamma, self.backup_horizon)
+            check_filter_settings(self.kind, self.gamma, self.backup_horizon, self.backup_disturbance)
 
     def filter_options(self) -> dict[str, Any]:
         """The keyword arguments every filter wrapper takes for this configuration's filter."""
-        return {"kind": self.kind, "gamma": self.gamma, "backup_horizon": self.backup_horizon}
+        return {
+            "kind": self.kind,
+            "gamma": self.gamma,
+            "backup_horizon": self.backup_horizon,
+            "backup_disturbance": self.backup_disturbance,
+        }
 
 
 class _Tally:
@@ -116,6 +122,7 @@ class _Tally:
             "kind": config.kind if config.value_function is not None else None,
             "gamma": config.gamma if config.value_function is not None and config.kind == "smooth" else None,
             "backup_horizon": _backup_horizon(config),
+            "backup_disturbance": config.backup_disturbance if _backup_horizon(config) is not None else None,
             "goal_rate": float(reached.mean()) if task.has_goal else float("nan"),
             "mean_goal_time": float(np.nanmean(task.reach_time[reached])) if reached.any() else float("nan"),
             "wall_time": wall,
@@ -383,6 +390,7 @@ def record_side_by_side(
     kinds: Sequence[str] = ("switch",),
     gamma: float = DEFAULT_GAMMA,
     backup_horizon: float | None = None,
+    backup_disturbance: str = "robust",
 ) -> str:
     """A GIF of a few episodes from the same starts: the nominal policy (left), then the same policy
     under each filter kind in ``kinds``, side by side."""
@@ -403,6 +411,7 @@ def record_side_by_side(
             kind=k,
             gamma=gamma,
             backup_horizon=backup_horizon,
+            backup_disturbance=backup_disturbance,
         )
         for k in kinds
     ]
@@ -466,6 +475,7 @@ def run_filter_study(
     gammas: Sequence[float] = (DEFAULT_GAMMA,),
     nominal: NominalPolicy | None = None,
     backup_horizon: float | None = None,
+    backup_disturbance: str = "robust",
 ) -> FilterStudy:
     """The one filter-evaluation pipeline: episodes, results, trade-off plot and a side-by-side GIF.
 
@@ -481,6 +491,7 @@ def run_filter_study(
             side by side), preferring episodes in which the nominal policy crashed; ``gif_threshold``
             (default: the first threshold) is the filters' threshold there.
         backup_horizon: the lookahead's backup rollout in seconds (default: the system's horizon).
+        backup_disturbance: the lookahead's predicted disturbance paths (``"robust"`` or ``"model"``).
         nominal: the nominal policy (float64 states ``(N, n)`` -> normalised actions ``(N, m_u)``);
             default: the scene system's goal task (:func:`~safety.tasks.make_task`), which for a
             system without goals keeps the centre of the control box.
@@ -506,7 +517,7 @@ def run_filter_study(
         for kind in kinds:
             for th in thresholds:
                 for gamma in gammas if kind == "smooth" else (DEFAULT_GAMMA,):
-                    configs.append(FilterConfig(label, vf, th, kind, gamma, backup_horizon))
+                    configs.append(FilterConfig(label, vf, th, kind, gamma, backup_horizon, backup_disturbance))
     if pettingzoo:
         if starts is not None:
             raise ValueError("the PettingZoo path samples its own starts; drop start_outside or pettingzoo")
@@ -537,6 +548,7 @@ def run_filter_study(
             kinds=kinds,
             gamma=gammas[0],
             backup_horizon=backup_horizon,
+            backup_disturbance=backup_disturbance,
             task=task,
         )
         paths.append(str(gif))

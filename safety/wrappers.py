@@ -10,7 +10,8 @@ value function was trained for; a number fixes another horizon; ``"remaining"`` 
 in the episode (``horizon - elapsed``, floored at 0).
 
 Filters: ``kind="switch"`` (default), ``"lookahead"`` (predicts one env step with the env's ``dt``
-and integrator, then ``backup_horizon`` seconds of the backup policy; default: the system's horizon)
+and integrator, then ``backup_horizon`` seconds of the backup policy, default the system's horizon,
+along the ``backup_disturbance`` paths, default ``"robust"``)
 or ``"smooth"`` (``gamma``: the barrier rate); see :mod:`safety.filter`.
 
 Threshold: a switch or smooth filter that acts once per environment step (zero-order hold) lets
@@ -81,6 +82,7 @@ class _Adapter:
         kind: str = "switch",
         gamma: float = DEFAULT_GAMMA,
         backup_horizon: float | None = None,
+        backup_disturbance: str = "robust",
     ) -> None:
         _check_time_to_go(time_to_go)
         episode_horizon = scene.episode_horizon
@@ -97,6 +99,7 @@ class _Adapter:
             integrator=scene.integrator,
             gamma=gamma,
             backup_horizon=backup_horizon,
+            backup_disturbance=backup_disturbance,
         )
         # the times the filter will ask for, checked now rather than mid-episode
         if time_to_go is None:
@@ -161,9 +164,12 @@ class _FilterAdapterMixin:
         kind: str = "switch",
         gamma: float = DEFAULT_GAMMA,
         backup_horizon: float | None = None,
+        backup_disturbance: str = "robust",
     ) -> None:
         super().__init__(env)  # the wrapper base class of the env kind
-        self._attach_filter(env, value_function, threshold, time_to_go, device, kind, gamma, backup_horizon)
+        self._attach_filter(
+            env, value_function, threshold, time_to_go, device, kind, gamma, backup_horizon, backup_disturbance
+        )
 
     def _attach_filter(
         self,
@@ -175,12 +181,22 @@ class _FilterAdapterMixin:
         kind: str = "switch",
         gamma: float = DEFAULT_GAMMA,
         backup_horizon: float | None = None,
+        backup_disturbance: str = "robust",
     ) -> None:
         base = env.unwrapped
         if value_function is None:
             value_function = pretrained.for_env(_env_id(env), base.system)
         self._adapter = _Adapter(
-            base.system, value_function, threshold, time_to_go, base.scene, device, kind, gamma, backup_horizon
+            base.system,
+            value_function,
+            threshold,
+            time_to_go,
+            base.scene,
+            device,
+            kind,
+            gamma,
+            backup_horizon,
+            backup_disturbance,
         )
 
     @property
@@ -209,6 +225,7 @@ class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordCons
         kind: str = "switch",
         gamma: float = DEFAULT_GAMMA,
         backup_horizon: float | None = None,
+        backup_disturbance: str = "robust",
     ) -> None:
         gym.utils.RecordConstructorArgs.__init__(
             self,
@@ -219,9 +236,12 @@ class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordCons
             kind=kind,
             gamma=gamma,
             backup_horizon=backup_horizon,
+            backup_disturbance=backup_disturbance,
         )
         gym.Wrapper.__init__(self, env)
-        self._attach_filter(env, value_function, threshold, time_to_go, device, kind, gamma, backup_horizon)
+        self._attach_filter(
+            env, value_function, threshold, time_to_go, device, kind, gamma, backup_horizon, backup_disturbance
+        )
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         base = self.env.unwrapped

@@ -90,7 +90,7 @@ def test_the_robust_lookahead_keeps_the_nominal_input_no_more_often_than_the_mod
     nominal = torch.rand(3000, 1, generator=torch.Generator().manual_seed(8), dtype=torch.float64) * 6 - 3
     keep = {}
     for disturbance, horizon in [("model", 0.2), ("robust", 0.2), ("model", 0.4)]:
-        filt = SafetyFilter(vf, kind="lookahead", dt=0.02, backup_horizon=horizon, disturbance=disturbance)
+        filt = SafetyFilter(vf, kind="lookahead", dt=0.02, backup_horizon=horizon, backup_disturbance=disturbance)
         keep[disturbance, horizon] = ~filt(x, 1.1, nominal)[1].intervened
     assert (keep["robust", 0.2] <= keep["model", 0.2]).all() and (keep["model", 0.4] <= keep["model", 0.2]).all()
     assert (keep["robust", 0.2] < keep["model", 0.2]).any() and keep["robust", 0.2].any()
@@ -121,6 +121,26 @@ def test_smooth_filter_chatters_less_than_the_switch(air3d_grid):
     )
     assert smooth["collision_rate"] == 0.0 and switch["collision_rate"] == 0.0
     assert smooth["total_variation"] < 0.7 * switch["total_variation"]
+
+
+def test_the_lookahead_settings_reach_the_filter_through_every_adapter():
+    """backup_horizon and backup_disturbance pass from each wrapper to its filter (and into the
+    Gymnasium spec), so the CLI's --backup-horizon / --backup-disturbance do what they say."""
+    options = {"kind": "lookahead", "backup_horizon": 0.1, "backup_disturbance": "model"}
+    env = SafetyFilterWrapper(gym.make("Air3D-v0"), _network(Air3D()), **options)
+    f = env.safety_filter
+    assert (f.backup_horizon, f.backup_steps, f.backup_disturbance) == (0.1, 5, "model")
+    assert env.spec.additional_wrappers[-1].kwargs["backup_disturbance"] == "model"
+    venv = SafetyFilterVectorWrapper(
+        gym.make_vec("Air3D-v0", num_envs=2, vectorization_mode="vector_entry_point"), _network(Air3D()), **options
+    )
+    assert venv.safety_filter.backup_disturbance == "model" and venv.safety_filter.backup_steps == 5
+    from reach_envs.parallel import parallel_env
+
+    penv = SafetyFilterParallelWrapper(parallel_env("three-car-9d"), _network(MultiVehicle9D()), **options)
+    assert penv.safety_filter.backup_horizon == 0.1
+    with pytest.raises(ValueError, match=r"backup_disturbance .*'worst'"):
+        SafetyFilterWrapper(gym.make("Air3D-v0"), _network(Air3D()), kind="lookahead", backup_disturbance="worst")
 
 
 @pytest.mark.parametrize("kind", ["switch", "lookahead", "smooth"])
@@ -160,7 +180,7 @@ def test_every_kind_through_every_adapter(kind):
         ({"threshold": float("nan")}, "threshold"),
         ({"kind": "lookahead", "dt": 0.02, "backup_horizon": -1.0}, "backup_horizon"),
         ({"kind": "lookahead", "dt": 0.02, "backup_horizon": float("inf")}, "backup_horizon"),
-        ({"kind": "lookahead", "dt": 0.02, "disturbance": "optimistic"}, "optimistic"),
+        ({"kind": "lookahead", "dt": 0.02, "backup_disturbance": "optimistic"}, "optimistic"),
     ],
 )
 def test_nonsense_settings_are_refused(kwargs, match):

@@ -63,6 +63,13 @@ def add_parser(sub: Any) -> None:
         help="lookahead filter: seconds of the backup policy checked after the nominal step "
         "(default: the system's horizon)",
     )
+    p.add_argument(
+        "--backup-disturbance",
+        choices=["robust", "model"],
+        default="robust",
+        help="lookahead filter: check the value function's d* path and a greedy worst case over the "
+        "disturbance box's corners (robust), or the d* path alone (model)",
+    )
     p.add_argument("--time-to-go", default=None, help="None (value function horizon), a number, or 'remaining'")
     p.add_argument("--pursuer", choices=["scene", "pursue", "random", "worst-case"], default="scene")
     p.add_argument("--adversary", default=None, help="value function whose d* the worst-case pursuer plays")
@@ -157,10 +164,12 @@ def run(args: argparse.Namespace) -> int:
         gammas=gammas,
         nominal=nominal,
         backup_horizon=args.backup_horizon,
+        backup_disturbance=args.backup_disturbance,
         header={
             "filters": kinds,
             "gammas": gammas if "smooth" in kinds else None,
             "backup_horizon": args.backup_horizon if "lookahead" in kinds else None,
+            "backup_disturbance": args.backup_disturbance if "lookahead" in kinds else None,
             "format": "reach.filter-eval.v1",
             "scene": scene.name,
             "system": system.reference(),
