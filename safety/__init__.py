@@ -10,15 +10,48 @@ network, a DeepReach import or a grid solution; :func:`load_value_function` load
   across many checkpoints on the same states.
 """
 
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from reach.value_function import MinimumOf, value_and_gradient
-from safety.evaluate import evaluate_many, load_results, markdown_table
 from safety.filter import FilterInfo, SafetyFilter
 from safety.metrics import scenario_epsilon, violation_statistics, wilson_interval
 from safety.policy import OptimalPolicy
 from safety.rollout import RolloutResult, rollout
 from safety.value_functions import LoadedValueFunction, as_value_function, load_value_function
 from safety.verify import VerifySettings, sample_states, sample_superlevel_set, verify
-from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper, SafetyFilterWrapper
+
+if TYPE_CHECKING:
+    from safety.evaluate import evaluate_many, load_results, markdown_table
+    from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper, SafetyFilterWrapper
+
+#: names whose modules load Gymnasium, PettingZoo and the evaluation stack, imported on first use so
+#: that ``import safety.filter`` (the CLI's start-up) stays light. (A name that equals its module's,
+#: like ``rollout`` and ``verify``, must stay eager: importing the submodule would shadow it.)
+_LAZY = {
+    "evaluate_many": "safety.evaluate",
+    "load_results": "safety.evaluate",
+    "markdown_table": "safety.evaluate",
+    "SafetyFilterParallelWrapper": "safety.wrappers",
+    "SafetyFilterVectorWrapper": "safety.wrappers",
+    "SafetyFilterWrapper": "safety.wrappers",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'safety' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # later lookups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_LAZY})
+
 
 __all__ = [
     "FilterInfo",
