@@ -207,6 +207,23 @@ def test_early_exit_changes_work_not_outcomes():
     assert start_hit.any() and (fast.collision_time[start_hit] == 0).all()
 
 
+def test_the_heading_aware_floor_skips_more_than_the_speed_bound(monkeypatch):
+    """The cars' margin floor decides more trajectories than the speed-only default floor, with the
+    same outcome for every state."""
+    from reach.systems.base import ControlAffineSystem
+    from reach.systems.multivehicle import MultiVehicle
+
+    system = MultiVehicle9D()
+    vf = tiny_network(system, seed=2)
+    x = system.sample_states(400, generator=torch.Generator().manual_seed(6))
+    headings = rollout(vf, x, progress=False, dt=0.01)
+    monkeypatch.setattr(MultiVehicle, "margin_floor", ControlAffineSystem.margin_floor)
+    speed_only = rollout(vf, x, progress=False, dt=0.01)
+    assert torch.equal(headings.collided, speed_only.collided)
+    assert torch.allclose(headings.collision_time, speed_only.collision_time, equal_nan=True)
+    assert headings.state_steps < 0.8 * speed_only.state_steps
+
+
 def test_rollout_records_frozen_trajectories_and_matches_recorded_collisions():
     system = Air3D()
     vf = tiny_network(system, seed=3)
