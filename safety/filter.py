@@ -222,8 +222,7 @@ class SafetyFilter:
             else:  # the rollout's last state: its value alone
                 v = self.value_function.value(y_in, t)
                 self._trust(y_in, t, v, None, None)
-            margin = system.failure_margin(y).to(v.dtype)
-            low = torch.where(stopped, low, torch.minimum(low, torch.where(inside, torch.minimum(v, margin), margin)))
+            low = torch.where(stopped, low, torch.minimum(low, self._safety_value(v, y, inside)))
             stopped = stopped | ~inside
             if k == self.backup_steps or bool(stopped.all()):
                 break
@@ -247,24 +246,32 @@ class SafetyFilter:
             return y
         system = self.system
         box = system.disturbance_bounds
-        xg, ug, dg = x[greedy], u[greedy], d[greedy]
+        xg, ug = x[greedy], u[greedy]
         corners = torch.cartesian_prod(
             *[torch.tensor([lo, hi], dtype=d.dtype, device=d.device) for lo, hi in zip(box.low, box.high)]
         ).reshape(-1, system.disturbance_dim)
-        candidates = torch.cat([dg.unsqueeze(0), corners.unsqueeze(1).expand(-1, len(dg), -1)])  # (1 + C, G, m_d)
-        c = len(candidates)
-        ahead = self._ahead(xg.repeat(c, 1), ug.repeat(c, 1), candidates.reshape(-1, system.disturbance_dim))
+        c = 1 + len(corners)  # candidates: d (its step is y's), then each corner, (c, G) flattened
+        at_corners = self._ahead(
+            xg.repeat(len(corners), 1), ug.repeat(len(corners), 1), corners.repeat_interleave(len(xg), 0)
+        )
+        ahead = torch.cat([y[greedy], at_corners])
         inside = self._inside(ahead, domain)
         clamped = torch.where(inside.unsqueeze(-1), ahead, ahead.clamp(domain[:, 0], domain[:, 1]))
         if isinstance(t, torch.Tensor) and t.ndim:
             t = t[greedy].repeat(c)
         v = self.value_function.value(clamped, t)
         self._trust(clamped, t, v, None, None)
-        margin = system.failure_margin(ahead).to(v.dtype)
-        worst = torch.where(inside, torch.minimum(v, margin), margin).reshape(c, -1).argmin(0)
+        worst = self._safety_value(v, ahead, inside).reshape(c, -1).argmin(0)
         y = y.clone()
-        y[greedy] = ahead.reshape(c, -1, x.shape[-1])[worst, torch.arange(len(dg), device=x.device)]
+        y[greedy] = ahead.reshape(c, -1, x.shape[-1])[worst, torch.arange(len(xg), device=x.device)]
         return y
+
+    def _safety_value(self, v: torch.Tensor, y: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
+        """``min(V, l)`` at predicted states, ``l`` alone outside the domain (no trusted ``V`` there).
+        ``V <= l`` holds for the exact value function; a network or a grid's interpolation can break
+        it at the failure set's edge."""
+        margin = self.system.failure_margin(y).to(v.dtype)
+        return torch.where(inside, torch.minimum(v, margin), margin)
 
     @staticmethod
     def _inside(y: torch.Tensor, domain: torch.Tensor) -> torch.Tensor:

@@ -105,6 +105,7 @@ class _Tally:
         hits = int(self.collided.sum())
         low, high = wilson_interval(hits, n)
         reached = task.reached & ~self.collided
+        lookahead = config.value_function is not None and config.kind == "lookahead"
         row = {
             "label": config.label,
             "filtered": config.value_function is not None,
@@ -121,8 +122,8 @@ class _Tally:
             "infeasible_rate": self.infeasible / max(1, self.running_steps),
             "kind": config.kind if config.value_function is not None else None,
             "gamma": config.gamma if config.value_function is not None and config.kind == "smooth" else None,
-            "backup_horizon": _backup_horizon(config),
-            "backup_disturbance": config.backup_disturbance if _backup_horizon(config) is not None else None,
+            "backup_horizon": _backup_horizon(config) if lookahead else None,
+            "backup_disturbance": config.backup_disturbance if lookahead else None,
             "goal_rate": float(reached.mean()) if task.has_goal else float("nan"),
             "mean_goal_time": float(np.nanmean(task.reach_time[reached])) if reached.any() else float("nan"),
             "wall_time": wall,
@@ -202,10 +203,8 @@ def evaluate_filters(
     return rows
 
 
-def _backup_horizon(config: FilterConfig) -> float | None:
-    """The lookahead's backup rollout in seconds (its default resolved), None for other kinds."""
-    if config.value_function is None or config.kind != "lookahead":
-        return None
+def _backup_horizon(config: FilterConfig) -> float:
+    """The lookahead's backup rollout in seconds, its default (the system's horizon) resolved."""
     return config.value_function.system.horizon if config.backup_horizon is None else float(config.backup_horizon)
 
 

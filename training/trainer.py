@@ -190,9 +190,8 @@ class Trainer:
 
     def _upper_bound_at(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """The union's value at the sampled points (``+inf`` where no pair grid covers them)."""
-        with torch.no_grad():
-            bound = self.upper_bound.value_where_known(x.detach().to("cpu", torch.float32), t.detach().to("cpu"))
-        return bound.to(x.device, x.dtype)
+        with torch.no_grad():  # the pair grids interpolate on the points' own device
+            return self.upper_bound.value_where_known(x.detach(), t.detach()).to(x.dtype)
 
     # ------------------------------------------------------------------ persistence
     @property
