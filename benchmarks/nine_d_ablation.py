@@ -24,7 +24,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from nine_d_accuracy_vs_time import METRICS, QUIET_STEPS_PER_MINUTE, evaluate_runs, read_results, train_or_resume
+from nine_d_accuracy_vs_time import METRICS, add_run_arguments, evaluate_runs, read_results, train_or_resume
 from nine_d_accuracy_vs_time import run_dir as study_run_dir
 
 #: the changes, each as the `reach train` options that make it (the baseline adds none)
@@ -60,11 +60,9 @@ def score(args: argparse.Namespace) -> int:
 
 
 def report(args: argparse.Namespace) -> int:
-    path = args.out / "results.csv"
-    if not path.exists():
-        print(f"{path}: run the score stage first", file=sys.stderr)
+    rows = read_results(args.out)
+    if rows is None:
         return 1
-    rows = read_results(path)
     keys = [k for k, _ in METRICS if rows and k in rows[0]]
     print(f"# 9D ablation, {args.minutes:g} min of the quiet 2-core rate per run; mean over seeds (each seed)")
     print("| change | seeds | " + " | ".join(keys) + " |")
@@ -90,11 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--study", type=Path, default=Path("studies/9d-time"), help="the accuracy-vs-time study")
     parser.add_argument("--rows", type=lambda s: s.split(","), default=list(ROWS))
     parser.add_argument("--minutes", type=float, default=10.0)
-    parser.add_argument("--seeds", type=lambda s: [int(v) for v in s.split(",")], default=[0, 1])
-    parser.add_argument("--steps-per-minute", type=float, default=QUIET_STEPS_PER_MINUTE)
-    parser.add_argument("--samples", type=int, default=100_000)
-    parser.add_argument("--certify-samples", type=int, default=1_000_000)
-    parser.add_argument("--pairwise", default="runs/pair_gt.npz")
+    add_run_arguments(parser)
     args = parser.parse_args(argv)
     unknown = [r for r in args.rows if r not in ROWS]
     if unknown:

@@ -91,8 +91,13 @@ METRICS = (
 )
 
 
-def read_results(path: Path) -> list[dict[str, str]]:
-    """The scored rows of a results table, error rows left out."""
+def read_results(out: Path) -> list[dict[str, str]] | None:
+    """The scored rows of ``out / results.csv``, error rows left out; None (and a message) where the
+    score stage has not run yet."""
+    path = out / "results.csv"
+    if not path.exists():
+        print(f"{path}: run the score stage first", file=sys.stderr)
+        return None
     with open(path) as fh:
         return [r for r in csv.DictReader(fh) if not r.get("error")]
 
@@ -144,11 +149,9 @@ def plot(rows: list[dict[str, str]], path: Path) -> Path | None:
 
 
 def report(args: argparse.Namespace) -> int:
-    path = args.out / "results.csv"
-    if not path.exists():
-        print(f"{path}: run the score stage first", file=sys.stderr)
+    rows = read_results(args.out)
+    if rows is None:
         return 1
-    rows = read_results(path)
     print_table(rows)
     figure = plot(rows, args.out / "accuracy_vs_time.png")
     if figure is not None:
@@ -156,16 +159,22 @@ def report(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("stage", choices=["train", "score", "report"])
-    parser.add_argument("--out", type=Path, default=Path("studies/9d-time"))
-    parser.add_argument("--minutes", type=lambda s: [float(v) for v in s.split(",")], default=[10, 30, 60, 120])
+def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    """The seeds, the step rate and the scoring settings: one source for the study and the ablation,
+    so that both train and score their runs the same way."""
     parser.add_argument("--seeds", type=lambda s: [int(v) for v in s.split(",")], default=[0, 1])
     parser.add_argument("--steps-per-minute", type=float, default=QUIET_STEPS_PER_MINUTE)
     parser.add_argument("--samples", type=int, default=100_000)
     parser.add_argument("--certify-samples", type=int, default=1_000_000)
     parser.add_argument("--pairwise", default="runs/pair_gt.npz")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("stage", choices=["train", "score", "report"])
+    parser.add_argument("--out", type=Path, default=Path("studies/9d-time"))
+    parser.add_argument("--minutes", type=lambda s: [float(v) for v in s.split(",")], default=[10, 30, 60, 120])
+    add_run_arguments(parser)
     args = parser.parse_args(argv)
     return {"train": train, "score": score, "report": report}[args.stage](args)
 
