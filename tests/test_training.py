@@ -406,7 +406,7 @@ def test_gradient_bound_penalises_only_slopes_above_it(tmp_path):
         TrainConfig(steps=1, gradient_bound=-1.0).validate()
 
 
-def test_upper_bound_term_charges_only_values_above_a_known_bound(tmp_path, pair_grid):
+def test_upper_bound_term_charges_only_values_above_a_known_bound(tmp_path, pair_grid, air3d_grid):
     """The union-of-pairs penalty: mean(relu(V - bound)) where the bound is known, nothing where it
     is +inf; a 9D run with a pair solution file logs it; misuse is refused before training."""
     from training.loss import training_loss
@@ -432,6 +432,9 @@ def test_upper_bound_term_charges_only_values_above_a_known_bound(tmp_path, pair
         Trainer(TrainConfig(steps=1, upper_bound=str(path), **TINY), tmp_path / "a", progress=False)
     with pytest.raises(ValueError, match=r"no such file 'missing\.npz'"):
         Trainer(TrainConfig(system="multivehicle9d", steps=1, upper_bound="missing.npz"), tmp_path / "b")
+    foreign = air3d_grid.save(tmp_path / "air3d.npz")  # a two-player grid, but not this system's pair problem
+    with pytest.raises(ValueError, match="no pair solution for cars"):
+        Trainer(TrainConfig(system="multivehicle9d", steps=1, upper_bound=str(foreign)), tmp_path / "c")
     with pytest.raises(ValueError, match="upper_bound_weight"):
         TrainConfig(steps=1, upper_bound_weight=-1.0).validate()
     assert not (tmp_path / "a").exists() or not any((tmp_path / "a").iterdir())
