@@ -16,6 +16,7 @@ direction).
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 import os
@@ -30,6 +31,7 @@ from groundtruth.grid import Grid
 from groundtruth.solution import GridSolution
 from groundtruth.weno import derivatives
 from reach.compiling import maybe_compile
+from reach.heap import retained_heap
 from reach.systems.backend import TORCH
 from reach.systems.base import ControlAffineSystem
 from reach.systems.registry import make_system
@@ -38,12 +40,12 @@ MAX_DIM = 4
 #: Above this CFL number TVD-RK3 with WENO5 is not guaranteed stable (the scheme's linear limit is ~1).
 CFL_STABLE = 1.0
 #: ``compile=None`` compiles on CPU only for at least this many node updates (nodes x RK3 steps):
-#: torch.compile costs 15-35 s once per new system or grid, and pays off only on large work.
-#: Measured (Air3D to t = 1, fresh processes, 2 CPU cores): 51^3 (4.3e7 updates) eager 16 s against
-#: 34 s compiled; 71^3 (1.6e8) eager 97 s against 47 s; 101^3 (6.7e8) eager 283 s against 51 s; a
-#: user-defined Dubins system at 51^3 (about 6e6, as examples/my_systems.py's DubinsAvoid) eager
-#: 2.3 s against 29.7 s on a first run.
-COMPILE_MIN_NODE_UPDATES = 1e8
+#: torch.compile costs 15-30 s once per new system or grid, and pays off only on large work.
+#: Measured with the heap kept (reach.heap) and the leaner WENO5 (fresh inductor cache, one process,
+#: 2 CPU cores, docs/groundtruth.md): Air3D 71^3 (1.6e8 updates) eager 14.5 s against 22.5 s compiled
+#: on a first run; DubinsAccel 41^4 (2.5e8) compiled 35.0 s on a first run, against 68 s eager
+#: before the WENO5 rewrite.
+COMPILE_MIN_NODE_UPDATES = 2e8
 
 
 def _rhs_factory(
@@ -51,14 +53,17 @@ def _rhs_factory(
 ) -> Callable[[torch.Tensor], torch.Tensor]:
     spacing = grid.spacing
     periodic = grid.periodic
+    # derivatives() returns six times the one-sided derivatives: the mean and the half jump take 1/12
+    alpha = [a / 12.0 for a in alpha]
 
     def rhs(v: torch.Tensor) -> torch.Tensor:
         p_mean: list[torch.Tensor] = []
-        dissipation: torch.Tensor | float = 0.0
+        dissipation: torch.Tensor | None = None
         for i in range(grid.ndim):
             left, right = derivatives(v, i, spacing[i], periodic[i])
-            p_mean.append(0.5 * (left + right))
-            dissipation = dissipation + alpha[i] * (0.5 * (right - left))
+            p_mean.append((left + right).mul_(1.0 / 12.0))
+            jump = right.sub_(left)
+            dissipation = jump.mul_(alpha[i]) if dissipation is None else dissipation.addcmul_(alpha[i], jump)
         return system.hamiltonian_columns(cols, p_mean, TORCH) + dissipation
 
     return rhs
@@ -172,7 +177,7 @@ def solve(
     if dissipation not in ("global", "local"):
         raise ValueError(f"dissipation must be 'global' or 'local', got {dissipation!r}")
 
-    check_memory(grid.shape, len(out_times), dtype)
+    need = check_memory(grid.shape, len(out_times), dtype)
 
     start = time.perf_counter()
     cols = grid.columns(dtype, device)
@@ -203,13 +208,18 @@ def solve(
     steps = 0
     t = 0.0
     v = target.clone()
-    with tqdm(
-        total=out_times[-1],
-        desc=f"{system.name} {'x'.join(map(str, grid.shape))}",
-        unit="s",
-        **({} if progress else {"disable": True}),
-        bar_format="{l_bar}{bar}| {n:.3f}/{total:.3f} s [{elapsed}<{remaining}]",
-    ) as bar:
+    # on CPU, freed temporaries stay in the heap: page faults made eager 4D solves 2-3x slower (reach.heap)
+    keep_heap = retained_heap(need) if torch.device(device).type == "cpu" else contextlib.nullcontext()
+    with (
+        keep_heap,
+        tqdm(
+            total=out_times[-1],
+            desc=f"{system.name} {'x'.join(map(str, grid.shape))}",
+            unit="s",
+            **({} if progress else {"disable": True}),
+            bar_format="{l_bar}{bar}| {n:.3f}/{total:.3f} s [{elapsed}<{remaining}]",
+        ) as bar,
+    ):
         for t_out in out_times:
             while t < t_out:
                 # The last step to an output time is shortened to land on it exactly; a remainder

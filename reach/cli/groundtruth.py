@@ -51,7 +51,7 @@ def add_parser(sub: Any) -> None:
         "--compile",
         choices=["auto", "on", "off"],
         default="auto",
-        help="torch.compile the solver step (auto: on CPU from 1e8 node updates, eager on GPUs)",
+        help="torch.compile the solver step (auto: on CPU from 2e8 node updates, eager on GPUs)",
     )
     p.add_argument("--out", required=True, help="output .npz")
     p.add_argument("--plot", default=None, help="also draw zero-level slices to this PNG")
