@@ -103,6 +103,11 @@ class _CheckedOnConstruction(ABCMeta):
         return system
 
 
+def _is_number(value: Column, number: float) -> bool:
+    """Whether ``value`` is the plain Python number ``number`` (an array never is)."""
+    return isinstance(value, (int, float)) and value == number
+
+
 class ControlAffineSystem(metaclass=_CheckedOnConstruction):
     """Base class of every dynamical system; subclasses declare physics only.
 
@@ -350,10 +355,11 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
     @staticmethod
     def _switching(matrix: InputMatrix, p: Sequence[Column], dim: int) -> list[Column]:
         """``G^T p``: one switching function per input dimension."""
-        s: list[Column] = [0.0] * dim
+        s: list[Column | None] = [None] * dim
         for (i, j), g in matrix.items():
-            s[j] = s[j] + g * p[i]
-        return s
+            term = p[i] if _is_number(g, 1.0) else g * p[i]  # skip passes that change nothing (the grid
+            s[j] = term if s[j] is None else s[j] + term  # solver runs these on every node, every stage)
+        return [0.0 if sj is None else sj for sj in s]
 
     def _optimal(self, s: Sequence[Column], box: Box, objective: Objective, xp: Backend) -> list[Column]:
         sigma = 1.0 if objective == "max" else -1.0
@@ -373,16 +379,20 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
 
     def hamiltonian_columns(self, x: Sequence[Column], p: Sequence[Column], xp: Backend) -> Column:
         """``H(x, p) = opt_u opt_d p . xdot`` in closed form for box inputs."""
-        h: Column = 0.0
-        for pi, fi in zip(p, self.drift(x, xp)):
-            h = h + pi * fi
+        terms: list[Column] = [pi * fi for pi, fi in zip(p, self.drift(x, xp)) if not _is_number(fi, 0.0)]
         sides = [(self.control_matrix(x, xp), self.control_bounds, self.control_objective)]
         if self.disturbance_dim:
             sides.append((self.disturbance_matrix(x, xp), self.disturbance_bounds, self.disturbance_objective))
         for matrix, box, objective in sides:
             sigma = 1.0 if objective == "max" else -1.0
             for sj, c, hw in zip(self._switching(matrix, p, box.dim), box.center, box.half_width):
-                h = h + sj * c + sigma * hw * xp.abs(sj)
+                if c != 0.0:  # a box centred on zero adds nothing here (and zero passes over a grid)
+                    terms.append(sj * c)
+                if hw != 0.0:
+                    terms.append(sigma * hw * xp.abs(sj))
+        h: Column = 0.0 if not terms else terms[0]
+        for term in terms[1:]:
+            h = h + term
         return h
 
     def dissipation_columns(self, x: Sequence[Column], xp: Backend) -> list[Column]:
