@@ -3,8 +3,9 @@
 Run: ``python benchmarks/run_all.py --out bench-results`` (``--quick`` for smoke runs, ``--only
 rollouts envs`` for some, ``--compare OLD/summary.json`` to put an earlier run's wall times beside).
 
-Each script (environment throughput, grid solver, training step, rollouts) runs in its own process,
-never two at once (they would time each other), with its full output kept in ``OUT/<name>.txt``.
+Each script (environment throughput, grid solver, the grid solver against hj_reachability, training
+step, rollouts) runs in its own process, never two at once (they would time each other), with its
+full output kept in ``OUT/<name>.txt``.
 The summary lists exit status and wall time per script, and ``OUT/report.md`` gathers every
 script's markdown tables under its command line, for the README or for comparing machines.
 ``OUT/summary.json`` holds the same, plus versions, for ``--compare``.
@@ -22,11 +23,14 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+#: name -> script and its arguments; "hj_reachability" installs that library in a virtual environment
+#: of its own on first use (benchmarks/hj_comparison.py), never into this one
 SCRIPTS = {
-    "envs": "bench_envs.py",
-    "groundtruth": "bench_groundtruth.py",
-    "training": "bench_training.py",
-    "rollouts": "bench_rollouts.py",
+    "envs": ["bench_envs.py"],
+    "groundtruth": ["bench_groundtruth.py"],
+    "hj_reachability": ["bench_groundtruth.py", "--against", "hj_reachability"],
+    "training": ["bench_training.py"],
+    "rollouts": ["bench_rollouts.py"],
 }
 
 
@@ -53,7 +57,8 @@ def main() -> int:
     env = {**os.environ, "TQDM_DISABLE": "1", "MPLBACKEND": "Agg"}
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(HERE.parent), env.get("PYTHONPATH")]))
     for name in names:
-        cmd = [sys.executable, str(HERE / SCRIPTS[name])] + (["--quick"] if args.quick else [])
+        script, *script_args = SCRIPTS[name]
+        cmd = [sys.executable, str(HERE / script), *script_args] + (["--quick"] if args.quick else [])
         start = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=HERE.parent)
         wall = time.perf_counter() - start
@@ -61,7 +66,7 @@ def main() -> int:
         runs.append(
             {
                 "name": name,
-                "command": " ".join(["python", f"benchmarks/{SCRIPTS[name]}"] + (["--quick"] if args.quick else [])),
+                "command": " ".join(["python", f"benchmarks/{script}", *cmd[3:]]),
                 "exit": proc.returncode,
                 "wall_s": wall,
                 "tables": tables(proc.stdout),
