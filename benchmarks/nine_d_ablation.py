@@ -32,6 +32,8 @@ ROWS: dict[str, list[str]] = {
     "baseline": [],
     # a known upper bound of the true value: V may not exceed the union of pairwise values
     "upper-bound": ["--upper-bound", "{pairwise}"],
+    # a known lower bound: V may not sit below what the network's own policy achieves (rollout labels)
+    "lower-bound": ["--lower-bound", "policy"],
 }
 
 

@@ -456,3 +456,77 @@ def test_runs_from_before_new_defaults_resume_as_they_were_trained(tmp_path):
     (run / "config.json").write_text(json.dumps(config))
     with pytest.raises(ValueError, match="does not match the run's config"):
         Trainer.resume(run, progress=False, steps=6)
+
+
+def test_policy_labels_bound_the_value_from_below(pair_grid):
+    """What the network's own policy achieves is a lower bound: J <= l (the start counts), J = l at
+    t = 0, and J never exceeds the union of pairwise values, which bounds the 9D value from above
+    (J <= V <= union), here for an untrained network's arbitrary policy; and the rollout says more
+    than the any-input floor of l alone."""
+    from groundtruth.pairwise import PairwiseUnion
+    from training.labels import policy_lower_bound
+
+    system = MultiVehicle9D()
+    torch.manual_seed(0)
+    network = ValueNetwork(system, "ssl", width=32)
+    g = torch.Generator().manual_seed(1)
+    x = system.sample_states(400, generator=g)
+    t = torch.rand(400, generator=g) * system.horizon
+    t[:50] = 0.0
+    bound = policy_lower_bound(network, x, t, dt=0.01)
+    margin = system.failure_margin(x)
+    assert torch.equal(bound[:50], margin[:50])
+    assert bool((bound <= margin).all())
+    union = PairwiseUnion(system, pair_grid).value_where_known(x, t)
+    known = torch.isfinite(union)
+    assert int(known.sum()) > 200
+    # 45^3 pair grid: its nodes are 2/44 apart in relative position, and |grad V| <= 1 there
+    assert float((bound - union)[known].max()) <= 2.0 / 44
+    floor = system.margin_floor(x, t)  # per-row time: a lower bound of l under any inputs
+    assert float((bound - floor)[50:].mean()) > 0.05
+
+
+def test_lower_bound_term_trains_resumes_exactly_and_refuses_misuse(tmp_path, capsys):
+    """A 9D run logs the term; stopped and resumed it ends with the same weights as one run straight
+    through (the labels travel in the checkpoint); a system with a disturbance is refused."""
+    from training.loss import training_loss
+
+    system = MultiVehicle9D()
+    torch.manual_seed(0)
+    network = ValueNetwork(system, "ssl", width=16)
+    x, t = system.sample_states(64), torch.rand(64)
+    v = network(x, t).detach()
+    _, terms = training_loss(network, x, t, pde=False, lower_bound=(x, t, v + 0.2))
+    assert terms["lower_bound"] == pytest.approx(0.2, rel=1e-4)
+    _, terms = training_loss(network, x, t, pde=False, lower_bound=(x, t, v - 0.2))
+    assert terms["lower_bound"] == 0.0
+
+    options = dict(
+        system="multivehicle9d",
+        lower_bound="policy",
+        lower_bound_points=32,
+        lower_bound_every=2,
+        curriculum=0.0,
+        schedule="constant",  # the cosine schedule depends on the step count the run was started with
+        compile=False,
+        **TINY,
+    )
+    Trainer(TrainConfig(steps=5, **options), tmp_path / "straight", progress=False).train()
+    Trainer(TrainConfig(steps=3, **options), tmp_path / "resumed", progress=False).train()
+    Trainer.resume(tmp_path / "resumed", progress=False, steps=5).train()
+    straight = load_network(tmp_path / "straight" / "checkpoint.pt").state_dict()
+    resumed = load_network(tmp_path / "resumed" / "checkpoint.pt").state_dict()
+    assert all(torch.equal(straight[k], resumed[k]) for k in straight)
+    rows = [json.loads(line) for line in (tmp_path / "straight" / "metrics.jsonl").read_text().splitlines()]
+    assert rows and all(row["lower_bound"] >= 0 for row in rows)
+
+    with pytest.raises(ValueError, match="air3d has a disturbance"):
+        Trainer(TrainConfig(steps=1, lower_bound="policy", **TINY), tmp_path / "a", progress=False)
+    assert main(["train", "--lower-bound", "policy", "--steps", "1", "--out", str(tmp_path / "cli")]) == 2
+    err = capsys.readouterr().err
+    assert "air3d has a disturbance" in err and "Traceback" not in err
+    with pytest.raises(ValueError, match="lower_bound must be one of"):
+        TrainConfig(steps=1, lower_bound="mpc").validate()
+    for name in ("lower_bound_weight", "lower_bound_dt", "lower_bound_points", "lower_bound_every"):
+        with pytest.raises(ValueError, match=name):
+            TrainConfig(steps=1, **{name: -1}).validate()

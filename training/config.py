@@ -34,6 +34,10 @@ COMPILE_MIN_STEPS = 2000
 COMPILE_MIN_BUDGET_S = 120.0
 
 
+#: kinds of lower-bound labels (``TrainConfig.lower_bound``; training.labels)
+LOWER_BOUNDS = ("policy",)
+
+
 @dataclass
 class TrainConfig(SystemSpecified):
     """A training run. At least one stop rule (``steps``, ``budget_s`` or ``target_loss``) is needed.
@@ -62,6 +66,14 @@ class TrainConfig(SystemSpecified):
     # above; the loss adds upper_bound_weight * mean(relu(V - V_union)) where a pair's grid covers the state
     upper_bound: str | None = None
     upper_bound_weight: float = 1.0
+    # systems without a disturbance: "policy" labels lower_bound_points sampled states every
+    # lower_bound_every steps with what the network's own policy achieves (training.labels, a lower
+    # bound of V); the loss adds lower_bound_weight * mean(relu(J - V)) on them
+    lower_bound: str | None = None
+    lower_bound_weight: float = 1.0
+    lower_bound_points: int = 1024
+    lower_bound_every: int = 100
+    lower_bound_dt: float = 0.01  # step of the labelling rollouts (RK4, inputs held)
     gradients: str = "fused"  # input derivatives: "fused" (hand-carried, one backward) or "autograd" (double backward)
     compile: bool | None = None  # torch.compile the fused residual; None: when the run is long enough (see below)
     curriculum: float = 0.5  # share of the run over which the sampled time range grows to the horizon
@@ -97,6 +109,10 @@ class TrainConfig(SystemSpecified):
             "gradient_bound": self.gradient_bound is None or self.gradient_bound > 0,
             "gradient_weight": self.gradient_weight >= 0,
             "upper_bound_weight": self.upper_bound_weight >= 0,
+            "lower_bound_weight": self.lower_bound_weight >= 0,
+            "lower_bound_points": self.lower_bound_points >= 1,
+            "lower_bound_every": self.lower_bound_every >= 1,
+            "lower_bound_dt": self.lower_bound_dt > 0,
             "curriculum": 0 <= self.curriculum <= 1,
             "pretrain": 0 <= self.pretrain < 1,
             "boundary_fraction": 0 < self.boundary_fraction < 1,
@@ -118,6 +134,8 @@ class TrainConfig(SystemSpecified):
             "gradient_bound",
             "gradient_weight",
             "upper_bound_weight",
+            "lower_bound_weight",
+            "lower_bound_dt",
             "curriculum",
             "pretrain",
             "boundary_fraction",
@@ -130,7 +148,7 @@ class TrainConfig(SystemSpecified):
             value = getattr(self, name)
             if value is not None:
                 check_float(name, value)  # numbers, finite: NaN passes every comparison-free check
-        for name in ("width", "points", "log_every", "snapshots", "steps"):
+        for name in ("width", "points", "log_every", "snapshots", "steps", "lower_bound_points", "lower_bound_every"):
             value = getattr(self, name)
             if value is not None:
                 check_int(name, value)
@@ -154,6 +172,8 @@ class TrainConfig(SystemSpecified):
             raise ValueError("compile needs gradients='fused' (torch.compile does not take double backward)")
         if self.upper_bound is not None and (not isinstance(self.upper_bound, str) or not self.upper_bound):
             raise ValueError(f"upper_bound must be the path of a pair grid solution, got {self.upper_bound!r}")
+        if self.lower_bound is not None and self.lower_bound not in LOWER_BOUNDS:
+            raise ValueError(f"lower_bound must be one of {LOWER_BOUNDS} or null (none), got {self.lower_bound!r}")
         if self.loss not in ("l1", "l2"):
             raise ValueError(f"loss must be 'l1' or 'l2', got {self.loss!r}")
         return self

@@ -104,6 +104,8 @@ def training_loss(
     gradient_weight: float = 1.0,
     upper_bound: torch.Tensor | None = None,
     upper_bound_weight: float = 1.0,
+    lower_bound: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+    lower_bound_weight: float = 1.0,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Scalar loss and its terms (``pde``, ``boundary``, ``gradient``) as floats for logging.
 
@@ -119,6 +121,9 @@ def training_loss(
     ``upper_bound`` (per point, ``+inf`` where unknown) adds ``upper_bound_weight * mean(relu(V -
     upper_bound))`` over all points: a known upper bound of the true value (the union of pairwise
     BRTs for a multi-vehicle system), which the residual alone does not enforce.
+
+    ``lower_bound`` = ``(x, t, J)``: labelled points with a known lower bound ``J`` of the true value
+    (:func:`training.labels.policy_lower_bound`) add ``lower_bound_weight * mean(relu(J - V(x, t)))``.
     """
     terms: dict[str, float] = {}
     total = x.new_zeros(())
@@ -139,6 +144,11 @@ def training_loss(
         excess = torch.where(known, torch.relu(v - torch.where(known, upper_bound, v.detach())), 0.0).mean()
         total = total + upper_bound_weight * excess
         terms["upper_bound"] = float(excess.detach())
+    if lower_bound is not None:
+        x_label, t_label, floor = lower_bound
+        shortfall = torch.relu(floor - network(x_label, t_label)).mean()
+        total = total + lower_bound_weight * shortfall
+        terms["lower_bound"] = float(shortfall.detach())
     if network.parameterisation == "vanilla" and boundary_mask is not None and boundary_mask.any():
         gap = v[boundary_mask] - network.system.failure_margin(x[boundary_mask])
         boundary = gap.abs().mean() if norm == "l1" else gap.square().mean()

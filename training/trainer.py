@@ -37,6 +37,7 @@ from reach.threads import thread_policy
 from reach.validation import check_output_dir
 from training.checkpoint import network_from_payload, read_checkpoint, save_checkpoint
 from training.config import TrainConfig
+from training.labels import check_lower_bound_system, policy_lower_bound
 from training.loss import residual_function, training_loss
 from training.network import Encoding, NeuralValueFunction, ValueNetwork
 
@@ -180,6 +181,10 @@ class Trainer:
             None if config.gradient_bound is None else config.gradient_bound * self.network.margin_slope()
         )
         self.upper_bound = _upper_bound(config, self.system)
+        if config.lower_bound is not None:
+            check_lower_bound_system(self.system)
+        #: the labelled points (x, t, J) of the lower-bound term, refreshed every lower_bound_every steps
+        self.labels: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(config.seed)
         self.step = 0
@@ -187,6 +192,19 @@ class Trainer:
         self.loss_ema: float | None = None
         box = self.system.domain_tensor(torch.float32, self.device)
         self._low, self._span = box[:, 0], box[:, 1] - box[:, 0]
+
+    def _refresh_labels(self, tmax: float) -> None:
+        """Label fresh states with what the network's policy achieves (``J <= V``), every
+        ``lower_bound_every`` steps (and at the start of a run that has none)."""
+        c = self.config
+        if c.lower_bound is None or tmax <= 0:
+            return
+        if self.labels is not None and self.step % c.lower_bound_every:
+            return
+        n, g = c.lower_bound_points, self.generator
+        x = self._low + torch.rand((n, self.system.state_dim), generator=g, device=self.device) * self._span
+        t = torch.rand(n, generator=g, device=self.device) * tmax
+        self.labels = (x, t, policy_lower_bound(self.network, x, t, c.lower_bound_dt))
 
     def _upper_bound_at(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """The union's value at the sampled points (``+inf`` where no pair grid covers them)."""
@@ -205,6 +223,7 @@ class Trainer:
             "step": self.step,
             "wall": self.wall,
             "loss_ema": self.loss_ema,
+            "labels": self.labels,
         }
         meta = {
             "steps": self.step,
@@ -251,6 +270,7 @@ class Trainer:
             trainer.optimizer.load_state_dict(payload["optimizer"])
             trainer.generator.set_state(payload["generator"])
             trainer.step, trainer.wall, trainer.loss_ema = payload["step"], payload["wall"], payload["loss_ema"]
+            trainer.labels = payload.get("labels")
         _clean_metrics(run_dir / "metrics.jsonl", trainer.step)
         return trainer
 
@@ -389,6 +409,7 @@ class Trainer:
                 for group in self.optimizer.param_groups:
                     group["lr"] = lr
                 tmax = self.time_range(frac)
+                self._refresh_labels(tmax)  # counted as training time: it is part of the recipe's cost
                 x, t, mask = self._sample(tmax)
                 pde = not (c.parameterisation == "vanilla" and frac < c.pretrain)
                 loss, terms = training_loss(
@@ -404,6 +425,8 @@ class Trainer:
                     gradient_weight=c.gradient_weight,
                     upper_bound=None if self.upper_bound is None else self._upper_bound_at(x, t),
                     upper_bound_weight=c.upper_bound_weight,
+                    lower_bound=self.labels,
+                    lower_bound_weight=c.lower_bound_weight,
                 )
                 if not math.isfinite(terms["loss"]):
                     raise TrainingDivergedError(

@@ -68,6 +68,17 @@ TRAIN_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
     ),
     ("--upper-bound-weight", "upper_bound_weight", {"type": nonnegative_float_arg}, "weight of that penalty"),
     (
+        "--lower-bound",
+        "lower_bound",
+        {"choices": ["policy"]},
+        "systems without a disturbance: penalise V below what the network's own policy achieves from "
+        "sampled states (rollout labels, a lower bound of V)",
+    ),
+    ("--lower-bound-weight", "lower_bound_weight", {"type": nonnegative_float_arg}, "weight of that penalty"),
+    ("--lower-bound-points", "lower_bound_points", {"type": positive_int_arg}, "states labelled per refresh"),
+    ("--lower-bound-every", "lower_bound_every", {"type": positive_int_arg}, "steps between label refreshes"),
+    ("--lower-bound-dt", "lower_bound_dt", {"type": positive_float_arg}, "step of the labelling rollouts (RK4)"),
+    (
         "--gradients",
         "gradients",
         {"choices": ["fused", "autograd"]},
