@@ -34,6 +34,8 @@ ROWS: dict[str, list[str]] = {
     "upper-bound": ["--upper-bound", "{pairwise}"],
     # a known lower bound: V may not sit below what the network's own policy achieves (rollout labels)
     "lower-bound": ["--lower-bound", "policy"],
+    # DeepReach-MPC-style labels: the best of sampled control sequences, bootstrapped by the network
+    "mpc-labels": ["--lower-bound", "mpc"],
 }
 
 

@@ -526,7 +526,57 @@ def test_lower_bound_term_trains_resumes_exactly_and_refuses_misuse(tmp_path, ca
     err = capsys.readouterr().err
     assert "air3d has a disturbance" in err and "Traceback" not in err
     with pytest.raises(ValueError, match="lower_bound must be one of"):
-        TrainConfig(steps=1, lower_bound="mpc").validate()
+        TrainConfig(steps=1, lower_bound="labels").validate()
     for name in ("lower_bound_weight", "lower_bound_dt", "lower_bound_points", "lower_bound_every"):
+        with pytest.raises(ValueError, match=name):
+            TrainConfig(steps=1, **{name: -1}).validate()
+
+
+def test_mpc_labels_take_the_best_sampled_sequence(pair_grid):
+    """The MPC labels include the network's own policy: where the whole time-to-go fits in the MPC
+    horizon no network value enters, so they are at least the policy labels and, being the best of
+    real control sequences, still at most the union of pairwise values. Beyond it they bootstrap
+    from the network; a 9D run with them trains and logs the term."""
+    from groundtruth.pairwise import PairwiseUnion
+    from training.labels import mpc_lower_bound, policy_lower_bound
+
+    system = MultiVehicle9D()
+    torch.manual_seed(0)
+    network = ValueNetwork(system, "ssl", width=32)
+    g = torch.Generator().manual_seed(2)
+    x = system.sample_states(300, generator=g)
+    t = torch.rand(300, generator=g) * 0.1
+    policy = policy_lower_bound(network, x, t, dt=0.01)
+    mpc = mpc_lower_bound(network, x, t, 0.01, horizon=0.1, samples=8, noise=0.5, generator=g)
+    assert bool((mpc >= policy).all()) and bool((mpc > policy).any())
+    union = PairwiseUnion(system, pair_grid).value_where_known(x, t)
+    known = torch.isfinite(union)
+    assert float((mpc - union)[known].max()) <= 2.0 / 44
+    later = mpc_lower_bound(network, x, t + 0.5, 0.01, horizon=0.1, samples=4, noise=0.5, generator=g)
+    assert bool(torch.isfinite(later).all()) and bool((later <= system.failure_margin(x)).all())
+    with pytest.raises(ValueError, match="samples"):
+        mpc_lower_bound(network, x, t, 0.01, horizon=0.1, samples=0, noise=0.5, generator=g)
+
+
+def test_mpc_lower_bound_term_trains_and_resumes_exactly(tmp_path):
+    options = dict(
+        system="multivehicle9d",
+        lower_bound="mpc",
+        lower_bound_points=16,
+        lower_bound_every=2,
+        lower_bound_samples=3,
+        lower_bound_horizon=0.05,
+        curriculum=0.0,
+        schedule="constant",
+        compile=False,
+        **TINY,
+    )
+    Trainer(TrainConfig(steps=4, **options), tmp_path / "straight", progress=False).train()
+    Trainer(TrainConfig(steps=3, **options), tmp_path / "resumed", progress=False).train()
+    Trainer.resume(tmp_path / "resumed", progress=False, steps=4).train()
+    straight = load_network(tmp_path / "straight" / "checkpoint.pt").state_dict()
+    resumed = load_network(tmp_path / "resumed" / "checkpoint.pt").state_dict()
+    assert all(torch.equal(straight[k], resumed[k]) for k in straight)
+    for name in ("lower_bound_samples", "lower_bound_horizon", "lower_bound_noise"):
         with pytest.raises(ValueError, match=name):
             TrainConfig(steps=1, **{name: -1}).validate()

@@ -35,7 +35,7 @@ COMPILE_MIN_BUDGET_S = 120.0
 
 
 #: kinds of lower-bound labels (``TrainConfig.lower_bound``; training.labels)
-LOWER_BOUNDS = ("policy",)
+LOWER_BOUNDS = ("policy", "mpc")
 
 
 @dataclass
@@ -68,12 +68,17 @@ class TrainConfig(SystemSpecified):
     upper_bound_weight: float = 1.0
     # systems without a disturbance: "policy" labels lower_bound_points sampled states every
     # lower_bound_every steps with what the network's own policy achieves (training.labels, a lower
-    # bound of V); the loss adds lower_bound_weight * mean(relu(J - V)) on them
+    # bound of V), "mpc" with the best of sampled control sequences bootstrapped by the network;
+    # the loss adds lower_bound_weight * mean(relu(J - V)) on them
     lower_bound: str | None = None
     lower_bound_weight: float = 1.0
     lower_bound_points: int = 1024
     lower_bound_every: int = 100
     lower_bound_dt: float = 0.01  # step of the labelling rollouts (RK4, inputs held)
+    # "mpc" only: control sequences per state, their horizon (s) and perturbation (x half-width)
+    lower_bound_samples: int = 16
+    lower_bound_horizon: float = 0.1
+    lower_bound_noise: float = 0.5
     gradients: str = "fused"  # input derivatives: "fused" (hand-carried, one backward) or "autograd" (double backward)
     compile: bool | None = None  # torch.compile the fused residual; None: when the run is long enough (see below)
     curriculum: float = 0.5  # share of the run over which the sampled time range grows to the horizon
@@ -113,6 +118,9 @@ class TrainConfig(SystemSpecified):
             "lower_bound_points": self.lower_bound_points >= 1,
             "lower_bound_every": self.lower_bound_every >= 1,
             "lower_bound_dt": self.lower_bound_dt > 0,
+            "lower_bound_samples": self.lower_bound_samples >= 1,
+            "lower_bound_horizon": self.lower_bound_horizon > 0,
+            "lower_bound_noise": self.lower_bound_noise >= 0,
             "curriculum": 0 <= self.curriculum <= 1,
             "pretrain": 0 <= self.pretrain < 1,
             "boundary_fraction": 0 < self.boundary_fraction < 1,
@@ -136,6 +144,8 @@ class TrainConfig(SystemSpecified):
             "upper_bound_weight",
             "lower_bound_weight",
             "lower_bound_dt",
+            "lower_bound_horizon",
+            "lower_bound_noise",
             "curriculum",
             "pretrain",
             "boundary_fraction",
@@ -148,7 +158,16 @@ class TrainConfig(SystemSpecified):
             value = getattr(self, name)
             if value is not None:
                 check_float(name, value)  # numbers, finite: NaN passes every comparison-free check
-        for name in ("width", "points", "log_every", "snapshots", "steps", "lower_bound_points", "lower_bound_every"):
+        for name in (
+            "width",
+            "points",
+            "log_every",
+            "snapshots",
+            "steps",
+            "lower_bound_points",
+            "lower_bound_every",
+            "lower_bound_samples",
+        ):
             value = getattr(self, name)
             if value is not None:
                 check_int(name, value)

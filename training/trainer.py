@@ -37,7 +37,7 @@ from reach.threads import thread_policy
 from reach.validation import check_output_dir
 from training.checkpoint import network_from_payload, read_checkpoint, save_checkpoint
 from training.config import TrainConfig
-from training.labels import check_lower_bound_system, policy_lower_bound
+from training.labels import check_lower_bound_system, mpc_lower_bound, policy_lower_bound
 from training.loss import residual_function, training_loss
 from training.network import Encoding, NeuralValueFunction, ValueNetwork
 
@@ -204,7 +204,20 @@ class Trainer:
         n, g = c.lower_bound_points, self.generator
         x = self._low + torch.rand((n, self.system.state_dim), generator=g, device=self.device) * self._span
         t = torch.rand(n, generator=g, device=self.device) * tmax
-        self.labels = (x, t, policy_lower_bound(self.network, x, t, c.lower_bound_dt))
+        if c.lower_bound == "mpc":
+            floor = mpc_lower_bound(
+                self.network,
+                x,
+                t,
+                c.lower_bound_dt,
+                c.lower_bound_horizon,
+                c.lower_bound_samples,
+                c.lower_bound_noise,
+                g,
+            )
+        else:
+            floor = policy_lower_bound(self.network, x, t, c.lower_bound_dt)
+        self.labels = (x, t, floor)
 
     def _upper_bound_at(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """The union's value at the sampled points (``+inf`` where no pair grid covers them)."""

@@ -70,14 +70,23 @@ TRAIN_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
     (
         "--lower-bound",
         "lower_bound",
-        {"choices": ["policy"]},
+        {"choices": ["policy", "mpc"]},
         "systems without a disturbance: penalise V below what the network's own policy achieves from "
-        "sampled states (rollout labels, a lower bound of V)",
+        "sampled states (policy: rollout labels, a lower bound of V; mpc: the best of sampled control "
+        "sequences over a short horizon, bootstrapped by the network's value at its end)",
     ),
     ("--lower-bound-weight", "lower_bound_weight", {"type": nonnegative_float_arg}, "weight of that penalty"),
     ("--lower-bound-points", "lower_bound_points", {"type": positive_int_arg}, "states labelled per refresh"),
     ("--lower-bound-every", "lower_bound_every", {"type": positive_int_arg}, "steps between label refreshes"),
     ("--lower-bound-dt", "lower_bound_dt", {"type": positive_float_arg}, "step of the labelling rollouts (RK4)"),
+    ("--lower-bound-samples", "lower_bound_samples", {"type": positive_int_arg}, "mpc: control sequences per state"),
+    ("--lower-bound-horizon", "lower_bound_horizon", {"type": positive_float_arg}, "mpc: their horizon (s)"),
+    (
+        "--lower-bound-noise",
+        "lower_bound_noise",
+        {"type": nonnegative_float_arg},
+        "mpc: their perturbation of u* (Gaussian, times the input box's half-width)",
+    ),
     (
         "--gradients",
         "gradients",
