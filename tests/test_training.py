@@ -458,6 +458,26 @@ def test_runs_from_before_new_defaults_resume_as_they_were_trained(tmp_path):
         Trainer.resume(run, progress=False, steps=6)
 
 
+def _assert_resumes_like_one_run(tmp_path: Path, **lower_bound: object) -> None:
+    """A 9D run with a lower-bound term, stopped after 3 steps and resumed to 5, ends with the same
+    weights as one run of 5 steps (its labels travel in the checkpoint)."""
+    options = dict(
+        system="multivehicle9d",
+        lower_bound_every=2,
+        curriculum=0.0,
+        schedule="constant",  # the cosine schedule depends on the step count the run was started with
+        compile=False,
+        **lower_bound,
+        **TINY,
+    )
+    Trainer(TrainConfig(steps=5, **options), tmp_path / "straight", progress=False).train()
+    Trainer(TrainConfig(steps=3, **options), tmp_path / "resumed", progress=False).train()
+    Trainer.resume(tmp_path / "resumed", progress=False, steps=5).train()
+    straight = load_network(tmp_path / "straight" / "checkpoint.pt").state_dict()
+    resumed = load_network(tmp_path / "resumed" / "checkpoint.pt").state_dict()
+    assert all(torch.equal(straight[k], resumed[k]) for k in straight)
+
+
 def test_policy_labels_bound_the_value_from_below(pair_grid):
     """What the network's own policy achieves is a lower bound: J <= l (the start counts), J = l at
     t = 0, and J never exceeds the union of pairwise values, which bounds the 9D value from above
@@ -501,22 +521,7 @@ def test_lower_bound_term_trains_resumes_exactly_and_refuses_misuse(tmp_path, ca
     _, terms = training_loss(network, x, t, pde=False, lower_bound=(x, t, v - 0.2))
     assert terms["lower_bound"] == 0.0
 
-    options = dict(
-        system="multivehicle9d",
-        lower_bound="policy",
-        lower_bound_points=32,
-        lower_bound_every=2,
-        curriculum=0.0,
-        schedule="constant",  # the cosine schedule depends on the step count the run was started with
-        compile=False,
-        **TINY,
-    )
-    Trainer(TrainConfig(steps=5, **options), tmp_path / "straight", progress=False).train()
-    Trainer(TrainConfig(steps=3, **options), tmp_path / "resumed", progress=False).train()
-    Trainer.resume(tmp_path / "resumed", progress=False, steps=5).train()
-    straight = load_network(tmp_path / "straight" / "checkpoint.pt").state_dict()
-    resumed = load_network(tmp_path / "resumed" / "checkpoint.pt").state_dict()
-    assert all(torch.equal(straight[k], resumed[k]) for k in straight)
+    _assert_resumes_like_one_run(tmp_path, lower_bound="policy", lower_bound_points=32)
     rows = [json.loads(line) for line in (tmp_path / "straight" / "metrics.jsonl").read_text().splitlines()]
     assert rows and all(row["lower_bound"] >= 0 for row in rows)
 
@@ -559,24 +564,9 @@ def test_mpc_labels_take_the_best_sampled_sequence(pair_grid):
 
 
 def test_mpc_lower_bound_term_trains_and_resumes_exactly(tmp_path):
-    options = dict(
-        system="multivehicle9d",
-        lower_bound="mpc",
-        lower_bound_points=16,
-        lower_bound_every=2,
-        lower_bound_samples=3,
-        lower_bound_horizon=0.05,
-        curriculum=0.0,
-        schedule="constant",
-        compile=False,
-        **TINY,
+    _assert_resumes_like_one_run(
+        tmp_path, lower_bound="mpc", lower_bound_points=16, lower_bound_samples=3, lower_bound_horizon=0.05
     )
-    Trainer(TrainConfig(steps=4, **options), tmp_path / "straight", progress=False).train()
-    Trainer(TrainConfig(steps=3, **options), tmp_path / "resumed", progress=False).train()
-    Trainer.resume(tmp_path / "resumed", progress=False, steps=4).train()
-    straight = load_network(tmp_path / "straight" / "checkpoint.pt").state_dict()
-    resumed = load_network(tmp_path / "resumed" / "checkpoint.pt").state_dict()
-    assert all(torch.equal(straight[k], resumed[k]) for k in straight)
     for name in ("lower_bound_samples", "lower_bound_horizon", "lower_bound_noise"):
         with pytest.raises(ValueError, match=name):
             TrainConfig(steps=1, **{name: -1}).validate()
