@@ -165,7 +165,7 @@ class SafetyFilter:
             applied = torch.where(keep.unsqueeze(-1), u_nominal, u_star)
         elif self.kind == "lookahead":
             keep = self._backup_holds(x, t, u_nominal, d_star)
-            applied = torch.where(keep.unsqueeze(-1), u_nominal, u_star)
+            applied = torch.where(keep.unsqueeze(-1), u_nominal, self._fallback(x, t, u_star, d_star, ~keep))
         else:
             applied, infeasible, keep = self._project(x, value, p, u_nominal, u_star, d_star)
         # intervened = the filter overrode the nominal input (its decision; the applied input can
@@ -229,6 +229,37 @@ class SafetyFilter:
             y = torch.where(inside.unsqueeze(-1), self._predict(y_in, u_back, d_back, greedy, domain, t), y)
         # a NaN compares False: "not above" keeps no nominal input (and _trust refuses it first)
         return (low.reshape(paths, -1).amin(0) > self.threshold).reshape(batch)
+
+    def _fallback(
+        self,
+        x: torch.Tensor,
+        t: float | torch.Tensor,
+        u_star: torch.Tensor,
+        d_star: torch.Tensor | None,
+        needed: torch.Tensor,
+    ) -> torch.Tensor:
+        """The lookahead's input where the nominal one failed: ``u*``, unless ``u*`` itself fails the
+        backup check and the control box's centre passes it.
+
+        On a singular arc the switching function of ``u*`` is near zero and a sampled ``u*`` flips
+        between box corners from step to step, losing a little ``l`` with every held corner (the one
+        collision of the 10-minute Air3D network at threshold 0, docs/filters.md); the centre is the
+        candidate that does not chatter. Only the states that need a fallback are checked again.
+        """
+        fallback = u_star.clone()
+        if not bool(needed.any()):
+            return fallback
+        n, m = self.system.state_dim, self.system.control_dim
+        rows = torch.nonzero(needed.reshape(-1)).squeeze(-1)
+        xs = x.reshape(-1, n)[rows]
+        ts = t.reshape(-1).expand(x.reshape(-1, n).shape[0])[rows] if isinstance(t, torch.Tensor) and t.ndim else t
+        us = u_star.reshape(-1, m)[rows]
+        ds = None if d_star is None else d_star.reshape(-1, d_star.shape[-1])[rows]
+        centre = torch.tensor(self.system.control_bounds.center, dtype=us.dtype, device=us.device).expand_as(us)
+        use_centre = ~self._backup_holds(xs, ts, us, ds) & self._backup_holds(xs, ts, centre, ds)
+        flat = fallback.reshape(-1, m)
+        flat[rows[use_centre]] = centre[use_centre]
+        return flat.reshape(u_star.shape)
 
     def _predict(
         self,

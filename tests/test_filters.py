@@ -96,6 +96,33 @@ def test_the_robust_lookahead_keeps_the_nominal_input_no_more_often_than_the_mod
     assert (keep["robust", 0.2] < keep["model", 0.2]).any() and keep["robust", 0.2].any()
 
 
+def test_the_lookahead_falls_back_to_the_centre_only_where_it_is_verified_and_u_star_is_not():
+    """Where the nominal input fails, the lookahead applies u*, unless u* fails its own backup check
+    and the control box's centre passes it (a singular arc, where a sampled u* chatters between
+    corners). States near the shipped Air3D network's BRT edge, nominal input -u*; the first two
+    were found by scanning for states that take the centre."""
+    vf = load_value_function("pretrained:air3d").value_function
+    filt = SafetyFilter(vf, 0.0, kind="lookahead", dt=0.02)
+    found = torch.tensor(
+        [
+            [-0.24012809953384617, 0.07923381071141566, -0.5388751551695217],
+            [-0.2437664956539476, -0.06110457634581867, 0.08925663388556382],
+        ],
+        dtype=torch.float64,
+    )
+    x = Air3D().sample_states(60000, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    value = vf.value(x, 1.1)
+    x = torch.cat([found, x[(value > -0.002) & (value < 0.01)][:300]])
+    _, _, u_star, d_star = filt.policy.evaluate(x, 1.1)
+    applied, info = filt(x, 1.1, -u_star)
+    star_ok = filt._backup_holds(x, 1.1, u_star, d_star)
+    centre_ok = filt._backup_holds(x, 1.1, torch.zeros_like(u_star), d_star)
+    takes_centre = info.intervened & ~star_ok & centre_ok
+    assert bool(takes_centre[:2].all()) and bool(info.intervened.any())
+    expected = torch.where(takes_centre.unsqueeze(-1), torch.zeros_like(u_star), u_star)
+    assert torch.equal(applied[info.intervened], expected[info.intervened])
+
+
 def test_the_lookahead_is_safe_at_threshold_zero_where_one_step_is_not(air3d_grid):
     """Attacked Air3D episodes from outside the (51^3) grid BRT at threshold 0: checking the nominal
     step alone (backup_horizon=0) lets many graze the failure set, half a second of the backup
