@@ -9,16 +9,18 @@ kinds, one interface (every env adapter in :mod:`safety.wrappers` takes each):
   env adapters covers that.
 - ``"lookahead"`` (a backup shield): predict the state one step ``dt`` ahead under ``u_nominal``
   (the system's own integrator, inputs held over the step), then roll the backup policy ``u*``
-  forward from there for ``backup_horizon`` seconds (default: the system's horizon, the time the
-  BRT speaks for), and keep ``u_nominal`` only if ``min(V, l)`` stays above ``threshold`` at every
-  predicted state; else apply ``u*``. Checking one step of ``u*`` is not enough at threshold 0: near
-  the BRT's edge a held ``u*`` loses a little value each step, and states ride the failure set's
-  edge into a graze. ``backup_disturbance="robust"`` (default) checks two predicted paths: the value
-  function's ``d*``, and a greedy worst case that each step takes whichever of ``d*`` and the
-  disturbance box's corners leaves the least ``min(V, l)`` (the real disturbance need not be the
-  model's ``d*``, e.g. a pursuer steered by another value function); ``"model"`` checks the first
-  alone. On Air3D (101^3 grid truth, worst-case pursuer, 1,000 attacked episodes) it lets none
-  collide at threshold 0; checking one step of ``u*`` let 3.3 % graze the failure set.
+  forward from there for ``backup_horizon`` seconds (default: the system's horizon, the time the BRT
+  speaks for), and keep ``u_nominal`` only if ``min(V, l)`` stays above ``threshold`` at every
+  predicted state; else apply ``u*`` (or the control box's centre where ``u*`` fails the same check
+  and the centre passes it: :meth:`SafetyFilter._fallback`). Checking one step of ``u*`` is not
+  enough at threshold 0: near the BRT's edge a held ``u*`` loses a little value each step, and
+  states ride the failure set's edge into a graze. ``backup_disturbance="robust"`` (default) checks
+  two predicted paths: the value function's ``d*``, and a greedy worst case that each step takes
+  whichever of ``d*`` and the disturbance box's corners leaves the least ``min(V, l)`` (the real
+  disturbance need not be the model's ``d*``, e.g. a pursuer steered by another value function);
+  ``"model"`` checks the first alone. On Air3D (101^3 grid truth, worst-case pursuer, 1,000 attacked
+  episodes) it lets none collide at threshold 0; checking one step of ``u*`` let 3.3 % graze the
+  failure set.
 - ``"smooth"``: the input closest to ``u_nominal`` (least squares) that satisfies the HJ barrier
   condition ``grad V . f(x, u, d*) + gamma (V - threshold) >= 0`` inside the input box (control
   barrier-value functions, Choi et al. 2021). For control-affine systems the condition is one linear
