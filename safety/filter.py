@@ -257,8 +257,14 @@ class SafetyFilter:
         ts = t.reshape(-1).expand(x.reshape(-1, n).shape[0])[rows] if isinstance(t, torch.Tensor) and t.ndim else t
         us = u_star.reshape(-1, m)[rows]
         ds = None if d_star is None else d_star.reshape(-1, d_star.shape[-1])[rows]
+        failing = ~self._backup_holds(xs, ts, us, ds)
+        if not bool(failing.any()):
+            return fallback
+        rows, xs, us = rows[failing], xs[failing], us[failing]  # only where u* fails is the centre checked
+        ts = ts[failing] if isinstance(ts, torch.Tensor) and ts.ndim else ts
+        ds = None if ds is None else ds[failing]
         centre = torch.tensor(self.system.control_bounds.center, dtype=us.dtype, device=us.device).expand_as(us)
-        use_centre = ~self._backup_holds(xs, ts, us, ds) & self._backup_holds(xs, ts, centre, ds)
+        use_centre = self._backup_holds(xs, ts, centre, ds)
         flat = fallback.reshape(-1, m)
         flat[rows[use_centre]] = centre[use_centre]
         return flat.reshape(u_star.shape)

@@ -21,7 +21,7 @@ declare no bound use a rate sampled from their own physics, :meth:`margin_rate_e
 With threshold 0 and a worst-case pursuer, the Air3D grid switch filter still lets most attacked
 episodes collide: the state rides the BRT boundary and slips in between decisions. The lookahead
 filter checks the state after the step and a rollout of the backup policy after it, so its default
-threshold is 0 (on Air3D, 1,000 attacked episodes: no collision with the grid truth, 0.1 % with the
+threshold is 0 (on Air3D, 1,000 attacked episodes: no collision with the grid truth or the
 10-minute network).
 
 ``info`` gains ``filter_value`` (``V`` at the pre-step state), ``filter_intervened``,

@@ -561,6 +561,8 @@ def test_mpc_labels_take_the_best_sampled_sequence(pair_grid):
     assert bool(torch.isfinite(later).all()) and bool((later <= system.failure_margin(x)).all())
     with pytest.raises(ValueError, match="samples"):
         mpc_lower_bound(network, x, t, 0.01, horizon=0.1, samples=0, noise=0.5, generator=g)
+    with pytest.raises(ValueError, match="dt must be positive"):
+        mpc_lower_bound(network, x, t, 0.0, horizon=0.1, samples=2, noise=0.5, generator=g)
 
 
 def test_mpc_lower_bound_term_trains_and_resumes_exactly(tmp_path):

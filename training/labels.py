@@ -51,6 +51,11 @@ def check_lower_bound_system(system: ControlAffineSystem) -> None:
         )
 
 
+def _check_dt(dt: float) -> None:
+    if not (math.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be positive and finite, got {dt!r}")
+
+
 def _closed_loop(
     network: ValueNetwork,
     x: torch.Tensor,
@@ -66,8 +71,7 @@ def _closed_loop(
     states and the times-to-go left there (``t`` minus the simulated time, negative when it overran).
     """
     system = network.system
-    if not (math.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be positive and finite, got {dt!r}")
+    _check_dt(dt)
     value_function = NeuralValueFunction(network)
     advance = make_stepper(system, dt, "rk4", TORCH)
     box = system.control_bounds
@@ -120,6 +124,7 @@ def mpc_lower_bound(
     consistent with its own values ``H`` seconds on (where ``t <= horizon`` no network value enters,
     and the label is a lower bound of the true value as :func:`policy_lower_bound`'s is).
     """
+    _check_dt(dt)  # before the step count below divides by it
     if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
         raise ValueError(f"samples must be a positive integer, got {samples!r}")
     if not (math.isfinite(horizon) and horizon > 0) or not (math.isfinite(noise) and noise >= 0):
