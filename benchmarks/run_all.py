@@ -66,7 +66,7 @@ def main() -> int:
         runs.append(
             {
                 "name": name,
-                "command": " ".join(["python", f"benchmarks/{script}", *cmd[3:]]),
+                "command": " ".join(["python", f"benchmarks/{script}", *cmd[2:]]),
                 "exit": proc.returncode,
                 "wall_s": wall,
                 "tables": tables(proc.stdout),

@@ -16,6 +16,7 @@ def test_run_all_quick_and_compare(tmp_path: Path):
     assert first.returncode == 0, first.stderr
     summary = json.loads((tmp_path / "a" / "summary.json").read_text())
     assert summary["runs"][0]["exit"] == 0 and "agrees with reach" in summary["runs"][0]["tables"]
+    assert summary["runs"][0]["command"] == "python benchmarks/bench_rollouts.py --quick"
     second = subprocess.run(
         [*cmd, "--out", str(tmp_path / "b"), "--compare", str(tmp_path / "a" / "summary.json")],
         capture_output=True,
