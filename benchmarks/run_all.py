@@ -31,6 +31,7 @@ SCRIPTS = {
     "hj_reachability": ["bench_groundtruth.py", "--against", "hj_reachability"],
     "training": ["bench_training.py"],
     "rollouts": ["bench_rollouts.py"],
+    "startup": ["bench_startup.py"],
 }
 
 

@@ -1,3 +1,3 @@
-from reach.cli import main
+from reach.cli import console_main
 
-raise SystemExit(main())
+console_main()

@@ -109,3 +109,29 @@ def test_the_cli_starts_without_the_env_stack():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split("\n")
     assert out[0] == "[]" and out[1] == "True"
+
+
+def test_the_console_script_freezes_the_collector_after_the_command_not_main(monkeypatch, capsys):
+    """`reach` (console_main) skips Python's shutdown garbage pass by freezing the collector once the
+    command has returned and its output is flushed; main() called in-process never touches it."""
+    import gc
+
+    import reach.cli as cli
+
+    events = []
+    real_main = cli.main
+
+    def recording_main(argv=None):
+        code = real_main(argv)
+        events.append(("main", code))
+        return code
+
+    monkeypatch.setattr(gc, "freeze", lambda: events.append(("freeze", None)))
+    assert real_main(["envs"]) == 0 and events == []  # in-process: the caller's collector is left alone
+    monkeypatch.setattr(cli, "main", recording_main)
+    monkeypatch.setattr("sys.argv", ["reach", "envs"])
+    with pytest.raises(SystemExit) as exited:
+        cli.console_main()
+    assert exited.value.code == 0
+    assert events == [("main", 0), ("freeze", None)]
+    assert "Air3D-v0" in capsys.readouterr().out
