@@ -36,6 +36,8 @@ ROWS: dict[str, list[str]] = {
     "lower-bound": ["--lower-bound", "policy"],
     # DeepReach-MPC-style labels: the best of sampled control sequences, bootstrapped by the network
     "mpc-labels": ["--lower-bound", "mpc"],
+    # a quarter of each step's points where the network's own |V| is smallest (of 4x as many draws)
+    "zero-level": ["--zero-level-fraction", "0.25"],
 }
 
 

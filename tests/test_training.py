@@ -572,3 +572,29 @@ def test_mpc_lower_bound_term_trains_and_resumes_exactly(tmp_path):
     for name in ("lower_bound_samples", "lower_bound_horizon", "lower_bound_noise"):
         with pytest.raises(ValueError, match=name):
             TrainConfig(steps=1, **{name: -1}).validate()
+
+
+def test_zero_level_sampling_draws_near_the_networks_boundary_and_resumes_exactly(tmp_path):
+    """The zero-level points are the smallest |V| of a larger uniform draw (so far below a uniform
+    draw's typical |V|), take the last share of each step's points, keep resumes exact, and nonsense
+    fractions are refused."""
+    trainer = Trainer(
+        TrainConfig(
+            steps=1, system="multivehicle9d", zero_level_fraction=0.25, zero_level_candidates=8, compile=False, **TINY
+        ),
+        tmp_path / "sample",
+        progress=False,
+    )
+    x, t, _ = trainer._sample(1.0)
+    n = len(x)
+    near = n - int(0.25 * n)
+    with torch.no_grad():
+        v = trainer.network(x, t).abs()
+    # the smallest eighth of 8x as many draws: all below the uniform points' lower quartile
+    assert float(v[near:].max()) < float(v[:near].quantile(0.25))
+    _assert_resumes_like_one_run(tmp_path, zero_level_fraction=0.25, zero_level_candidates=3)
+    for bad in ({"zero_level_fraction": 1.0}, {"zero_level_fraction": -0.1}, {"zero_level_candidates": 1}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            TrainConfig(steps=1, **bad).validate()
+    with pytest.raises(ValueError, match="boundary_fraction \\+ zero_level_fraction"):
+        TrainConfig(steps=1, parameterisation="vanilla", boundary_fraction=0.5, zero_level_fraction=0.5).validate()

@@ -79,6 +79,11 @@ class TrainConfig(SystemSpecified):
     lower_bound_samples: int = 16
     lower_bound_horizon: float = 0.1
     lower_bound_noise: float = 0.5
+    # share of each step's points drawn near the network's own zero level: level_candidates times as
+    # many uniform (x, t) are drawn and the ones with the smallest |V| kept (the BRT's boundary, where
+    # a sign error makes a state false safe and the PDE residual alone samples thinly)
+    zero_level_fraction: float = 0.0
+    zero_level_candidates: int = 4
     gradients: str = "fused"  # input derivatives: "fused" (hand-carried, one backward) or "autograd" (double backward)
     compile: bool | None = None  # torch.compile the fused residual; None: when the run is long enough (see below)
     curriculum: float = 0.5  # share of the run over which the sampled time range grows to the horizon
@@ -121,6 +126,8 @@ class TrainConfig(SystemSpecified):
             "lower_bound_samples": self.lower_bound_samples >= 1,
             "lower_bound_horizon": self.lower_bound_horizon > 0,
             "lower_bound_noise": self.lower_bound_noise >= 0,
+            "zero_level_fraction": 0 <= self.zero_level_fraction < 1,
+            "zero_level_candidates": self.zero_level_candidates >= 2,
             "curriculum": 0 <= self.curriculum <= 1,
             "pretrain": 0 <= self.pretrain < 1,
             "boundary_fraction": 0 < self.boundary_fraction < 1,
@@ -146,6 +153,7 @@ class TrainConfig(SystemSpecified):
             "lower_bound_dt",
             "lower_bound_horizon",
             "lower_bound_noise",
+            "zero_level_fraction",
             "curriculum",
             "pretrain",
             "boundary_fraction",
@@ -167,6 +175,7 @@ class TrainConfig(SystemSpecified):
             "lower_bound_points",
             "lower_bound_every",
             "lower_bound_samples",
+            "zero_level_candidates",
         ):
             value = getattr(self, name)
             if value is not None:
@@ -179,6 +188,11 @@ class TrainConfig(SystemSpecified):
         self.build_system()  # an unknown system or parameter fails here
         if self.snapshots and self.steps is None and self.budget_s is None:
             raise ValueError("snapshots are spaced over steps or budget_s; give one of them")
+        if self.parameterisation == "vanilla" and self.boundary_fraction + self.zero_level_fraction >= 1:
+            raise ValueError(
+                f"boundary_fraction + zero_level_fraction must stay below 1 (the rest are the PDE's uniform points), "
+                f"got {self.boundary_fraction} + {self.zero_level_fraction}"
+            )
         if self.parameterisation not in ("exact", "vanilla"):
             raise ValueError(f"parameterisation must be 'exact' or 'vanilla', got {self.parameterisation!r}")
         if self.schedule not in ("cosine", "constant"):

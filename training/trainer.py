@@ -358,7 +358,21 @@ class Trainer:
             mask = torch.zeros(n, dtype=torch.bool, device=self.device)
             mask[: int(c.boundary_fraction * n)] = True
             t = torch.where(mask, torch.zeros_like(t), t)
+        near = int(c.zero_level_fraction * n)
+        if near:  # the last points (never the vanilla boundary's first ones): nearest V = 0 of a larger draw
+            x[n - near :], t[n - near :] = self._near_zero_level(near, tmax)
         return x, t, mask
+
+    def _near_zero_level(self, count: int, tmax: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """``count`` states and times with the smallest ``|V|`` among ``zero_level_candidates x count``
+        uniform draws (one forward pass without gradients)."""
+        c, g = self.config, self.generator
+        m = count * c.zero_level_candidates
+        x = self._low + torch.rand((m, self.system.state_dim), generator=g, device=self.device) * self._span
+        t = torch.rand(m, generator=g, device=self.device) * tmax
+        with torch.no_grad():
+            keep = self.network(x, t).abs().topk(count, largest=False).indices
+        return x[keep], t[keep]
 
     def _tensorboard(self) -> Any:
         """A SummaryWriter for the run, purging events past the resumed step (a killed run's tail)."""

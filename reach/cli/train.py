@@ -88,6 +88,18 @@ TRAIN_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
         "mpc: their perturbation of u* (Gaussian, times the input box's half-width)",
     ),
     (
+        "--zero-level-fraction",
+        "zero_level_fraction",
+        {"type": unit_interval_arg},
+        "share of each step's points drawn near the network's zero level (the smallest |V| of a larger uniform draw)",
+    ),
+    (
+        "--zero-level-candidates",
+        "zero_level_candidates",
+        {"type": positive_int_arg},
+        "uniform draws per zero-level point (at least 2)",
+    ),
+    (
         "--gradients",
         "gradients",
         {"choices": ["fused", "autograd"]},
