@@ -24,7 +24,13 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from nine_d_accuracy_vs_time import METRICS, add_run_arguments, evaluate_runs, read_results, train_or_resume
+from nine_d_accuracy_vs_time import (
+    add_run_arguments,
+    evaluate_runs,
+    read_metrics,
+    seed_cells,
+    train_or_resume,
+)
 from nine_d_accuracy_vs_time import run_dir as study_run_dir
 
 #: the changes, each as the `reach train` options that make it (the baseline adds none)
@@ -66,24 +72,17 @@ def score(args: argparse.Namespace) -> int:
 
 
 def report(args: argparse.Namespace) -> int:
-    rows = read_results(args.out)
-    if rows is None:
+    scored = read_metrics(args.out)
+    if scored is None:
         return 1
-    keys = [k for k, _ in METRICS if rows and k in rows[0]]
+    rows, keys = scored
     print(f"# 9D ablation, {args.minutes:g} min of the quiet 2-core rate per run; mean over seeds (each seed)")
     print("| change | seeds | " + " | ".join(keys) + " |")
     print("|---|---:|" + "---:|" * len(keys))
     for row in args.rows:
-        labels = {run_dir(args, row, seed).name for seed in args.seeds}  # evaluate labels a run by its folder
-        scored = [r for r in rows if r["label"] in labels]
-        if not scored:
-            continue
-        cells = []
-        for key in keys:
-            values = [float(r[key]) for r in scored if r.get(key) not in (None, "")]
-            each = ", ".join(f"{v:.4g}" for v in values)
-            cells.append(f"{sum(values) / len(values):.4g} ({each})" if values else "-")
-        print(f"| {row} | {len(scored)} | " + " | ".join(cells) + " |")
+        count, cells = seed_cells(rows, {run_dir(args, row, seed).name for seed in args.seeds}, keys)
+        if count:
+            print(f"| {row} | {count} | " + " | ".join(cells) + " |")
     return 0
 
 

@@ -102,6 +102,26 @@ def read_results(out: Path) -> list[dict[str, str]] | None:
         return [r for r in csv.DictReader(fh) if not r.get("error")]
 
 
+def read_metrics(out: Path) -> tuple[list[dict[str, str]], list[str]] | None:
+    """:func:`read_results` and the :data:`METRICS` keys its table has (None where not scored yet)."""
+    rows = read_results(out)
+    if rows is None:
+        return None
+    return rows, [k for k, _ in METRICS if rows and k in rows[0]]
+
+
+def seed_cells(rows: list[dict[str, str]], labels: set[str], keys: list[str]) -> tuple[int, list[str]]:
+    """How many of ``rows`` carry one of ``labels`` (runs are labelled by their folder), and per
+    metric in ``keys`` a cell "mean (each seed's value)": one row of the ablation and layout reports."""
+    scored = [r for r in rows if r["label"] in labels]
+    cells = []
+    for key in keys:
+        values = [float(r[key]) for r in scored if r.get(key) not in (None, "")]
+        each = ", ".join(f"{v:.4g}" for v in values)
+        cells.append(f"{sum(values) / len(values):.4g} ({each})" if values else "-")
+    return len(scored), cells
+
+
 def print_table(rows: list[dict[str, str]]) -> None:
     keys = [k for k, _ in METRICS if rows and k in rows[0]]
     print("| run | " + " | ".join(keys) + " |")

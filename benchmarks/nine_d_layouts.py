@@ -28,7 +28,13 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from nine_d_ablation import ROWS
-from nine_d_accuracy_vs_time import METRICS, add_run_arguments, evaluate_runs, read_results, train_or_resume
+from nine_d_accuracy_vs_time import (
+    add_run_arguments,
+    evaluate_runs,
+    read_metrics,
+    seed_cells,
+    train_or_resume,
+)
 
 #: the seed paper's six 9D layouts
 PAPER_LAYOUTS = ("ssrsl", "rsrsl", "rrrsl", "srrrl", "ssssl", "rrrrl")
@@ -82,10 +88,10 @@ def score(args: argparse.Namespace) -> int:
 
 
 def report(args: argparse.Namespace) -> int:
-    rows = read_results(args.out)
-    if rows is None:
+    scored = read_metrics(args.out)
+    if scored is None:
         return 1
-    keys = [k for k, _ in METRICS if rows and k in rows[0]]
+    rows, keys = scored
     print(
         f"# 9D layouts, {args.minutes:g} min of the quiet 2-core rate per run"
         f"{'' if args.with_row == 'baseline' else ', with ' + args.with_row}; mean over seeds (each seed)"
@@ -93,21 +99,10 @@ def report(args: argparse.Namespace) -> int:
     print("| layout | steps | seeds | " + " | ".join(keys) + " | paper violation % |")
     print("|---|---:|---:|" + "---:|" * len(keys) + "---:|")
     for layout in args.layouts:
-        labels = {run_dir(args, layout, seed).name for seed in args.seeds}  # evaluate labels a run by its folder
-        scored = [r for r in rows if r["label"] in labels]
-        if not scored:
-            continue
-        cells = []
-        for key in keys:
-            values = [float(r[key]) for r in scored if r.get(key) not in (None, "")]
-            each = ", ".join(f"{v:.4g}" for v in values)
-            cells.append(f"{sum(values) / len(values):.4g} ({each})" if values else "-")
-        paper = PAPER_VIOLATION_PERCENT.get(layout)
-        print(
-            f"| {layout} | {steps_for(args, layout)} | {len(scored)} | "
-            + " | ".join(cells)
-            + f" | {'' if paper is None else paper} |"
-        )
+        count, cells = seed_cells(rows, {run_dir(args, layout, seed).name for seed in args.seeds}, keys)
+        if count:
+            paper = PAPER_VIOLATION_PERCENT.get(layout, "")
+            print(f"| {layout} | {steps_for(args, layout)} | {count} | " + " | ".join(cells) + f" | {paper} |")
     return 0
 
 
