@@ -116,7 +116,7 @@ def _previous(out: Path, header: dict[str, Any], keep_errors: bool = False) -> d
     except (OSError, json.JSONDecodeError) as err:
         raise ValueError(f"{path}: existing results are unreadable ({err}); move the file away to start over") from err
     if isinstance(data.get("settings"), dict):  # files from before matmul_precision existed were float32
-        data["settings"] = {"matmul_precision": "float32", **data["settings"]}
+        data["settings"] = _resolved({"matmul_precision": "float32", **data["settings"]})
     if any(
         data.get(key) != header[key]
         for key in ("format", "settings", "system", "ground_truth", "ground_truth_time", "pairwise")
@@ -126,6 +126,15 @@ def _previous(out: Path, header: dict[str, Any], keep_errors: bool = False) -> d
             "use another --out or delete it"
         )
     return {r["source"]: r for r in data.get("results", []) if keep_errors or not r.get("error")}
+
+
+def _resolved(settings: dict[str, Any]) -> dict[str, Any]:
+    """Settings with the sample counts that default to another count written out, so that
+    ``--robust-samples`` left out and given as the value it defaults to compare equal (tables
+    written before the counts were resolved are read the same way)."""
+    fresh = settings.get("samples") if settings.get("certify_samples") is None else settings["certify_samples"]
+    robust = fresh if settings.get("robust_samples") is None else settings["robust_samples"]
+    return {**settings, "certify_samples": fresh, "robust_samples": robust}
 
 
 def pairwise_union_values(pairwise: str | os.PathLike, system: ControlAffineSystem, states: Any, horizon: float) -> Any:
@@ -180,7 +189,7 @@ def evaluate_many(
     header = {
         "format": FORMAT,
         "system": system.config(),
-        "settings": settings.to_dict(),
+        "settings": _resolved(settings.to_dict()),
         "ground_truth": str(Path(ground_truth).resolve()) if ground_truth else None,
         "ground_truth_time": gt_time,
         "pairwise": str(Path(pairwise).resolve()) if pairwise else None,

@@ -60,9 +60,15 @@ def test_evaluate_two_checkpoints_with_bad_ones_beside(checkpoints: Path, capsys
     again = [r for r in after["results"] if not r.get("error")]
     assert [r["wall_time"] for r in again] == [r["wall_time"] for r in done]
 
+    # the same settings spelled out (a count given as the value it defaults to) merge, untouched
+    assert main([*args, "--robust-samples", "500"]) == 0
+    spelled = json.loads(out.with_suffix(".json").read_text())
+    assert [r["wall_time"] for r in spelled["results"] if not r.get("error")] == [r["wall_time"] for r in done]
     # other settings into the same file are refused rather than mixed
+    capsys.readouterr()
     assert main(["evaluate", *sources, "--samples", "1000", "--out", str(out)]) == 2
     assert "other settings" in capsys.readouterr().err
+    assert main([*args, "--robust-samples", "400"]) == 2
 
 
 def test_same_states_for_every_model(checkpoints: Path):
