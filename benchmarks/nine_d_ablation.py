@@ -42,6 +42,8 @@ ROWS: dict[str, list[str]] = {
     "lower-bound": ["--lower-bound", "policy"],
     # DeepReach-MPC-style labels: the best of sampled control sequences, bootstrapped by the network
     "mpc-labels": ["--lower-bound", "mpc"],
+    # both bounds: the union from above, the network's own policy from below
+    "both-bounds": ["--upper-bound", "{pairwise}", "--lower-bound", "policy"],
     # a quarter of each step's points where the network's own |V| is smallest (of 4x as many draws)
     "zero-level": ["--zero-level-fraction", "0.25"],
 }
