@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import subprocess
 import sys
@@ -64,3 +65,25 @@ def test_nine_d_study_and_ablation_reports_read_the_scored_runs(tmp_path: Path):
     # equal wall time: the cheaper ReLU layout trains more steps; the paper's rate stands beside ours
     assert "| ssrsl | 14685 | 2 | 0.015 (0.01, 0.02) |" in out.stdout and out.stdout.rstrip().endswith("23.53 |")
     assert "| rrrrl | 18125 | 1 | 0.03 (0.03) |" in out.stdout
+
+
+def test_false_safe_levels_shrink_with_the_level(tmp_path: Path, capsys, monkeypatch):
+    """The false-safe and volume columns can only fall as the level rises (the same rollouts)."""
+    import torch
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    import false_safe_levels
+
+    from reach.systems import MultiVehicle9D
+    from training.checkpoint import save_checkpoint
+    from training.network import ValueNetwork
+
+    torch.manual_seed(0)
+    save_checkpoint(tmp_path / "net.pt", ValueNetwork(MultiVehicle9D(), "ssl", width=16))
+    argv = [str(tmp_path / "net.pt"), "--samples", "400", "--levels", "0,0.05,0.2"]
+    assert false_safe_levels.main(argv) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| 0")]
+    rows = [[float(cell) for cell in line.strip("|").split("|")] for line in lines]
+    assert [r[0] for r in rows] == [0, 0.05, 0.2]
+    assert all(a[1] >= b[1] and a[2] >= b[2] for a, b in itertools.pairwise(rows))
+    assert rows[0][2] > rows[-1][2]  # an untrained network's V spreads over these levels
