@@ -10,7 +10,7 @@ included, as a user meets it:
   same cache again (``groundtruth.solve`` defaults, so compiling only where its rule says so).
 - ``reach groundtruth`` (the command line, ``python -m reach``, as the console script runs it),
   first and second run the same way, with ``--threads`` all cores (what torch gives a script; the
-  command's own default follows the load average, which the previous child has just raised) and
+  command's own default counts the cores other processes leave free) and
   writing its ``.npz`` as the command always does.
 - hj_reachability first and second run: JAX keeps no compile cache between processes by default,
   so both compile; the second shows the spread.

@@ -4,8 +4,12 @@ torch starts one OpenMP thread per core. When other processes keep those cores b
 spin-wait on each other: on the project's 2-core machine with two other CPU-bound processes, a small
 ``reach evaluate`` (2,000 9D states) took 19.6-35.0 s with 2 threads against 12.2-14.6 s with 1;
 on the idle machine 2 threads were faster (5.5-6.6 s against 6.9-8.4 s). The default is therefore
-the cores the 1-minute load average leaves free, at least one; ``--threads`` or ``OMP_NUM_THREADS``
-overrides it.
+the cores other processes leave free, at least one; ``--threads`` or ``OMP_NUM_THREADS`` overrides
+it. "Busy" is counted now, not averaged: on Linux, the threads runnable at this moment
+(``/proc/loadavg``'s running count) less this process's own, the median of three reads 10 ms apart.
+The 1-minute load average, used where ``/proc`` is missing, lags: it decays with a one-minute time
+constant, so for over a minute after a job on both cores of a 2-core machine it still rounds to 1
+or more, and the next command would start on one core of an idle machine.
 
 The library's long entry points (:meth:`training.Trainer.train`, :func:`safety.verify.verify`) apply
 the same policy for their duration through :func:`thread_policy`, unless the caller chose a count:
@@ -15,6 +19,7 @@ the same policy for their duration through :func:`thread_policy`, unless the cal
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -27,14 +32,50 @@ _IMPORT_COUNT = torch.get_num_threads()
 _applied: int | None = None
 
 
-def free_cores() -> int:
-    """Cores not taken by other work, by the 1-minute load average (at least 1, at most all)."""
-    cores = os.cpu_count() or 1
+#: reads of the runnable count behind one decision, and the pause between them (s)
+_READS, _READ_PAUSE = 3, 0.01
+
+
+def runnable_elsewhere() -> int | None:
+    """Threads of other processes runnable right now (Linux): ``/proc/loadavg``'s count of running
+    scheduling entities, less this process's own running threads. None where ``/proc`` is missing."""
     try:
-        load = os.getloadavg()[0]
-    except (OSError, AttributeError):  # not available on this platform
-        return cores
-    return max(1, min(cores, cores - round(load)))
+        with open("/proc/loadavg") as fh:
+            running = int(fh.read().split()[3].split("/")[0])
+        own = 0
+        for task in os.listdir("/proc/self/task"):
+            try:
+                with open(f"/proc/self/task/{task}/stat") as fh:
+                    stat = fh.read()
+            except OSError:  # the thread ended between the listing and the read
+                continue
+            own += stat[stat.rindex(")") + 2] == "R"  # the state follows the command name
+        return max(0, running - own)
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def free_cores() -> int:
+    """Cores not taken by other work (at least 1, at most all): the cores less the threads other
+    processes have runnable now (median of three reads, see the module docstring), or, where that
+    cannot be read, less the 1-minute load average."""
+    cores = os.cpu_count() or 1
+    counts = []
+    for i in range(_READS):
+        count = runnable_elsewhere()
+        if count is None:
+            break
+        counts.append(count)
+        if i < _READS - 1:
+            time.sleep(_READ_PAUSE)
+    if counts:
+        busy = sorted(counts)[len(counts) // 2]
+    else:
+        try:
+            busy = round(os.getloadavg()[0])
+        except (OSError, AttributeError):  # not available on this platform
+            return cores
+    return max(1, min(cores, cores - busy))
 
 
 def apply_thread_policy(threads: int | None) -> int:
@@ -66,9 +107,7 @@ def thread_policy(threads: int | None = None) -> Iterator[int]:
     global _applied
     before, applied_before = torch.get_num_threads(), _applied
     chosen = threads is None and (
-        os.environ.get("OMP_NUM_THREADS", "").strip() != ""
-        or before == _applied
-        or before not in _default_counts()
+        os.environ.get("OMP_NUM_THREADS", "").strip() != "" or before == _applied or before not in _default_counts()
     )
     if chosen:
         yield before

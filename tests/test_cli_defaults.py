@@ -94,6 +94,42 @@ def test_library_entry_points_keep_a_chosen_thread_count_and_restore_it(monkeypa
         torch.set_num_threads(before)
 
 
+def test_free_cores_counts_what_runs_now_not_the_lagging_load_average(monkeypatch):
+    """The busy count is the median of three reads of the threads other processes have runnable;
+    where /proc cannot say, the 1-minute load average; a CPU-bound child process counts as busy."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    from reach import threads
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 4)
+    monkeypatch.setattr(threads, "_READ_PAUSE", 0.0)
+    reads = iter([5, 0, 1])  # one burst among the reads: the median ignores it
+    monkeypatch.setattr(threads, "runnable_elsewhere", lambda: next(reads))
+    assert threads.free_cores() == 3
+    monkeypatch.setattr(threads, "runnable_elsewhere", lambda: None)
+    monkeypatch.setattr(os, "getloadavg", lambda: (1.2, 1.0, 0.9))
+    assert threads.free_cores() == 3
+    monkeypatch.setattr(os, "getloadavg", lambda: (9.0, 9.0, 9.0))
+    assert threads.free_cores() == 1  # never below one
+    monkeypatch.undo()
+
+    if threads.runnable_elsewhere() is None:
+        pytest.skip("no /proc/loadavg on this platform")
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        deadline, seen = time.monotonic() + 5.0, 0
+        while time.monotonic() < deadline and seen < 1:
+            seen = threads.runnable_elsewhere()
+            time.sleep(0.05)
+        assert seen >= 1  # the spinning child is runnable now
+    finally:
+        busy.kill()
+        busy.wait()
+
+
 def test_the_cli_starts_without_the_env_stack():
     """`reach` (every subcommand's parser) loads neither Gymnasium nor PettingZoo nor Matplotlib at
     start-up: a grid solve or a training run should not pay for them (about 0.2 s of each start),

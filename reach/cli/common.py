@@ -28,7 +28,7 @@ def common_options(threads: bool = True) -> argparse.ArgumentParser:
         "--threads",
         type=positive_int_arg,
         default=argparse.SUPPRESS,
-        help="torch threads (default: OMP_NUM_THREADS if set, else the cores the load average leaves free)",
+        help="torch threads (default: OMP_NUM_THREADS if set, else the cores other processes leave free now)",
     )
     return parent
 
