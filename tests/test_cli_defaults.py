@@ -171,3 +171,18 @@ def test_the_console_script_freezes_the_collector_after_the_command_not_main(mon
     assert exited.value.code == 0
     assert events == [("main", 0), ("freeze", None)]
     assert "Air3D-v0" in capsys.readouterr().out
+
+
+def test_a_closed_pipe_ends_the_command_quietly():
+    """`reach envs | head -1`: when the reader goes away the command stops with 141 (128 + SIGPIPE),
+    as a shell pipeline expects, instead of printing an error about the pipe."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "reach", "envs"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    proc.stdout.close()  # before the command has written anything: its first write meets a closed pipe
+    err = proc.stderr.read()
+    assert proc.wait(timeout=60) == 141
+    assert err == ""

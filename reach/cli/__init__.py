@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import gc
+import os
 import sys
 from collections.abc import Sequence
 
@@ -36,6 +37,8 @@ COMMANDS = (envs, pretrained, record, groundtruth, train, evaluate, filter_eval,
 EXIT_USAGE = 2
 #: exit status after SIGINT/SIGTERM (128 + SIGINT), as shells report it
 EXIT_INTERRUPTED = 130
+#: exit status when the reader of the output went away (128 + SIGPIPE), e.g. ``reach envs | head -1``
+EXIT_BROKEN_PIPE = 141
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -61,6 +64,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _run(args)
     try:
         return _run(args)
+    except BrokenPipeError:  # the reader closed the pipe: nothing to report, and nobody to report it to
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # so the exit's flush cannot fail
+        return EXIT_BROKEN_PIPE
     except KeyboardInterrupt as err:  # TrainingInterrupted says what was saved
         print(f"{command}: interrupted{': ' + _one_line(err) if str(err) else ''}", file=sys.stderr)
         return EXIT_INTERRUPTED
