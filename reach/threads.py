@@ -36,6 +36,15 @@ _applied: int | None = None
 _READS, _READ_PAUSE = 3, 0.01
 
 
+def usable_cores() -> int:
+    """The cores this process may run on: its CPU affinity where the platform reports one (``taskset``,
+    container cpusets), else all of the machine's."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except (AttributeError, OSError):  # not on this platform
+        return os.cpu_count() or 1
+
+
 def runnable_elsewhere() -> int | None:
     """Threads of other processes runnable right now (Linux): ``/proc/loadavg``'s count of running
     scheduling entities, less this process's own running threads. None where ``/proc`` is missing."""
@@ -56,10 +65,10 @@ def runnable_elsewhere() -> int | None:
 
 
 def free_cores() -> int:
-    """Cores not taken by other work (at least 1, at most all): the cores less the threads other
+    """Cores not taken by other work (at least 1, at most :func:`usable_cores`): those less the threads other
     processes have runnable now (median of three reads, see the module docstring), or, where that
     cannot be read, less the 1-minute load average."""
-    cores = os.cpu_count() or 1
+    cores = usable_cores()
     counts = []
     for i in range(_READS):
         count = runnable_elsewhere()
@@ -94,7 +103,7 @@ def apply_thread_policy(threads: int | None) -> int:
 
 def _default_counts() -> set[int]:
     """Counts that mean "nobody chose": the cores, and torch's count when this module was imported."""
-    return {os.cpu_count() or 1, _IMPORT_COUNT}
+    return {os.cpu_count() or 1, usable_cores(), _IMPORT_COUNT}
 
 
 @contextmanager

@@ -104,7 +104,7 @@ def test_free_cores_counts_what_runs_now_not_the_lagging_load_average(monkeypatc
 
     from reach import threads
 
-    monkeypatch.setattr(os, "cpu_count", lambda: 4)
+    monkeypatch.setattr(threads, "usable_cores", lambda: 4)
     monkeypatch.setattr(threads, "_READ_PAUSE", 0.0)
     reads = iter([5, 0, 1])  # one burst among the reads: the median ignores it
     monkeypatch.setattr(threads, "runnable_elsewhere", lambda: next(reads))
@@ -115,6 +115,7 @@ def test_free_cores_counts_what_runs_now_not_the_lagging_load_average(monkeypatc
     monkeypatch.setattr(os, "getloadavg", lambda: (9.0, 9.0, 9.0))
     assert threads.free_cores() == 1  # never below one
     monkeypatch.undo()
+    assert 1 <= threads.usable_cores() <= (os.cpu_count() or 1)
 
     if threads.runnable_elsewhere() is None:
         pytest.skip("no /proc/loadavg on this platform")
