@@ -35,6 +35,8 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -148,6 +150,24 @@ def hj_python(given: str | None) -> str:
     return str(python)
 
 
+def _timed(argv: list[str], env: dict[str, str], what: str) -> tuple[subprocess.CompletedProcess[str], float]:
+    """Run ``argv`` in a fresh process; its result and the parent's wall time (``what`` names it in
+    the error a failed run raises)."""
+    start = time.perf_counter()
+    done = subprocess.run(argv, capture_output=True, text=True, env=env)
+    wall = time.perf_counter() - start
+    if done.returncode:
+        raise RuntimeError(f"{what} failed:\n{done.stderr[-2000:]}")
+    return done, wall
+
+
+def first_and_second(run: Callable[[dict[str, str]], dict], base_env: dict[str, str]) -> list[dict]:
+    """``run(env)`` twice with one torch inductor cache that starts empty: a first and a second run."""
+    with tempfile.TemporaryDirectory(prefix="reach-inductor-") as cache:
+        env = {**base_env, "TORCHINDUCTOR_CACHE_DIR": cache}
+        return [run(env) for _ in range(2)]
+
+
 def run_command(system: str, n: int, horizon: float, env: dict[str, str]) -> dict:
     """One ``reach groundtruth`` in a fresh process; returns the parent's wall time and the values."""
     with tempfile.TemporaryDirectory() as tmp:
@@ -155,11 +175,7 @@ def run_command(system: str, n: int, horizon: float, env: dict[str, str]) -> dic
         argv = [sys.executable, "-m", "reach", "groundtruth", system, "--grid", str(n), "--horizon", str(horizon)]
         argv += ["--times", str(horizon), "--threads", str(os.cpu_count() or 1), "--out", str(out)]
         env = {**env, "PYTHONPATH": os.pathsep.join([str(ROOT / "examples"), env.get("PYTHONPATH", "")])}
-        start = time.perf_counter()
-        done = subprocess.run(argv, capture_output=True, text=True, env=env)
-        wall = time.perf_counter() - start
-        if done.returncode:
-            raise RuntimeError(f"{system} {n}: reach groundtruth failed:\n{done.stderr[-2000:]}")
+        _, wall = _timed(argv, env, f"{system} {n}: reach groundtruth")
         with np.load(out) as data:
             values = data["values"][-1]
     return {"wall_s": wall, "values": values}
@@ -169,16 +185,8 @@ def run_child(python: str, code: str, system: str, n: int, horizon: float, env: 
     """One solve in a fresh process; returns its own timings, the parent's wall time and the values."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "values.npy"
-        start = time.perf_counter()
-        done = subprocess.run(
-            [python, "-c", code, system, str(n), str(horizon), str(ROOT / "examples"), str(out)],
-            capture_output=True,
-            text=True,
-            env=env,
-        )
-        wall = time.perf_counter() - start
-        if done.returncode:
-            raise RuntimeError(f"{system} {n}: child failed:\n{done.stderr[-2000:]}")
+        argv = [python, "-c", code, system, str(n), str(horizon), str(ROOT / "examples"), str(out)]
+        done, wall = _timed(argv, env, f"{system} {n}: child")
         result = json.loads(done.stdout.strip().splitlines()[-1])
         result.update(wall_s=wall, values=np.load(out))
     return result
@@ -228,16 +236,11 @@ def compare(quick: bool, hj_python_path: str | None, sizes: list[int] | None = N
     for label, system, hj_key, grids, horizon in QUICK_CASES if quick else CASES:
         for n in (m for m in grids if sizes is None or m in sizes):
             hj_runs = [run_child(python, HJ_CHILD, hj_key, n, horizon, base_env) for _ in range(2)]
-            with tempfile.TemporaryDirectory(prefix="reach-inductor-") as cache:
-                env = {**base_env, "TORCHINDUCTOR_CACHE_DIR": cache}
-                reach_runs = [run_child(sys.executable, REACH_CHILD, system, n, horizon, env) for _ in range(2)]
-            with tempfile.TemporaryDirectory(prefix="reach-inductor-") as cache:
-                env = {**base_env, "TORCHINDUCTOR_CACHE_DIR": cache}
-                command_runs = [run_command(system, n, horizon, env) for _ in range(2)]
-            first = reach_runs[0]["wall_s"] / hj_runs[0]["wall_s"]
-            second = reach_runs[1]["wall_s"] / hj_runs[1]["wall_s"]
+            reach_runs = first_and_second(partial(run_child, sys.executable, REACH_CHILD, system, n, horizon), base_env)
+            command_runs = first_and_second(partial(run_command, system, n, horizon), base_env)
             if brt_iou(command_runs[0]["values"], reach_runs[0]["values"]) < 0.9999:
                 raise RuntimeError(f"{label} {n}: reach groundtruth and groundtruth.solve found different BRTs")
+            first, second = (run["wall_s"] / hj["wall_s"] for run, hj in zip(reach_runs, hj_runs))
             command = [run["wall_s"] / hj["wall_s"] for run, hj in zip(command_runs, hj_runs)]
             worst = max(worst, first, second, *command)
             dims = len(hj_runs[0]["values"].shape)
