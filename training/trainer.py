@@ -193,6 +193,13 @@ class Trainer:
         box = self.system.domain_tensor(torch.float32, self.device)
         self._low, self._span = box[:, 0], box[:, 1] - box[:, 0]
 
+    def _uniform(self, n: int, tmax: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """``n`` states uniform on the domain and times uniform on ``[0, tmax]``, from the run's generator
+        (states first: resumed runs replay the same stream)."""
+        g = self.generator
+        x = self._low + torch.rand((n, self.system.state_dim), generator=g, device=self.device) * self._span
+        return x, torch.rand(n, generator=g, device=self.device) * tmax
+
     def _refresh_labels(self, tmax: float) -> None:
         """Label fresh states with what the network's policy achieves (``J <= V``), every
         ``lower_bound_every`` steps (and at the start of a run that has none)."""
@@ -202,8 +209,7 @@ class Trainer:
         if self.labels is not None and self.step % c.lower_bound_every:
             return
         n, g = c.lower_bound_points, self.generator
-        x = self._low + torch.rand((n, self.system.state_dim), generator=g, device=self.device) * self._span
-        t = torch.rand(n, generator=g, device=self.device) * tmax
+        x, t = self._uniform(n, tmax)
         if c.lower_bound == "mpc":
             floor = mpc_lower_bound(
                 self.network,
@@ -349,10 +355,9 @@ class Trainer:
         return self.system.horizon * min(1.0, max(0.0, grow))
 
     def _sample(self, tmax: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        c, g = self.config, self.generator
+        c = self.config
         n = c.points
-        x = self._low + torch.rand((n, self.system.state_dim), generator=g, device=self.device) * self._span
-        t = torch.rand(n, generator=g, device=self.device) * tmax
+        x, t = self._uniform(n, tmax)
         mask = None
         if c.parameterisation == "vanilla":
             mask = torch.zeros(n, dtype=torch.bool, device=self.device)
@@ -366,10 +371,8 @@ class Trainer:
     def _near_zero_level(self, count: int, tmax: float) -> tuple[torch.Tensor, torch.Tensor]:
         """``count`` states and times with the smallest ``|V|`` among ``zero_level_candidates x count``
         uniform draws (one forward pass without gradients)."""
-        c, g = self.config, self.generator
-        m = count * c.zero_level_candidates
-        x = self._low + torch.rand((m, self.system.state_dim), generator=g, device=self.device) * self._span
-        t = torch.rand(m, generator=g, device=self.device) * tmax
+        m = count * self.config.zero_level_candidates
+        x, t = self._uniform(m, tmax)
         with torch.no_grad():
             keep = self.network(x, t).abs().topk(count, largest=False).indices
         return x[keep], t[keep]
