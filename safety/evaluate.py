@@ -129,12 +129,15 @@ def _previous(out: Path, header: dict[str, Any], keep_errors: bool = False) -> d
 
 
 def _resolved(settings: dict[str, Any]) -> dict[str, Any]:
-    """Settings with the sample counts that default to another count written out, so that
-    ``--robust-samples`` left out and given as the value it defaults to compare equal (tables
-    written before the counts were resolved are read the same way)."""
-    fresh = settings.get("samples") if settings.get("certify_samples") is None else settings["certify_samples"]
-    robust = fresh if settings.get("robust_samples") is None else settings["robust_samples"]
-    return {**settings, "certify_samples": fresh, "robust_samples": robust}
+    """Settings with the sample counts that default to another count written out (by
+    :class:`VerifySettings`' own rule), so that ``--robust-samples`` left out and given as the value
+    it defaults to compare equal; tables written before the counts were resolved are read the same
+    way. Settings of another version, which :class:`VerifySettings` does not take, stay as written."""
+    try:
+        parsed = VerifySettings(**settings)
+    except (TypeError, ValueError):
+        return settings
+    return {**settings, "certify_samples": parsed.fresh_samples, "robust_samples": parsed.robust_sample_count}
 
 
 def pairwise_union_values(pairwise: str | os.PathLike, system: ControlAffineSystem, states: Any, horizon: float) -> Any:
