@@ -2,7 +2,8 @@
 
 Run: ``python benchmarks/bench_groundtruth.py`` (``--grids 51 101``; ``--quick`` for 31 only).
 ``--against hj_reachability`` compares first and second runs, each a fresh process, with
-hj_reachability on Air3D 31^3-101^3 and user-defined 3D and 4D systems (``benchmarks/hj_comparison.py``).
+hj_reachability on Air3D 31^3-101^3 and user-defined 3D and 4D systems (``benchmarks/hj_comparison.py``),
+in ``--repeats`` interleaved rounds per size (default 3) reported as medians.
 
 Each grid is solved twice in one process when compiling: the first run includes torch.compile's
 one-off compilation (from a fresh inductor cache unless ``--reuse-compile-cache``; a later process
@@ -60,12 +61,15 @@ def main() -> None:
         "--against", choices=["hj_reachability"], default=None, help="compare with another solver (fresh processes)"
     )
     parser.add_argument("--hj-python", default=None, help="an interpreter with hj_reachability (default: install one)")
+    parser.add_argument(
+        "--repeats", type=int, default=3, help="with --against: interleaved rounds per size, reported as medians"
+    )
     args = parser.parse_args()
     if args.against:
         sys.path.insert(0, str(Path(__file__).resolve().parent))
         from hj_comparison import compare
 
-        raise SystemExit(compare(args.quick, args.hj_python, args.grids))
+        raise SystemExit(compare(args.quick, args.hj_python, args.grids, args.repeats))
     if not args.reuse_compile_cache:  # so that "cold" really includes compilation from scratch
         os.environ["TORCHINDUCTOR_CACHE_DIR"] = tempfile.mkdtemp(prefix="reach-inductor-")
     if args.quick:

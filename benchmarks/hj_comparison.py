@@ -15,7 +15,13 @@ included, as a user meets it:
 - hj_reachability first and second run: JAX keeps no compile cache between processes by default,
   so both compile; the second shows the spread.
 
-A size meets its goal when the script's and the command's ratios all do.
+Each size runs ``repeats`` rounds (``--repeats``, default 3). A round runs every solver's first run,
+then every solver's second run, so that a shared machine's slow moments fall on all of them alike.
+Times are medians over the rounds, and each ratio is the median of the rounds' own ratios (reach's
+run over the hj_reachability run of the same round and slot). On this 2-core VM one solve's time
+varies by up to 1.7x between minutes, as much as the gap a single round tries to measure.
+
+A size meets its goal when the script's and the command's median ratios all do.
 
 The two solvers run the same scheme (HJ-WENO5, local Lax-Friedrichs, TVD-RK3, CFL 0.75, float32)
 on the same nodes, from ``l`` at time-to-go 0 to the horizon; hj_reachability freezes the value
@@ -29,8 +35,10 @@ hj_reachability is installed only for this benchmark, in a virtual environment o
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -161,11 +169,20 @@ def _timed(argv: list[str], env: dict[str, str], what: str) -> tuple[subprocess.
     return done, wall
 
 
-def first_and_second(run: Callable[[dict[str, str]], dict], base_env: dict[str, str]) -> list[dict]:
-    """``run(env)`` twice with one torch inductor cache that starts empty: a first and a second run."""
-    with tempfile.TemporaryDirectory(prefix="reach-inductor-") as cache:
-        env = {**base_env, "TORCHINDUCTOR_CACHE_DIR": cache}
-        return [run(env) for _ in range(2)]
+def one_round(runs: dict[str, Callable[[dict[str, str]], dict]], base_env: dict[str, str]) -> dict[str, list[dict]]:
+    """A first and a second run of each of ``runs`` (name -> ``run(env)``), interleaved so that the
+    machine's drift hits every solver alike: all first runs, then all second runs. Each runner has its
+    own torch inductor cache, empty at its first run."""
+    with contextlib.ExitStack() as stack:
+        envs = {
+            name: {**base_env, "TORCHINDUCTOR_CACHE_DIR": stack.enter_context(tempfile.TemporaryDirectory())}
+            for name in runs
+        }
+        results: dict[str, list[dict]] = {name: [] for name in runs}
+        for _ in range(2):
+            for name, run in runs.items():
+                results[name].append(run(envs[name]))
+    return results
 
 
 def run_command(system: str, n: int, horizon: float, env: dict[str, str]) -> dict:
@@ -208,11 +225,34 @@ def brt_iou(a: np.ndarray, b: np.ndarray) -> float:
     return float((inside_a & inside_b).sum() / union) if union else 1.0
 
 
-def compare(quick: bool, hj_python_path: str | None, sizes: list[int] | None = None) -> int:
+Rounds = list[dict[str, list[dict]]]
+
+
+def median_wall(rounds: Rounds, name: str, slot: int) -> float:
+    """The median wall time of ``name``'s first (``slot`` 0) or second (1) runs over the rounds."""
+    return statistics.median(r[name][slot]["wall_s"] for r in rounds)
+
+
+def median_ratio(rounds: Rounds, name: str, slot: int) -> float:
+    """The median over the rounds of ``name``'s wall time over hj_reachability's in the same slot."""
+    return statistics.median(r[name][slot]["wall_s"] / r["hj"][slot]["wall_s"] for r in rounds)
+
+
+def median_of(rounds: Rounds, name: str, key: str) -> float:
+    """The median of a second run's own timing ``key`` (start-up or solve) over the rounds."""
+    return statistics.median(r[name][1][key] for r in rounds)
+
+
+def compare(quick: bool, hj_python_path: str | None, sizes: list[int] | None = None, repeats: int = 3) -> int:
+    """Print the ratio table. Each size runs ``repeats`` rounds (:func:`one_round`); a time is the
+    median over the rounds and a ratio the median of the rounds' own ratios (reach's run over the
+    hj_reachability run beside it), so one slow moment of a shared machine does not decide a goal."""
     import platform
 
     import torch
 
+    if repeats < 1:
+        raise ValueError(f"repeats must be at least 1, got {repeats}")
     python = hj_python(hj_python_path)
     hj_version = subprocess.run(
         [python, "-c", "import hj_reachability, jax; print(hj_reachability.__version__, jax.__version__)"],
@@ -222,7 +262,8 @@ def compare(quick: bool, hj_python_path: str | None, sizes: list[int] | None = N
     ).stdout.split()
     print(
         f"# Grid solver against hj_reachability {hj_version[0]} (jax {hj_version[1]}): fresh processes, "
-        f"start-up included; python {platform.python_version()}, torch {torch.__version__}, {os.cpu_count()} CPUs\n"
+        f"start-up included; python {platform.python_version()}, torch {torch.__version__}, {os.cpu_count()} CPUs; "
+        f"{repeats} interleaved round(s) per size, medians\n"
     )
     print(
         "| system | grid | hj first s | hj second s | reach first s | reach second s | reach mode "
@@ -235,28 +276,33 @@ def compare(quick: bool, hj_python_path: str | None, sizes: list[int] | None = N
     missed: list[str] = []
     for label, system, hj_key, grids, horizon in QUICK_CASES if quick else CASES:
         for n in (m for m in grids if sizes is None or m in sizes):
-            hj_runs = [run_child(python, HJ_CHILD, hj_key, n, horizon, base_env) for _ in range(2)]
-            reach_runs = first_and_second(partial(run_child, sys.executable, REACH_CHILD, system, n, horizon), base_env)
-            command_runs = first_and_second(partial(run_command, system, n, horizon), base_env)
-            if brt_iou(command_runs[0]["values"], reach_runs[0]["values"]) < 0.9999:
+            runs = {
+                "hj": partial(run_child, python, HJ_CHILD, hj_key, n, horizon),
+                "reach": partial(run_child, sys.executable, REACH_CHILD, system, n, horizon),
+                "command": partial(run_command, system, n, horizon),
+            }
+            rounds = [one_round(runs, base_env) for _ in range(repeats)]
+            hj0, reach0, command0 = rounds[0]["hj"][0], rounds[0]["reach"][0], rounds[0]["command"][0]
+            if brt_iou(command0["values"], reach0["values"]) < 0.9999:
                 raise RuntimeError(f"{label} {n}: reach groundtruth and groundtruth.solve found different BRTs")
-            first, second = (run["wall_s"] / hj["wall_s"] for run, hj in zip(reach_runs, hj_runs))
-            command = [run["wall_s"] / hj["wall_s"] for run, hj in zip(command_runs, hj_runs)]
+
+            first, second = median_ratio(rounds, "reach", 0), median_ratio(rounds, "reach", 1)
+            command = [median_ratio(rounds, "command", 0), median_ratio(rounds, "command", 1)]
             worst = max(worst, first, second, *command)
-            dims = len(hj_runs[0]["values"].shape)
+            dims = len(hj0["values"].shape)
             goal = goal_ratio(n, dims)
             met = max(first, second, *command) <= goal
             if not met:
                 missed.append(f"{label} {n}^{dims}")
             print(
-                f"| {label} | {n}^{dims} | {hj_runs[0]['wall_s']:.1f} | {hj_runs[1]['wall_s']:.1f} | "
-                f"{reach_runs[0]['wall_s']:.1f} | {reach_runs[1]['wall_s']:.1f} | "
-                f"{'compiled' if reach_runs[0]['compiled'] else 'eager'} | {first:.2f} | {second:.2f} | "
-                f"{command_runs[0]['wall_s']:.1f} | {command_runs[1]['wall_s']:.1f} | "
+                f"| {label} | {n}^{dims} | {median_wall(rounds, 'hj', 0):.1f} | {median_wall(rounds, 'hj', 1):.1f} | "
+                f"{median_wall(rounds, 'reach', 0):.1f} | {median_wall(rounds, 'reach', 1):.1f} | "
+                f"{'compiled' if reach0['compiled'] else 'eager'} | {first:.2f} | {second:.2f} | "
+                f"{median_wall(rounds, 'command', 0):.1f} | {median_wall(rounds, 'command', 1):.1f} | "
                 f"{command[0]:.2f} / {command[1]:.2f} | <= {goal} {'met' if met else 'MISSED'} | "
-                f"{hj_runs[1]['import_s']:.1f} + {hj_runs[1]['solve_s']:.1f} | "
-                f"{reach_runs[1]['import_s']:.1f} + {reach_runs[1]['solve_s']:.1f} | "
-                f"{brt_iou(hj_runs[0]['values'], reach_runs[0]['values']):.4f} |",
+                f"{median_of(rounds, 'hj', 'import_s'):.1f} + {median_of(rounds, 'hj', 'solve_s'):.1f} | "
+                f"{median_of(rounds, 'reach', 'import_s'):.1f} + {median_of(rounds, 'reach', 'solve_s'):.1f} | "
+                f"{brt_iou(hj0['values'], reach0['values']):.4f} |",
                 flush=True,
             )
     print(f"\n# worst ratio reach / hj_reachability: {worst:.2f} (ratio < 1: reach is faster)")
