@@ -1,6 +1,7 @@
-"""Grid solver performance: wall time, peak memory and throughput for Air3D to horizon 1.0.
+"""Grid solver performance: wall time, peak memory and throughput for Air3D (or ``--system``) to horizon 1.0.
 
-Run: ``python benchmarks/bench_groundtruth.py`` (``--grids 51 101``; ``--quick`` for 31 only).
+Run: ``python benchmarks/bench_groundtruth.py`` (``--grids 51 101``; ``--quick`` for 31 only;
+``--system my_systems:DubinsAccel`` with ``examples/`` on ``PYTHONPATH`` for the 4D example).
 ``--against hj_reachability`` compares first and second runs, each a fresh process, with
 hj_reachability on Air3D 31^3-101^3 and user-defined 3D and 4D systems (``benchmarks/hj_comparison.py``),
 in ``--repeats`` interleaved rounds per size (default 3) reported as medians.
@@ -28,7 +29,7 @@ import numpy as np
 import torch
 
 from groundtruth import solve
-from reach.systems import Air3D
+from reach.systems import make_system
 
 REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference" / "air3d_levelset_slice.npz"
 
@@ -49,6 +50,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--grids", type=int, nargs="+", default=None, help="grid sizes (default 51 101; with --against: all)"
+    )
+    parser.add_argument(
+        "--system", default="air3d", help="a registered system or an import path module:Class (default air3d)"
     )
     parser.add_argument("--compile", choices=["on", "off"], default="on")
     parser.add_argument("--dissipation", choices=["local", "global"], default="local")
@@ -75,8 +79,9 @@ def main() -> None:
     if args.quick:
         args.grids = [31]
     args.grids = args.grids or [51, 101]
+    system = make_system(args.system)
     print(
-        f"# Ground-truth solver benchmark: Air3D, horizon 1.0, WENO5 + {args.dissipation} LF + TVD-RK3, "
+        f"# Ground-truth solver benchmark: {system.name}, horizon 1.0, WENO5 + {args.dissipation} LF + TVD-RK3, "
         f"CFL 0.75, float32, tube {args.tube}"
     )
     print(
@@ -93,7 +98,7 @@ def main() -> None:
         for run in runs:
             t0 = time.perf_counter()
             sol = solve(
-                Air3D(),
+                system,
                 n,
                 [1.0],
                 compile=args.compile == "on",
@@ -104,10 +109,10 @@ def main() -> None:
             wall = time.perf_counter() - t0
             steps = sol.metadata["scheme"]["steps"]
             rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
-            acc = slice_error(sol)
+            acc = slice_error(sol) if system.name == "air3d" else None
             err, iou = (f"{acc[0]:.2e}", f"{acc[1]:.4f}") if acc else ("n/a", "n/a")
             print(
-                f"| {n}^3 | {run} | {wall:.1f} | {steps} | {steps / wall:.1f} | "
+                f"| {n}^{system.state_dim} | {run} | {wall:.1f} | {steps} | {steps / wall:.1f} | "
                 f"{sol.grid.num_points * steps / wall:.3g} | {rss:.2f} | {err} | {iou} |"
             )
 

@@ -50,7 +50,7 @@ COMPILE_MIN_NODE_UPDATES = 2e8
 
 
 #: innermost grid dimensions shorter than this are differenced on a transposed copy (_rhs_factory)
-SHORT_INNER_LINE = 32
+SHORT_INNER_LINE = 24
 
 
 def _rhs_factory(
@@ -64,7 +64,7 @@ def _rhs_factory(
     alpha = [a * h for a, h in zip(alpha, half)]
     # eager torch runs the WENO5 passes along the innermost dimension in rows of its length; below
     # SHORT_INNER_LINE nodes a transposed copy is cheaper (DubinsAccel 21^4: 8.1 -> 7.3 ms per
-    # right-hand side; Air3D 51^3: 3.2 -> 3.4 ms, so not there)
+    # right-hand side; 31^4 within the noise, Air3D 51^3 3.2 -> 3.4 ms, so not there)
     last_moved = grid.ndim - 1 if grid.ndim > 1 and grid.shape[-1] < SHORT_INNER_LINE else None
 
     def rhs(v: torch.Tensor) -> torch.Tensor:
