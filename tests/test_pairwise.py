@@ -198,3 +198,22 @@ def test_the_union_where_known_drops_pairs_beyond_their_grid(pair_grid):
     apart = far.clone()
     apart[:, 2] -= 10.0  # car 1 far away in the other direction: no pair inside
     assert torch.isinf(union.value_where_known(apart, 1.0)).all()
+
+
+def test_union_gradient_is_the_autograd_pull_back_of_the_active_pair(pair_grid):
+    """The written-out pull-back equals autograd through relative_states, for one time and for a
+    time per state (which the batched interpolation over the pairs must spread to each pair)."""
+    system = MultiVehicle9D()
+    union = PairwiseUnion(system, pair_grid)
+    x = system.sample_states(300, generator=torch.Generator().manual_seed(5), dtype=torch.float64) * 0.5
+    for t in (0.7, torch.linspace(0.1, 1.0, len(x), dtype=torch.float64)):
+        xg = x.clone().requires_grad_(True)
+        rel = union.relative_states(xg)
+        pairs = [pair_grid.value_and_gradient(rel.detach()[:, k], t) for k in range(len(union.pairs))]
+        values = torch.stack([v for v, _ in pairs], -1)
+        grads = torch.stack([g for _, g in pairs], -2)
+        mask = torch.nn.functional.one_hot(values.argmin(-1), len(union.pairs)).to(x.dtype).unsqueeze(-1)
+        (want,) = torch.autograd.grad(rel, xg, grad_outputs=grads * mask)
+        torch.testing.assert_close(union.gradient(x, t), want, rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(union.pair_values(x, t), values, rtol=0, atol=0)
+        assert int((values.argmin(-1)[:, None] == torch.arange(3)).sum(0).min()) > 0  # every pair active somewhere
