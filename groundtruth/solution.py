@@ -135,20 +135,23 @@ class GridSolution:
                 i0 = torch.floor(f).long().clamp(0, size - 2)
                 idx0.append((i0, i0 + 1))
             frac.append((f - i0).to(table.dtype))
-        strides = [int(np.prod(self.grid.shape[i + 1 :])) for i in range(n)]
+        # all 2^n cell corners at once, built one dimension at a time (corner c takes the upper node
+        # in dimension i where bit n-1-i of c is set): weights are products of the fractions, flat
+        # indices sums of the strided node indices
+        w = torch.ones(m, 1, dtype=table.dtype, device=x.device)
+        lin = torch.zeros(m, 1, dtype=torch.long, device=x.device)
+        for i in range(n):
+            stride = int(np.prod(self.grid.shape[i + 1 :]))
+            w = (w[:, :, None] * torch.stack([1 - frac[i], frac[i]], -1)[:, None, :]).reshape(m, -1)
+            nodes = torch.stack([idx0[i][0], idx0[i][1]], -1) * stride
+            lin = (lin[:, :, None] + nodes[:, None, :]).reshape(m, -1)
         flat = table.reshape(len(self.times), -1, *table.shape[1 + n :])
-        out = 0.0
-        for corner in range(2**n):
-            w = torch.ones(m, dtype=table.dtype, device=x.device)
-            lin = torch.zeros(m, dtype=torch.long, device=x.device)
-            for i in range(n):
-                bit = (corner >> (n - 1 - i)) & 1
-                w = w * (frac[i] if bit else 1 - frac[i])
-                lin = lin + idx0[i][bit] * strides[i]
-            v0, v1 = flat[k0, lin], flat[k1, lin]
-            wv = w.reshape((m,) + (1,) * (v0.ndim - 1))
-            wtt = wt.reshape((m,) + (1,) * (v0.ndim - 1))
-            out = out + wv * ((1 - wtt) * v0 + wtt * v1)
+        if lookup.shape[0] == 1:  # one time for every state: gather from one or two slices
+            v0, v1 = flat[k0[0]][lin], flat[k1[0]][lin]  # (m, 2^n, ...)
+        else:
+            v0, v1 = flat[k0[:, None], lin], flat[k1[:, None], lin]
+        extra = (1,) * (v0.ndim - 2)
+        out = (w.reshape((m, 2**n, *extra)) * torch.lerp(v0, v1, wt.reshape((m, 1, *extra)))).sum(1)
         return out.reshape((*batch, *table.shape[1 + n :])).to(x.dtype)
 
     def value(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:

@@ -124,6 +124,28 @@ def test_interpolation_reproduces_nodes_and_is_periodic(air3d_coarse):
     torch.testing.assert_close(mid, 0.5 * (sol.value(x, 0.25) + sol.value(x, 0.5)))
 
 
+def test_interpolation_is_exact_for_multilinear_tables_and_a_time_per_state():
+    """Multilinear interpolation reproduces a table that is bilinear in (x, y), arbitrary per node
+    in the periodic heading (linear between nodes, across the seam too) and linear in time, at
+    random states with a time each: what the all-corners-at-once gather must get exactly right."""
+    system = Air3D()
+    grid = Grid.for_system(system, (7, 9, 8))
+    pts = grid.points(torch.float64)
+    g = torch.randn(8, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    space = 0.3 + 0.5 * pts[..., 0] - 0.2 * pts[..., 1] + 0.7 * pts[..., 0] * pts[..., 1] + g[None, None, :]
+    times = torch.tensor([0.0, 1.0], dtype=torch.float64)
+    sol = GridSolution(system, grid, times, torch.stack([space, 3.0 * space]))
+    gen = torch.Generator().manual_seed(1)
+    x = system.sample_states(500, generator=gen, dtype=torch.float64)
+    t = torch.rand(500, dtype=torch.float64, generator=gen)
+    f = torch.remainder((x[:, 2] - grid.low[2]) / grid.spacing[2], 8)
+    k = torch.floor(f).long()
+    heading = g[k] * (1 - (f - k)) + g[(k + 1) % 8] * (f - k)
+    want = (1 + 2 * t) * (0.3 + 0.5 * x[:, 0] - 0.2 * x[:, 1] + 0.7 * x[:, 0] * x[:, 1] + heading)
+    torch.testing.assert_close(sol.value(x, t), want, atol=1e-12, rtol=1e-12)
+    torch.testing.assert_close(sol.value(x, 0.25), want.new_tensor(1.5) * (want / (1 + 2 * t)), atol=1e-12, rtol=0)
+
+
 def test_grid_solution_is_a_value_function(air3d_coarse):
     from reach.systems import ValueFunction
 
