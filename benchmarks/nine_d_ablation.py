@@ -67,7 +67,7 @@ def train(args: argparse.Namespace) -> int:
     for row in args.rows:
         options = [option.format(pairwise=args.pairwise) for option in ROWS[row]]
         for seed in args.seeds:
-            code = train_or_resume(run_dir(args, row, seed), steps, seed, options)
+            code = train_or_resume(run_dir(args, row, seed), steps, seed, options, args.device)
             if code:
                 return code
     return 0

@@ -27,10 +27,13 @@ from __future__ import annotations
 
 import argparse
 import csv
+import math
+import re
 import sys
 from pathlib import Path
 
 from reach.cli import main as reach_main
+from reach.validation import device_arg, positive_int_arg
 
 #: 9D default network (ssssl, 4x128, 8192 points, compiled) on a quiet 2-core machine: 36,917 steps
 #: in 40 minutes (the run that opened issue 18); minutes are converted to steps with this rate
@@ -41,19 +44,21 @@ def run_dir(out: Path, minutes: float, seed: int) -> Path:
     return out / "runs" / f"ssssl-{minutes:g}m-seed{seed}"
 
 
-def train_or_resume(run: Path, steps: int, seed: int, options: list[str] | None = None) -> int:
-    """``reach train`` of the 9D defaults (plus ``options``) for ``steps`` steps into ``run``, or
-    ``--resume`` where a checkpoint is already there."""
+def train_or_resume(run: Path, steps: int, seed: int, options: list[str] | None = None, device: str = "cpu") -> int:
+    """``reach train`` of the 9D defaults (plus ``options``) for ``steps`` steps into ``run`` on
+    ``device``, or ``--resume`` where a checkpoint is already there (on ``device``: a run may move
+    between a CPU and a GPU; the step count, not the machine, fixes what it trains)."""
     if (run / "checkpoint.pt").exists():
-        return reach_main(["train", "--resume", str(run), "--steps", str(steps)])
-    base = ["train", "--system", "multivehicle9d", "--steps", str(steps), "--seed", str(seed)]
+        return reach_main(["train", "--resume", str(run), "--steps", str(steps), "--device", device])
+    base = ["train", "--system", "multivehicle9d", "--steps", str(steps), "--seed", str(seed), "--device", device]
     return reach_main([*base, *(options or []), "--out", str(run)])
 
 
 def train(args: argparse.Namespace) -> int:
     for minutes in args.minutes:
         for seed in args.seeds:
-            code = train_or_resume(run_dir(args.out, minutes, seed), round(minutes * args.steps_per_minute), seed)
+            steps = round(minutes * args.steps_per_minute)
+            code = train_or_resume(run_dir(args.out, minutes, seed), steps, seed, device=args.device)
             if code:
                 return code
     return 0
@@ -73,7 +78,8 @@ def evaluate_runs(runs: list[Path], args: argparse.Namespace) -> int:
         return 1
     samples = ["--samples", str(args.samples), "--certify-samples", str(args.certify_samples)]
     out = ["--pairwise", str(pairwise), "--out", str(args.out / "results.csv")]
-    return reach_main(["evaluate", *done, *samples, *out])
+    device = ["--device", args.device] + (["--chunk-size", str(args.chunk_size)] if args.chunk_size else [])
+    return reach_main(["evaluate", *done, *samples, *device, *out])
 
 
 def score(args: argparse.Namespace) -> int:
@@ -89,6 +95,16 @@ METRICS = (
     ("certified_volume", "delta-level certified volume"),
     ("robust_certified_volume", "robust certified volume"),
 )
+
+
+#: issue 18's goals for a recipe of at most two CPU hours, drawn as dashed lines (rates as fractions)
+GOALS = {
+    "false_safe_rate": 0.0002,
+    "collision_rate": 0.187,
+    "containment_miss_rate": 0.0,
+    "certified_volume": 0.55,
+    "robust_certified_volume": 0.80,
+}
 
 
 def read_results(out: Path) -> list[dict[str, str]] | None:
@@ -112,17 +128,32 @@ def read_metrics(out: Path) -> tuple[list[dict[str, str]], list[str]] | None:
 
 def seed_cells(rows: list[dict[str, str]], labels: set[str], keys: list[str]) -> tuple[int, list[str]]:
     """How many of ``rows`` carry one of ``labels`` (runs are labelled by their folder), and per
-    metric in ``keys`` a cell "mean (each seed's value)": one row of the ablation and layout reports."""
-    scored = [r for r in rows if r["label"] in labels]
+    metric in ``keys`` a cell "mean (each seed's value)": one row of the ablation and layout reports.
+    A value that is NaN (a certified volume where no level could be certified) shows as "none", and
+    the mean is then left out ("-"): averaging it away would flatter the row."""
+    scored = sorted((r for r in rows if r["label"] in labels), key=lambda r: r["label"])
     cells = []
     for key in keys:
         values = [float(r[key]) for r in scored if r.get(key) not in (None, "")]
-        each = ", ".join(f"{v:.4g}" for v in values)
-        cells.append(f"{sum(values) / len(values):.4g} ({each})" if values else "-")
+        each = ", ".join("none" if math.isnan(v) else f"{v:.4g}" for v in values)
+        if not values:
+            cells.append("-")
+        elif any(math.isnan(v) for v in values):
+            cells.append(f"- ({each})")
+        else:
+            cells.append(f"{sum(values) / len(values):.4g} ({each})")
     return len(scored), cells
 
 
+def budget_and_seed(label: str) -> tuple[float, int] | None:
+    """(minutes, seed) of a study run's label ``ssssl-<M>m-seed<S>``; None for any other label."""
+    m = re.fullmatch(r"ssssl-([0-9.]+)m-seed(\d+)", label)
+    return (float(m.group(1)), int(m.group(2))) if m else None
+
+
 def print_table(rows: list[dict[str, str]]) -> None:
+    """The scored runs as a markdown table, shortest budget first."""
+    rows = sorted(rows, key=lambda r: budget_and_seed(r["label"]) or (math.inf, 0))
     keys = [k for k, _ in METRICS if rows and k in rows[0]]
     print("| run | " + " | ".join(keys) + " |")
     print("|---|" + "---:|" * len(keys))
@@ -133,18 +164,13 @@ def print_table(rows: list[dict[str, str]]) -> None:
 def plot(rows: list[dict[str, str]], path: Path) -> Path | None:
     """Each metric against the training budget (minutes, log scale): one dot per seed, a line
     through the seeds' means."""
-    import re
-
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter
 
-    points = []
-    for r in rows:
-        m = re.fullmatch(r"ssssl-([0-9.]+)m-seed(\d+)", r["label"])
-        if m:
-            points.append((float(m.group(1)), r))
+    points = [(found[0], r) for r in rows if (found := budget_and_seed(r["label"])) is not None]
     if not points:
         return None
     keys = [(k, title) for k, title in METRICS if k in points[0][1]]
@@ -157,8 +183,12 @@ def plot(rows: list[dict[str, str]], path: Path) -> Path | None:
         ax.plot(budgets, [sum(y for x, y in zip(xs, ys) if x == b) / xs.count(b) for b in budgets], "-")
         ax.set_xscale("log")
         ax.set_xticks(budgets, [f"{b:g}" for b in budgets])
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        if key in GOALS:
+            ax.axhline(GOALS[key], color="grey", linestyle="--", linewidth=1, label="issue 18 goal")
+            ax.legend(fontsize="small")
         ax.set_title(title)
-        ax.set_xlabel("training budget (min, quiet 2-core CPU)")
+        ax.set_xlabel("budget: steps of M quiet 2-core CPU minutes")
     for ax in list(axes.flat)[len(keys) :]:
         ax.axis("off")
     fig.suptitle("9D default recipe: accuracy against training time (one dot per seed)")
@@ -187,6 +217,13 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--samples", type=int, default=100_000)
     parser.add_argument("--certify-samples", type=int, default=1_000_000)
     parser.add_argument("--pairwise", default="runs/pair_gt.npz")
+    parser.add_argument("--device", type=device_arg, default="cpu", help="train and score on this device (cpu or cuda)")
+    parser.add_argument(
+        "--chunk-size",
+        type=positive_int_arg,
+        default=None,
+        help="states per batch when scoring (reach evaluate's default; on a GPU 262144 avoids being launch-bound)",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

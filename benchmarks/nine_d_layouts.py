@@ -77,7 +77,7 @@ def train(args: argparse.Namespace) -> int:
     for seed in args.seeds:  # every layout's seed 0 first: a partial study still ranks them all
         for layout in args.layouts:
             run = run_dir(args, layout, seed)
-            code = train_or_resume(run, steps_for(args, layout), seed, [*options, "--layout", layout])
+            code = train_or_resume(run, steps_for(args, layout), seed, [*options, "--layout", layout], args.device)
             if code:
                 return code
     return 0

@@ -67,6 +67,31 @@ def test_nine_d_study_and_ablation_reports_read_the_scored_runs(tmp_path: Path):
     assert "| rrrrl | 18125 | 1 | 0.03 (0.03) |" in out.stdout
 
 
+def test_nine_d_study_cells_show_uncertified_seeds_and_runs_move_between_devices(tmp_path: Path, monkeypatch):
+    """A seed whose robust search certified nothing (NaN) shows as "none" and withholds the mean; a
+    study run trains and resumes on the device the script was given."""
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    import nine_d_accuracy_vs_time as study
+
+    rows = [
+        {"label": "x-seed1", "robust_certified_volume": "0.7", "violation_rate": "0.02"},
+        {"label": "x-seed0", "robust_certified_volume": "nan", "violation_rate": "0.04"},
+    ]
+    count, cells = study.seed_cells(rows, {"x-seed0", "x-seed1"}, ["robust_certified_volume", "violation_rate"])
+    assert count == 2 and cells == ["- (none, 0.7)", "0.03 (0.04, 0.02)"]
+
+    calls: list[list[str]] = []
+    monkeypatch.setattr(study, "reach_main", lambda argv: calls.append(argv) or 0)
+    run = tmp_path / "run"
+    study.train_or_resume(run, 50, 3, ["--layout", "rrrrl"], device="cuda")
+    run.mkdir()
+    (run / "checkpoint.pt").write_bytes(b"")
+    study.train_or_resume(run, 80, 3, ["--layout", "rrrrl"], device="cpu")
+    new, resumed = calls
+    assert new[new.index("--device") + 1] == "cuda" and new[new.index("--steps") + 1] == "50" and "rrrrl" in new
+    assert resumed == ["train", "--resume", str(run), "--steps", "80", "--device", "cpu"]
+
+
 def test_false_safe_levels_shrink_with_the_level(tmp_path: Path, capsys, monkeypatch):
     """The false-safe and volume columns can only fall as the level rises (the same rollouts)."""
     import torch
