@@ -169,6 +169,38 @@ def test_diverging_run_stops_naming_the_step_and_keeps_the_checkpoint(tmp_path):
     assert all(torch.isfinite(p).all() for p in net.parameters())
 
 
+def test_resume_on_another_kind_of_device_reseeds_and_moves_the_labels(tmp_path):
+    """A run trained on a GPU resumes on the CPU (and back): the CUDA generator's 16-byte state cannot
+    seed a CPU generator, so the stream restarts from the run's seed and step, with a warning; the
+    lower-bound labels, loaded on the CPU, move to the run's device."""
+    from training.checkpoint import network_from_payload, read_checkpoint, save_checkpoint
+    from training.trainer import moved_run_seed
+
+    run = tmp_path / "run"
+    Trainer(TrainConfig(system="multivehicle9d", steps=4, seed=5, lower_bound="policy", lower_bound_points=8,
+                        lower_bound_every=2, **TINY), run, progress=False).train()  # fmt: skip
+    # what a GPU run leaves: config.json names cuda, the checkpoint holds a CUDA generator state
+    config = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**config, "device": "cuda"}))
+    payload = read_checkpoint(run / "checkpoint.pt")
+    network = network_from_payload(run / "checkpoint.pt", payload)
+    extra = {k: payload[k] for k in ("optimizer", "step", "wall", "loss_ema", "labels")}
+    metadata = {k: payload["metadata"][k] for k in ("steps", "wall_time_s", "seed", "config")}
+    save_checkpoint(run / "checkpoint.pt", network, {**extra, "generator": torch.zeros(16, dtype=torch.uint8)},
+                    metadata)  # fmt: skip
+    with pytest.warns(UserWarning, match="trained on cuda, resumed on cpu at step 4"):
+        trainer = Trainer.resume(run, progress=False, steps=6, device="cpu")
+    expected = torch.Generator().manual_seed(moved_run_seed(5, 4))
+    assert torch.equal(trainer.generator.get_state(), expected.get_state())
+    assert trainer.labels is not None and all(v.device.type == "cpu" for v in trainer.labels)
+    assert trainer.train()["steps"] == 6
+    # back on the device it was last trained on, the saved stream carries over exactly
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        again = Trainer.resume(run, progress=False, steps=7)
+    assert torch.equal(again.generator.get_state(), trainer.generator.get_state())
+
+
 def test_resume_survives_sigkill(tmp_path):
     run = tmp_path / "run"
     cmd = [

@@ -24,6 +24,7 @@ import os
 import signal
 import threading
 import time
+import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -54,6 +55,13 @@ RUN_FILES = ("config.json", "checkpoint.pt", "metrics.jsonl")
 RESUME_OVERRIDABLE = frozenset(
     {"steps", "budget_s", "target_loss", "device", "log_every", "checkpoint_every_s", "eval_every_s", "tensorboard"}
 )
+
+
+def moved_run_seed(seed: int, step: int) -> int:
+    """The sampling generator's seed for a run resumed on another kind of device at ``step``: a CPU
+    generator's state cannot seed a CUDA one or back, so the stream restarts from the run's seed and
+    step (deterministic: two resumes of the same checkpoint on the same device draw the same points)."""
+    return (seed * 1_000_003 + step) % (2**63)
 
 
 class TrainingDivergedError(RuntimeError):
@@ -273,6 +281,7 @@ class Trainer:
                 f"{run_dir} was trained with {stored}; a resumed run keeps its configuration (only "
                 f"{', '.join(sorted(RESUME_OVERRIDABLE))} may change): start a new run to change {sorted(fixed)}"
             )
+        trained_on = torch.device(str(data.get("device") or "cpu")).type
         data.update(given)
         trainer = cls(TrainConfig.from_dict(data), run_dir, evaluator, progress, _resuming=True)
         if trainer.checkpoint_path.exists():
@@ -287,9 +296,19 @@ class Trainer:
                 )
             trainer.network.load_state_dict(net.state_dict())
             trainer.optimizer.load_state_dict(payload["optimizer"])
-            trainer.generator.set_state(payload["generator"])
             trainer.step, trainer.wall, trainer.loss_ema = payload["step"], payload["wall"], payload["loss_ema"]
-            trainer.labels = payload.get("labels")
+            if trained_on == trainer.device.type:
+                trainer.generator.set_state(payload["generator"])
+            else:  # a CPU and a CUDA generator have different states: the stream cannot carry over
+                trainer.generator.manual_seed(moved_run_seed(trainer.config.seed, trainer.step))
+                warnings.warn(
+                    f"{run_dir}: trained on {trained_on}, resumed on {trainer.device.type} at step {trainer.step}: "
+                    "the sampling generator is reseeded from the run's seed and step (same schedule and "
+                    "steps, not the sample stream of an uninterrupted run on one device)",
+                    stacklevel=2,
+                )
+            labels = payload.get("labels")  # checkpoints load on the CPU; the labels train on the run's device
+            trainer.labels = None if labels is None else tuple(v.to(trainer.device) for v in labels)
         _clean_metrics(run_dir / "metrics.jsonl", trainer.step)
         return trainer
 
