@@ -78,7 +78,7 @@ def score(args: argparse.Namespace) -> int:
 
 
 def report(args: argparse.Namespace) -> int:
-    scored = read_metrics(args.out)
+    scored = read_metrics(args.out, also=args.study)
     if scored is None:
         return 1
     rows, keys = scored

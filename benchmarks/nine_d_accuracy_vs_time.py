@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import math
 import re
 import sys
@@ -64,6 +65,17 @@ def train(args: argparse.Namespace) -> int:
     return 0
 
 
+def finished(run: Path) -> bool:
+    """Whether ``run`` reached the steps it was started for. A run stopped early (SIGTERM, a time
+    limit) has a checkpoint too, and scoring it would put a half-trained network in the table."""
+    record = run / "checkpoint.json"
+    if not record.exists():
+        return False
+    meta = json.loads(record.read_text())
+    target = meta.get("config", {}).get("steps")
+    return target is None or int(meta.get("steps", 0)) >= int(target)
+
+
 def evaluate_runs(runs: list[Path], args: argparse.Namespace) -> int:
     """``reach evaluate`` of the runs that have a checkpoint, with the study's settings (solving the
     pairwise union first if missing), into ``args.out / results.csv``."""
@@ -72,7 +84,7 @@ def evaluate_runs(runs: list[Path], args: argparse.Namespace) -> int:
         code = reach_main(["groundtruth", "relativepair", "--grid", "101", "--out", str(pairwise)])
         if code:
             return code
-    done = [str(run) for run in runs if (run / "checkpoint.pt").exists()]
+    done = [str(run) for run in runs if finished(run)]
     if not done:
         print("no finished runs yet", file=sys.stderr)
         return 1
@@ -118,11 +130,26 @@ def read_results(out: Path) -> list[dict[str, str]] | None:
         return [r for r in csv.DictReader(fh) if not r.get("error")]
 
 
-def read_metrics(out: Path) -> tuple[list[dict[str, str]], list[str]] | None:
-    """:func:`read_results` and the :data:`METRICS` keys its table has (None where not scored yet)."""
+def scored_settings(out: Path) -> dict | None:
+    """The verification settings ``out``'s table was scored with (``reach evaluate``'s results.json)."""
+    path = out / "results.json"
+    return json.loads(path.read_text()).get("settings") if path.exists() else None
+
+
+def read_metrics(out: Path, also: Path | None = None) -> tuple[list[dict[str, str]], list[str]] | None:
+    """:func:`read_results` and the :data:`METRICS` keys its table has (None where not scored yet).
+    ``also`` adds the rows of another study's table that this one's lacks (the ablation's baseline is
+    the time study's run, scored there), where both tables were scored with the same settings."""
     rows = read_results(out)
     if rows is None:
         return None
+    if also is not None and (also / "results.csv").exists():
+        settings = [scored_settings(d) for d in (out, also)]
+        if settings[0] is not None and settings[0] == settings[1]:
+            labels = {r["label"] for r in rows}
+            rows += [r for r in read_results(also) or [] if r["label"] not in labels]
+        else:
+            print(f"{also}: scored with other settings than {out}; its rows are left out", file=sys.stderr)
     return rows, [k for k, _ in METRICS if rows and k in rows[0]]
 
 

@@ -91,6 +91,34 @@ def test_nine_d_study_cells_show_uncertified_seeds_and_runs_move_between_devices
     assert new[new.index("--device") + 1] == "cuda" and new[new.index("--steps") + 1] == "50" and "rrrrl" in new
     assert resumed == ["train", "--resume", str(run), "--steps", "80", "--device", "cpu"]
 
+    # only a run that reached its steps is scored: a stopped one has a checkpoint too
+    assert not study.finished(tmp_path / "missing")
+    (run / "checkpoint.json").write_text(json.dumps({"steps": 79, "config": {"steps": 80}}))
+    assert not study.finished(run)
+    (run / "checkpoint.json").write_text(json.dumps({"steps": 80, "config": {"steps": 80}}))
+    assert study.finished(run)
+
+
+def test_ablation_report_takes_its_baseline_scores_from_the_study_when_scored_alike(tmp_path: Path):
+    """The ablation's baseline is the time study's run; where the study scored it with the same
+    settings, the ablation's report shows it without scoring it twice, and not otherwise."""
+    study, ablation = tmp_path / "study", tmp_path / "ablation"
+    _results(study / "results.csv", ["ssssl-10m-seed0", "ssssl-10m-seed1"])
+    _results(ablation / "results.csv", ["zero-level-10m-seed0", "zero-level-10m-seed1"])
+    for seed in (0, 1):
+        (study / "runs" / f"ssssl-10m-seed{seed}").mkdir(parents=True)
+        (study / "runs" / f"ssssl-10m-seed{seed}" / "checkpoint.pt").write_bytes(b"")
+    run = [sys.executable, str(ROOT / "benchmarks" / "nine_d_ablation.py"), "report", "--out", str(ablation)]
+    run += ["--study", str(study), "--rows", "baseline,zero-level"]
+    for table, samples in ((study, 100_000), (ablation, 100_000)):
+        (table / "results.json").write_text(json.dumps({"settings": {"samples": samples}}))
+    out = subprocess.run(run, capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert "| baseline | 2 | 0.015 (0.01, 0.02) |" in out.stdout and "| zero-level | 2 |" in out.stdout
+    (study / "results.json").write_text(json.dumps({"settings": {"samples": 20_000}}))
+    out = subprocess.run(run, capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0 and "| baseline |" not in out.stdout and "other settings" in out.stderr
+
 
 def test_false_safe_levels_shrink_with_the_level(tmp_path: Path, capsys, monkeypatch):
     """The false-safe and volume columns can only fall as the level rises (the same rollouts)."""
