@@ -178,15 +178,13 @@ class PairwiseUnion:
         penalty may push a network below."""
         self._check(x)
         rel = self.relative_states(x)
-        values = []
-        for k, sol in enumerate(self._solutions):
-            r = rel[..., k, :]
-            low = torch.tensor(sol.grid.low, dtype=r.dtype, device=r.device)
-            high = torch.tensor(sol.grid.high, dtype=r.dtype, device=r.device)
-            periodic = torch.tensor(sol.grid.periodic, device=r.device)
-            inside = (periodic | ((r >= low) & (r <= high))).all(-1)
-            values.append(torch.where(inside, sol.value(r, t), torch.full_like(r[..., 0], torch.inf)))
-        return torch.stack(values, dim=-1).min(dim=-1).values
+        grids = [sol.grid for sol in self._solutions]
+        low = torch.tensor([g.low for g in grids], dtype=rel.dtype, device=rel.device)  # (pairs, 3)
+        high = torch.tensor([g.high for g in grids], dtype=rel.dtype, device=rel.device)
+        periodic = torch.tensor([g.periodic for g in grids], device=rel.device)
+        inside = (periodic | ((rel >= low) & (rel <= high))).all(-1)  # (..., pairs)
+        values = self._per_pair("value", rel, t)
+        return torch.where(inside, values, torch.full_like(values, torch.inf)).min(dim=-1).values
 
     @classmethod
     def load(cls, system: MultiVehicle, path: str | os.PathLike) -> PairwiseUnion:
