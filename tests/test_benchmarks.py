@@ -99,6 +99,17 @@ def test_nine_d_study_cells_show_uncertified_seeds_and_runs_move_between_devices
     assert study.finished(run)
 
 
+def test_nine_d_study_scripts_refuse_a_bad_device_or_chunk_size_before_any_work(tmp_path: Path):
+    """--device and --chunk-size are checked by the library's own argument types: one clear error,
+    exit 2, and nothing trained or written."""
+    for script in ("nine_d_accuracy_vs_time.py", "nine_d_ablation.py", "nine_d_layouts.py"):
+        for bad, words in ((["--device", "tpu"], "--device"), (["--chunk-size", "0"], "--chunk-size")):
+            cmd = [sys.executable, str(ROOT / "benchmarks" / script), "train", "--out", str(tmp_path / "s"), *bad]
+            out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+            assert out.returncode == 2 and words in out.stderr and "Traceback" not in out.stderr, out.stderr
+    assert not (tmp_path / "s").exists()
+
+
 def test_ablation_report_takes_its_baseline_scores_from_the_study_when_scored_alike(tmp_path: Path):
     """The ablation's baseline is the time study's run; where the study scored it with the same
     settings, the ablation's report shows it without scoring it twice, and not otherwise."""
