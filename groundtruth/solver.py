@@ -30,7 +30,7 @@ from tqdm.auto import tqdm
 from groundtruth.grid import Grid
 from groundtruth.solution import GridSolution
 from groundtruth.weno import SCALE as WENO_SCALE
-from groundtruth.weno import derivatives
+from groundtruth.weno import mean_and_half_jump
 from reach.compiling import maybe_compile
 from reach.heap import retained_heap
 from reach.systems.backend import TORCH
@@ -58,10 +58,12 @@ def _rhs_factory(
 ) -> Callable[[torch.Tensor], torch.Tensor]:
     spacing = grid.spacing
     periodic = grid.periodic
-    # derivatives() returns SCALE * dx times the one-sided derivatives: the mean and the half jump
-    # take 1 / (2 SCALE dx)
-    half = [1.0 / (2.0 * WENO_SCALE * dx) for dx in spacing]
-    alpha = [a * h for a, h in zip(alpha, half)]
+    # mean_and_half_jump() returns WENO_SCALE * dx times the mean and the half jump of the one-sided
+    # derivatives: the Hamiltonian takes the factor 1 / (WENO_SCALE dx) into its coefficients (no pass
+    # over the grid), the dissipation into alpha
+    unscale = [1.0 / (WENO_SCALE * dx) for dx in spacing]
+    alpha = [a * k for a, k in zip(alpha, unscale)]
+    hamiltonian = system.hamiltonian_at(cols, TORCH, scale=unscale, prune=True)
     # eager torch runs the WENO5 passes along the innermost dimension in rows of its length; below
     # SHORT_INNER_LINE nodes a transposed copy is cheaper (DubinsAccel 21^4: 8.1 -> 7.3 ms per
     # right-hand side; 31^4 within the noise, Air3D 51^3 3.2 -> 3.4 ms, so not there)
@@ -72,14 +74,14 @@ def _rhs_factory(
         dissipation: torch.Tensor | None = None
         for i in range(grid.ndim):
             if i == last_moved:  # differences along a short contiguous line: move it to the front
-                left, right = derivatives(v.movedim(i, 0).contiguous(), 0, spacing[i], periodic[i])
-                left, right = left.movedim(0, i), right.movedim(0, i)
+                mean, half_jump = mean_and_half_jump(v.movedim(i, 0).contiguous(), 0, spacing[i], periodic[i])
+                mean, half_jump = mean.movedim(0, i), half_jump.movedim(0, i)
             else:
-                left, right = derivatives(v, i, spacing[i], periodic[i])
-            p_mean.append((left + right).mul_(half[i]))
-            jump = right.sub_(left)
-            dissipation = jump.mul_(alpha[i]) if dissipation is None else dissipation.addcmul_(alpha[i], jump)
-        return system.hamiltonian_columns(cols, p_mean, TORCH) + dissipation
+                mean, half_jump = mean_and_half_jump(v, i, spacing[i], periodic[i])
+            p_mean.append(mean)
+            dissipation = half_jump.mul_(alpha[i]) if dissipation is None else dissipation.addcmul_(alpha[i], half_jump)
+        h = hamiltonian(p_mean)
+        return dissipation.add_(h) if isinstance(h, torch.Tensor) and h.shape == dissipation.shape else dissipation + h
 
     return rhs
 
@@ -227,6 +229,7 @@ def solve(
     keep_heap = retained_heap(need) if torch.device(device).type == "cpu" else contextlib.nullcontext()
     with (
         keep_heap,
+        torch.no_grad(),  # nothing here is differentiated, and the Hamiltonian may then accumulate in place
         tqdm(
             total=out_times[-1],
             desc=f"{system.name} {'x'.join(map(str, grid.shape))}",

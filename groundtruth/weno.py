@@ -12,6 +12,8 @@ set never enters from the box edge.
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 EPS = 1e-6  # Jiang & Peng's epsilon in the nonlinear weights
@@ -22,81 +24,113 @@ def pad(v: torch.Tensor, dim: int, periodic: bool, width: int = 3) -> torch.Tens
     n = v.shape[dim]
     if periodic:
         return torch.cat([v.narrow(dim, n - width, width), v, v.narrow(dim, 0, width)], dim)
-    shape = [1] * v.ndim
-    shape[dim] = width
-    k = torch.arange(1, width + 1, dtype=v.dtype, device=v.device).reshape(shape)
-    first, second = v.narrow(dim, 0, 1), v.narrow(dim, 1, 1)
-    last, before = v.narrow(dim, n - 1, 1), v.narrow(dim, n - 2, 1)
-    left = first + torch.sign(first) * (second - first).abs() * k.flip(dim)
-    right = last + torch.sign(last) * (last - before).abs() * k
-    return torch.cat([left, v, right], dim)
+    # both ends at once, in a handful of operations on the thin ghost slabs (a per-end version took
+    # twice as many, each a dispatch on every stage of a solve): the edge and its neighbour repeated
+    # width times per end, and the ghosts' distances width .. 1 | 1 .. width from the edge
+    ghost_indices = _ghost_indices_uncached if torch.compiler.is_compiling() else _ghost_indices
+    edge_index, inner_index, distance = ghost_indices(n, width, v.ndim, dim, v.dtype, v.device)
+    edge = v.index_select(dim, edge_index)
+    step = (edge - v.index_select(dim, inner_index)).abs_().mul_(edge.sign())
+    ghosts = step.mul_(distance).add_(edge)
+    return torch.cat([ghosts.narrow(dim, 0, width), v, ghosts.narrow(dim, width, width)], dim)
 
 
-#: :func:`derivatives` returns ``SCALE * dx`` times the one-sided derivatives; the caller folds the
-#: factor into its own (one pass less over the grid for each of them)
-SCALE = 3.0
+def _ghost_indices_uncached(
+    n: int, width: int, ndim: int, dim: int, dtype: torch.dtype, device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The edge and inner node of each ghost of :func:`pad` (left ghosts first) and their distances,
+    shaped to broadcast along ``dim`` of an ``ndim``-dimensional grid. Cached in eager mode
+    (:func:`_ghost_indices`); torch.compile traces this one, as constants of its graph."""
+    edge = torch.tensor([0] * width + [n - 1] * width, device=device)
+    inner = torch.tensor([1] * width + [n - 2] * width, device=device)
+    shape = [1] * ndim
+    shape[dim] = 2 * width
+    distance = [float(width - k) for k in range(width)] + [float(k + 1) for k in range(width)]
+    return edge, inner, torch.tensor(distance, dtype=dtype, device=device).reshape(shape)
 
 
-def _weighted(phi1, phi2, phi3, w1, w2, w3, own_phi1: bool):
-    """``(w1 phi1 + 6 w2 phi2 + 3 w3 phi3) / (w1 + 6 w2 + 3 w3)``: the WENO5 value of the stencils.
+_ghost_indices = functools.cache(_ghost_indices_uncached)
 
-    The ``w`` are the nonlinear weights before their linear factors (see :func:`derivatives`); the
-    linear weights 0.1, 0.6, 0.3 enter as 1 : 6 : 3 (their ratio is all that counts).
-    ``own_phi1``: ``phi1`` is a temporary that may be overwritten.
-    """
-    num = phi1.mul_(w1) if own_phi1 else phi1 * w1
-    num.addcmul_(phi2, w2, value=6.0).addcmul_(phi3, w3, value=3.0)
-    return num.div_(torch.add(w1, w2, alpha=6.0).add_(w3, alpha=3.0))
+
+#: :func:`mean_and_half_jump` returns ``SCALE * dx`` times the mean and the half jump of the two
+#: one-sided derivatives; the caller folds the factor into its own (one pass less over the grid each)
+SCALE = -12.0
 
 
 def _weight(curvature: torch.Tensor, slope: torch.Tensor) -> torch.Tensor:
     """``1 / (curvature + 3/13 slope^2)^2``: a WENO5 nonlinear weight before its linear factor, up to a
-    factor common to all three weights (see :func:`derivatives`)."""
+    factor common to all three weights (see :func:`mean_and_half_jump`)."""
     return torch.addcmul(curvature, slope, slope, value=3.0 / 13.0).pow_(-2)
+
+
+def mean_and_half_jump(v: torch.Tensor, dim: int, dx: float, periodic: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(left + right) / 2`` and ``(right - left) / 2`` of the WENO5 derivatives along ``dim``, times
+    ``SCALE * dx``: what a Lax-Friedrichs Hamiltonian reads (the mean as the costate, the half jump
+    times the dissipation).
+
+    Written in Jiang & Peng's own form (their eq. 2.11-2.12, 2000), in which both biases share a
+    fourth-order central part and differ by a correction ``Phi`` of the second differences
+    ``a, b, c, d``::
+
+        left  = central - Phi(a, b, c, d)        right = central + Phi(a', b', c', d')
+        Phi   = 1/3 w0 (a - 2b + c) + 1/6 (w2 - 1/2) (b - 2c + d)
+
+    so the mean is the central part plus half the difference of the corrections, and the half jump
+    half their sum: neither one-sided derivative is ever formed. An eager solve is bound by passes
+    over memory, so this is written for few of them:
+
+    - no difference is divided by ``dx``. Jiang & Peng's weights ``1 / (IS + eps)^2`` then see
+      ``IS dx^2``, and ``eps dx^2`` in place of ``eps`` gives each weight times ``dx^4``;
+    - each indicator ``IS = 13 (curvature^2 + 3/13 slope^2)``, with the 13 and ``eps`` folded into
+      the curvature, so a common factor multiplies every weight;
+    - each indicator and weight is computed once on the padded line and read by both biases (the
+      left bias's ``IS0, IS1, IS2`` are the right bias's ``IS2, IS1, IS0`` two nodes on), and the
+      fourth differences ``a - 2b + c`` likewise;
+    - the normalisation of each bias is one fused divide-and-add per output.
+
+    Factors common to the three weights of a node cancel in their normalised combination, so the
+    result is Jiang & Peng's to round-off (``tests/test_groundtruth.py`` checks the derived
+    :func:`derivatives` against the textbook formula in float64). ``eps`` sits on the smoothness
+    ``IS / 12`` (the textbook's ``s``, as the MATLAB toolbox and hj_reachability use it).
+    """
+    n = v.shape[dim]
+    d = torch.diff(pad(v, dim, periodic), dim=dim)  # n + 5 first differences, times dx
+    dd = torch.diff(d, dim=dim)  # n + 4 second differences
+    t = torch.diff(dd, dim=dim)  # n + 3 third differences: the curvature of each pair (p, q) of dd
+
+    def at(x: torch.Tensor, k: int) -> torch.Tensor:  # the n values from offset k
+        return x.narrow(dim, k, n)
+
+    # smoothness of each pair (p, q) = (dd_k, dd_k+1), k = 0 .. n+2, over 13: the curvature (q - p)^2
+    # plus 3/13 of (p - 3q)^2 (Jiang & Peng's IS0 with (a, b) = (p, q)), (p + q)^2 (IS1) or
+    # (3p - q)^2 (IS2)
+    p, q = dd.narrow(dim, 0, n + 3), dd.narrow(dim, 1, n + 3)
+    curvature = torch.mul(t, t).add_(12.0 / 13.0 * EPS * dx * dx)
+    wa = _weight(curvature, torch.sub(p, q, alpha=3.0))
+    wb = _weight(curvature, p + q)
+    wc = _weight(curvature, torch.sub(q, p, alpha=3.0))
+    e = torch.diff(t, dim=dim)  # n + 2 fourth differences a - 2b + c
+    e_mid = at(e, 1)  # b - 2c + d of both biases
+    # left bias at node j: (a, b, c, d) = dd_j .. dd_j+3, weights wa_j, 6 wb_j+1, 3 wc_j+2;
+    # right bias: (a, b, c, d) = dd_j+4 .. dd_j+1, weights wc_j+3, 6 wb_j+2, 3 wa_j+1.
+    # Each correction is Phi = X / 3 - e_mid / 12 with X = (w0 (a - 2b + c) + 1/2 w2 e_mid) / sum(w)
+    num_left = torch.mul(at(wa, 0), at(e, 0)).addcmul_(at(wc, 2), e_mid, value=1.5)
+    sum_left = torch.add(at(wa, 0), at(wb, 1), alpha=6.0).add_(at(wc, 2), alpha=3.0)
+    num_right = torch.mul(at(wc, 3), at(e, 2)).addcmul_(at(wa, 1), e_mid, value=1.5)
+    sum_right = torch.add(at(wc, 3), at(wb, 2), alpha=6.0).add_(at(wa, 1), alpha=3.0)
+    # central part (-D1 + 7 D2 + 7 D3 - D4) / 12 of node j's differences D1..D4 = d_j+1 .. d_j+4,
+    # kept as -12 times itself
+    inner = torch.add(at(d, 2), at(d, 3))
+    mean = torch.add(at(d, 1), at(d, 4)).add_(inner, alpha=-7.0)
+    # mean = central + (X_R - X_L) / 6 and half jump = (X_R + X_L) / 6 - e_mid / 12, both times -12
+    mean.addcdiv_(num_right, sum_right, value=-2.0).addcdiv_(num_left, sum_left, value=2.0)
+    half_jump = torch.addcdiv(e_mid, num_right, sum_right, value=-2.0).addcdiv_(num_left, sum_left, value=-2.0)
+    return mean, half_jump
 
 
 def derivatives(v: torch.Tensor, dim: int, dx: float, periodic: bool) -> tuple[torch.Tensor, torch.Tensor]:
     """Left- and right-biased WENO5 approximations of ``dV/dx_dim`` at every node, times ``SCALE * dx``.
 
-    The caller divides by ``SCALE * dx``, folded into its own factors. An eager solve is bound by
-    passes over memory, so this is written for few of them:
-
-    - the first differences stay undivided by ``dx``. Jiang & Peng's weights ``1 / (s + eps)^2`` then
-      see ``s dx^2``, and ``eps dx^2`` in place of ``eps`` gives each weight times ``dx^4``;
-    - each smoothness ``s = 13/12 (curvature^2 + 3/13 slope^2 + 12/13 eps)``, so the 13/12 and the
-      ``eps`` go into the shared curvature once, and a common ``(12/13)^2`` multiplies every weight;
-    - each smoothness indicator and weight is computed once on the padded line and read by both
-      biases, and the two biases share two of their three candidate stencils (``phi2`` of one is
-      ``phi3`` of the other);
-    - the stencils are kept at half their usual ``6x`` scale, two passes each.
-
-    Factors common to the three weights of a node cancel in their normalised combination, so the
-    result is Jiang & Peng's to round-off (``tests/test_groundtruth.py`` checks it against the
-    textbook formula in float64).
-    """
-    n = v.shape[dim]
-    d = torch.diff(pad(v, dim, periodic), dim=dim)  # n + 5 first differences D, times dx
-    dd = torch.diff(d, dim=dim)  # n + 4 second differences: D_{k+1} - D_k
-
-    def at(x: torch.Tensor, k: int, length: int) -> torch.Tensor:
-        return x.narrow(dim, k, length)
-
-    # Jiang-Peng smoothness of each triple (a, b, c) = (D_k, D_k+1, D_k+2), k = 0 .. n+2: the curvature
-    # 13/12 (a - 2b + c)^2 plus 1/4 of (a - 4b + 3c)^2, (a - c)^2 or (3a - 4b + c)^2. With the second
-    # differences p = b - a and q = c - b: a - 2b + c = q - p, a - 4b + 3c = -(p - 3q),
-    # a - c = -(p + q), 3a - 4b + c = q - 3p.
-    p, q = at(dd, 0, n + 3), at(dd, 1, n + 3)
-    curvature = (q - p).square_().add_(12.0 / 13.0 * EPS * dx * dx)
-    wa = _weight(curvature, torch.sub(p, q, alpha=3.0))
-    wb = _weight(curvature, p + q)
-    wc = _weight(curvature, torch.sub(q, p, alpha=3.0))
-    D = [at(d, k, n) for k in range(6)]
-    # candidate stencils (times 3): phi1, phi2, phi3 of the left bias read D_0..D_4, the right bias
-    # reads D_5..D_1 backwards, so its phi2 and phi3 are the left bias's phi3 and phi2
-    left1 = torch.add(D[0], D[1], alpha=-3.5).add_(D[2], alpha=5.5)
-    middle_left = torch.add(D[3], D[1], alpha=-0.5).add_(D[2], alpha=2.5)
-    middle_right = torch.add(D[2], D[4], alpha=-0.5).add_(D[3], alpha=2.5)
-    right1 = torch.add(D[5], D[4], alpha=-3.5).add_(D[3], alpha=5.5)
-    left = _weighted(left1, middle_left, middle_right, at(wa, 0, n), at(wb, 1, n), at(wc, 2, n), True)
-    right = _weighted(right1, middle_right, middle_left, at(wc, 3, n), at(wb, 2, n), at(wa, 1, n), True)
-    return left, right
+    For tests and inspection: the solver reads :func:`mean_and_half_jump` directly."""
+    mean, half_jump = mean_and_half_jump(v, dim, dx, periodic)
+    return mean - half_jump, mean + half_jump

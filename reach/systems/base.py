@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from reach.systems.backend import FLOAT, TORCH, Backend, Column
+from reach.systems.hamiltonian import FixedStateHamiltonian
 
 Objective = Literal["max", "min"]
 #: Sparse input matrix: {(state index, input index): entry}; absent entries are zero.
@@ -379,21 +380,27 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
 
     def hamiltonian_columns(self, x: Sequence[Column], p: Sequence[Column], xp: Backend) -> Column:
         """``H(x, p) = opt_u opt_d p . xdot`` in closed form for box inputs."""
-        terms: list[Column] = [pi * fi for pi, fi in zip(p, self.drift(x, xp)) if not _is_number(fi, 0.0)]
+        return self.hamiltonian_at(x, xp)(p)
+
+    def hamiltonian_at(
+        self, x: Sequence[Column], xp: Backend, *, scale: Sequence[float] | None = None, prune: bool = False
+    ) -> FixedStateHamiltonian:
+        """``p -> H(x, scale * p)`` with the drift and input matrices evaluated once at the states ``x``.
+
+        For callers that read ``H`` at the same states many times (the grid solver). ``prune`` drops
+        drift and matrix entries that are zero at every state (it reads each array column once);
+        ``scale`` folds a number factor per costate component into the coefficients.
+        """
         sides = [(self.control_matrix(x, xp), self.control_bounds, self.control_objective)]
         if self.disturbance_dim:
             sides.append((self.disturbance_matrix(x, xp), self.disturbance_bounds, self.disturbance_objective))
-        for matrix, box, objective in sides:
-            sigma = 1.0 if objective == "max" else -1.0
-            for sj, c, hw in zip(self._switching(matrix, p, box.dim), box.center, box.half_width):
-                if c != 0.0:  # a box centred on zero adds nothing here (and zero passes over a grid)
-                    terms.append(sj * c)
-                if hw != 0.0:
-                    terms.append(sigma * hw * xp.abs(sj))
-        h: Column = 0.0 if not terms else terms[0]
-        for term in terms[1:]:
-            h = h + term
-        return h
+        return FixedStateHamiltonian(
+            self.drift(x, xp),
+            [(m, box.center, box.half_width, 1.0 if objective == "max" else -1.0) for m, box, objective in sides],
+            xp,
+            scale=scale,
+            prune=prune,
+        )
 
     def dissipation_columns(self, x: Sequence[Column], xp: Backend) -> list[Column]:
         """``max over the input boxes of |xdot_i|`` per state dimension: bounds ``|dH/dp_i|``."""
