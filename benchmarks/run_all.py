@@ -3,9 +3,9 @@
 Run: ``python benchmarks/run_all.py --out bench-results`` (``--quick`` for smoke runs, ``--only
 rollouts envs`` for some, ``--compare OLD/summary.json`` to put an earlier run's wall times beside).
 
-Each script (environment throughput, grid solver, the grid solver against hj_reachability, training
-step, rollouts) runs in its own process, never two at once (they would time each other), with its
-full output kept in ``OUT/<name>.txt``.
+Each script (environment throughput, grid solver, one solver right-hand side, the grid solver
+against hj_reachability, training step, rollouts) runs in its own process, never two at once (they
+would time each other), with its full output kept in ``OUT/<name>.txt``.
 The summary lists exit status and wall time per script, and ``OUT/report.md`` gathers every
 script's markdown tables under its command line, for the README or for comparing machines.
 ``OUT/summary.json`` holds the same, plus versions, for ``--compare``.
@@ -28,6 +28,7 @@ HERE = Path(__file__).resolve().parent
 SCRIPTS = {
     "envs": ["bench_envs.py"],
     "groundtruth": ["bench_groundtruth.py"],
+    "rhs": ["bench_rhs.py", "--grids", "51", "101"],
     "hj_reachability": ["bench_groundtruth.py", "--against", "hj_reachability"],
     "training": ["bench_training.py"],
     "rollouts": ["bench_rollouts.py"],
