@@ -5,6 +5,11 @@ For node ``i`` the left-biased derivative uses the five one-sided differences
 Both read the same three smoothness indicators of each triple of consecutive differences, so they are
 computed once for the whole padded line and sliced: this halves the work of a naive implementation.
 
+Two forms give the same values to round-off: :func:`mean_and_half_jump` (Jiang & Peng's central
+part plus corrections, the fewest passes over memory, for eager solves) and
+:func:`biased_derivatives` (the one-sided stencils, for solves under ``torch.compile``, where the
+arithmetic counts instead). The solver calls the first, which hands over to the second when compiling.
+
 Boundaries: periodic dimensions wrap; other dimensions are padded with three ghost nodes that
 *extrapolate away from zero* (``V_edge + sign(V_edge) |V_edge - V_inner| k``), so that the zero level
 set never enters from the box edge.
@@ -167,9 +172,10 @@ def biased_derivatives(v: torch.Tensor, dim: int, dx: float, periodic: bool) -> 
 
     The form :func:`mean_and_half_jump` takes under ``torch.compile``: fused into a few kernels,
     passes over memory cost little, and what counts is the arithmetic and the buffers the compiler
-    keeps. Compiled, this form ran DubinsAccel 41^4's right-hand side in 23.6 ms against 27.0 ms for
-    Jiang & Peng's form (which divides twice per bias and keeps two more difference arrays); eager,
-    it is the slower one. It is built from the one-sided stencils:
+    keeps. With the per-end padding, compiled, Jiang & Peng's form (which divides twice per bias and
+    keeps two more difference arrays) made DubinsAccel 41^4's right-hand side 15 % slower than this
+    one in a side-by-side test (27.0 against 23.6 ms; docs/groundtruth.md, *Eager speed*); eager,
+    this one is the slower. It is built from the one-sided stencils:
 
     - the first differences stay undivided by ``dx``. Jiang & Peng's weights ``1 / (s + eps)^2`` then
       see ``s dx^2``, and ``eps dx^2`` in place of ``eps`` gives each weight times ``dx^4``;
