@@ -72,10 +72,10 @@ def main() -> None:
     )
     print("| grid | mode | ms per call | first call s |")
     print("|---|---|---:|---:|")
+    dims = make_system(args.system).state_dim
     for n in args.grids:
         for mode in modes:
             ms, first = time_rhs(args.system, n, mode == "compiled", args.calls, args.repeats)
-            dims = make_system(args.system).state_dim
             print(f"| {n}^{dims} | {mode} | {ms:.2f} | {first:.1f} |", flush=True)
 
 

@@ -75,6 +75,18 @@ def _weight(curvature: torch.Tensor, slope: torch.Tensor) -> torch.Tensor:
     return torch.addcmul(curvature, slope, slope, value=3.0 / 13.0).pow_(-2)
 
 
+def _weights(
+    curvature: torch.Tensor, p: torch.Tensor, q: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The weights of each pair ``(p, q)`` of consecutive second differences, for Jiang & Peng's
+    slopes ``p - 3q`` (their IS0), ``p + q`` (IS1) and ``q - 3p`` (IS2); both forms read them."""
+    return (
+        _weight(curvature, torch.sub(p, q, alpha=3.0)),
+        _weight(curvature, p + q),
+        _weight(curvature, torch.sub(q, p, alpha=3.0)),
+    )
+
+
 def mean_and_half_jump(v: torch.Tensor, dim: int, dx: float, periodic: bool) -> tuple[torch.Tensor, torch.Tensor]:
     """``(left + right) / 2`` and ``(right - left) / 2`` of the WENO5 derivatives along ``dim``, times
     ``SCALE * dx``: what a Lax-Friedrichs Hamiltonian reads (the mean as the costate, the half jump
@@ -121,9 +133,7 @@ def mean_and_half_jump(v: torch.Tensor, dim: int, dx: float, periodic: bool) -> 
     # (3p - q)^2 (IS2)
     p, q = dd.narrow(dim, 0, n + 3), dd.narrow(dim, 1, n + 3)
     curvature = torch.mul(t, t).add_(12.0 / 13.0 * EPS * dx * dx)
-    wa = _weight(curvature, torch.sub(p, q, alpha=3.0))
-    wb = _weight(curvature, p + q)
-    wc = _weight(curvature, torch.sub(q, p, alpha=3.0))
+    wa, wb, wc = _weights(curvature, p, q)
     e = torch.diff(t, dim=dim)  # n + 2 fourth differences a - 2b + c
     e_mid = at(e, 1)  # b - 2c + d of both biases
     # left bias at node j: (a, b, c, d) = dd_j .. dd_j+3, weights wa_j, 6 wb_j+1, 3 wc_j+2;
@@ -203,9 +213,7 @@ def biased_derivatives(v: torch.Tensor, dim: int, dx: float, periodic: bool) -> 
     # a - c = -(p + q), 3a - 4b + c = q - 3p.
     p, q = at(dd, 0, n + 3), at(dd, 1, n + 3)
     curvature = (q - p).square_().add_(12.0 / 13.0 * EPS * dx * dx)
-    wa = _weight(curvature, torch.sub(p, q, alpha=3.0))
-    wb = _weight(curvature, p + q)
-    wc = _weight(curvature, torch.sub(q, p, alpha=3.0))
+    wa, wb, wc = _weights(curvature, p, q)
     D = [at(d, k, n) for k in range(6)]
     # candidate stencils (times 3): phi1, phi2, phi3 of the left bias read D_0..D_4, the right bias
     # reads D_5..D_1 backwards, so its phi2 and phi3 are the left bias's phi3 and phi2

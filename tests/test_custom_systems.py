@@ -19,7 +19,7 @@ import pytest
 import torch
 
 from reach.cli import main
-from reach.systems import Box, ControlAffineSystem, make_system, register_system, system_from_config
+from reach.systems import TORCH, Box, ControlAffineSystem, make_system, register_system, system_from_config
 from reach.systems.registry import SYSTEMS
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -271,3 +271,17 @@ def test_filter_eval_refuses_bad_system_and_nominal_options_before_work(options,
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
     assert not out.exists()
+
+
+def test_hamiltonian_at_prunes_zero_columns_and_folds_single_entry_inputs():
+    """A drift column written ``0.0 * x[k]`` costs the grid nothing once pruned, and an input that
+    moves one state component with a number gain becomes one ``|p_i|`` coefficient."""
+    system = DubinsAccel()
+    x = TORCH.unbind(system.sample_states(8, generator=torch.Generator().manual_seed(0), dtype=torch.float64))
+    pruned = system.hamiltonian_at(x, TORCH, prune=True)
+    assert pruned.linear[2] is None and pruned.linear[3] is None  # heading and speed have no drift
+    assert pruned.switches == []  # every input drives one component with a number gain
+    assert pruned.absolute == pytest.approx(
+        [-system.wind, -system.wind, system.max_turn_rate, system.max_accel]
+    )
+    assert system.hamiltonian_at(x, TORCH).linear[2] is not None  # unpruned: kept, as per call it must be

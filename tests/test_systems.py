@@ -90,26 +90,6 @@ def test_hamiltonian_at_fixed_states_with_scale_and_pruning_is_the_hamiltonian(s
     np.testing.assert_allclose(h_np, want.numpy(), rtol=1e-12, atol=1e-12)
 
 
-def test_hamiltonian_at_prunes_zero_columns_and_folds_single_entry_inputs():
-    """A drift column written ``0.0 * x[k]`` costs the grid nothing once pruned, and an input that
-    moves one state component with a number gain becomes one ``|p_i|`` coefficient."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-    from my_systems import DubinsAccel
-
-    system = DubinsAccel()
-    x = TORCH.unbind(system.sample_states(8, generator=torch.Generator().manual_seed(0), dtype=torch.float64))
-    pruned = system.hamiltonian_at(x, TORCH, prune=True)
-    assert pruned.linear[2] is None and pruned.linear[3] is None  # heading and speed have no drift
-    assert pruned.switches == []  # every input drives one component with a number gain
-    assert pruned.absolute == pytest.approx(
-        [-system.wind, -system.wind, system.max_turn_rate, system.max_accel]
-    )
-    assert system.hamiltonian_at(x, TORCH).linear[2] is not None  # unpruned: kept, as per call it must be
-
-
 @pytest.mark.parametrize("system", SYSTEMS, ids=lambda s: s.name + str(s.state_dim))
 def test_optimal_inputs_attain_the_hamiltonian(system):
     gen = torch.Generator().manual_seed(1)

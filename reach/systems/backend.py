@@ -29,6 +29,11 @@ TAU = 2.0 * math.pi
 Column = Any  # float | np.ndarray | torch.Tensor
 
 
+def is_number(value: Column, number: float) -> bool:
+    """Whether ``value`` is the plain Python number ``number`` (an array never is)."""
+    return isinstance(value, (int, float)) and value == number
+
+
 class FloatBackend:
     """Columns are Python floats; state vectors are lists of floats."""
 

@@ -37,7 +37,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 import torch
 
-from reach.systems.backend import FLOAT, TORCH, Backend, Column
+from reach.systems.backend import FLOAT, TORCH, Backend, Column, is_number
 from reach.systems.hamiltonian import FixedStateHamiltonian
 
 Objective = Literal["max", "min"]
@@ -102,11 +102,6 @@ class _CheckedOnConstruction(ABCMeta):
         system = super().__call__(*args, **kwargs)
         system.validate()
         return system
-
-
-def _is_number(value: Column, number: float) -> bool:
-    """Whether ``value`` is the plain Python number ``number`` (an array never is)."""
-    return isinstance(value, (int, float)) and value == number
 
 
 class ControlAffineSystem(metaclass=_CheckedOnConstruction):
@@ -358,7 +353,7 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
         """``G^T p``: one switching function per input dimension."""
         s: list[Column | None] = [None] * dim
         for (i, j), g in matrix.items():
-            term = p[i] if _is_number(g, 1.0) else g * p[i]  # skip passes that change nothing (the grid
+            term = p[i] if is_number(g, 1.0) else g * p[i]  # skip passes that change nothing (the grid
             s[j] = term if s[j] is None else s[j] + term  # solver runs these on every node, every stage)
         return [0.0 if sj is None else sj for sj in s]
 

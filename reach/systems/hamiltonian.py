@@ -30,7 +30,7 @@ from collections.abc import Sequence
 
 import torch
 
-from reach.systems.backend import Backend, Column
+from reach.systems.backend import Backend, Column, is_number
 
 #: one side's inputs: (matrix ``{(state i, input j): G_ij}``, centres, half widths, sigma)
 Side = tuple[dict[tuple[int, int], Column], Sequence[float], Sequence[float], float]
@@ -117,7 +117,7 @@ class FixedStateHamiltonian:
         for c, weight, terms in self.switches:
             (i, g), rest = terms[0], terms[1:]
             # s_j = sum g p_i; a lone unit entry is p_i itself, read but never written
-            s = p[i] if not rest and isinstance(g, (int, float)) and g == 1.0 else g * p[i]
+            s = p[i] if not rest and is_number(g, 1.0) else g * p[i]
             for i, g in rest:
                 s = _axpy(s, g, p[i])
             if c != 0.0:
