@@ -30,8 +30,8 @@ def pad(v: torch.Tensor, dim: int, periodic: bool, width: int = 3) -> torch.Tens
     if periodic:
         return torch.cat([v.narrow(dim, n - width, width), v, v.narrow(dim, 0, width)], dim)
     if torch.compiler.is_compiling():
-        # fused, one end at a time: compiled DubinsAccel 41^4 ran its right-hand side in 27.0 ms this
-        # way against 30.0 ms with the gathers of the eager form below
+        # fused, one end at a time: the gathers of the eager form below, compiled, were part of what
+        # made DubinsAccel 41^4's right-hand side 29.6-30.0 ms instead of 20-25 ms (docs/groundtruth.md)
         shape = [1] * v.ndim
         shape[dim] = width
         k = torch.arange(1, width + 1, dtype=v.dtype, device=v.device).reshape(shape)
@@ -182,10 +182,10 @@ def biased_derivatives(v: torch.Tensor, dim: int, dx: float, periodic: bool) -> 
 
     The form :func:`mean_and_half_jump` takes under ``torch.compile``: fused into a few kernels,
     passes over memory cost little, and what counts is the arithmetic and the buffers the compiler
-    keeps. With the per-end padding, compiled, Jiang & Peng's form (which divides twice per bias and
-    keeps two more difference arrays) made DubinsAccel 41^4's right-hand side 15 % slower than this
-    one in a side-by-side test (27.0 against 23.6 ms; docs/groundtruth.md, *Eager speed*); eager,
-    this one is the slower. It is built from the one-sided stencils:
+    keeps. Compiled, Jiang & Peng's form (which divides twice per bias and keeps two more difference
+    arrays) with the eager padding ran DubinsAccel 41^4's right-hand side in 29.6-30.0 ms, this form
+    in 20-25 ms (``benchmarks/bench_rhs.py``; docs/groundtruth.md, *Eager speed*); eager, this one is
+    the slower. It is built from the one-sided stencils:
 
     - the first differences stay undivided by ``dx``. Jiang & Peng's weights ``1 / (s + eps)^2`` then
       see ``s dx^2``, and ``eps dx^2`` in place of ``eps`` gives each weight times ``dx^4``;

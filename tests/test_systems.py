@@ -90,6 +90,18 @@ def test_hamiltonian_at_fixed_states_with_scale_and_pruning_is_the_hamiltonian(s
     np.testing.assert_allclose(h_np, want.numpy(), rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize(
+    "scale, message",
+    [([1.0, 1.0], "2 factors for 3"), ([1.0, float("nan"), 1.0], "nan"), ([1.0, 0.0, 1.0], "got 0.0")],
+)
+def test_hamiltonian_at_refuses_a_bad_scale(scale, message):
+    """A wrong count, a NaN or a zero factor is refused with the bad value named, before any H."""
+    system = Air3D()
+    x = TORCH.unbind(torch.zeros(4, 3, dtype=torch.float64))
+    with pytest.raises(ValueError, match=message):
+        system.hamiltonian_at(x, TORCH, scale=scale)
+
+
 @pytest.mark.parametrize("system", SYSTEMS, ids=lambda s: s.name + str(s.state_dim))
 def test_optimal_inputs_attain_the_hamiltonian(system):
     gen = torch.Generator().manual_seed(1)

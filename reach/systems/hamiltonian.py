@@ -26,6 +26,7 @@ one implementation of ``H``.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -80,6 +81,9 @@ class FixedStateHamiltonian:
         scale = [1.0] * n if scale is None else [float(s) for s in scale]
         if len(scale) != n:
             raise ValueError(f"scale has {len(scale)} factors for {n} costate components")
+        bad = [f for f in scale if not (math.isfinite(f) and f != 0.0)]
+        if bad:  # a NaN would spread into every H, a zero would silently drop a component
+            raise ValueError(f"scale factors must be finite and non-zero, got {bad[0]} in {scale}")
         self._xp = xp
         #: coefficient of p_i, of |p_i|, and the switching functions that mix components or vary with x
         self.linear: list[Column | None] = [None] * n
