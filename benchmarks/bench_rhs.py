@@ -3,7 +3,7 @@ dissipation), eager and compiled, in milliseconds.
 
 Run: ``PYTHONPATH=examples python benchmarks/bench_rhs.py --system my_systems:DubinsAccel --grids 21 31 41``
 (``--mode eager`` or ``--mode compiled`` for one of them). Each mode is timed as the solver runs it:
-inside ``reach.heap.retained_heap`` and ``torch.no_grad()``, on the system's failure margin, after
+inside ``reach.heap.retained_heap`` and ``torch.inference_mode()``, on the system's failure margin, after
 warm-up calls (which include compiling, from a fresh inductor cache unless
 ``--reuse-compile-cache``); it prints the best mean of ``--repeats`` blocks of ``--calls`` calls.
 A solve makes three calls per time step. Use it to compare two versions of the solver side by side
@@ -36,7 +36,7 @@ def time_rhs(system_name: str, n: int, compiled: bool, calls: int, repeats: int)
     rhs = _rhs_factory(system, grid, cols, bounds)
     if compiled:
         rhs = torch.compile(rhs)
-    with retained_heap(2**31 - 1), torch.no_grad():
+    with retained_heap(2**31 - 1), torch.inference_mode():  # as the solver runs it
         start = time.perf_counter()
         rhs(v)
         first = time.perf_counter() - start

@@ -46,6 +46,8 @@ ROWS: dict[str, list[str]] = {
     "both-bounds": ["--upper-bound", "{pairwise}", "--lower-bound", "policy"],
     # a quarter of each step's points where the network's own |V| is smallest (of 4x as many draws)
     "zero-level": ["--zero-level-fraction", "0.25"],
+    # the two terms that pushed towards soundness, without the labels that pulled the other way
+    "upper-zero-level": ["--upper-bound", "{pairwise}", "--zero-level-fraction", "0.25"],
     # issue 18's candidate recipe: both bounds and the zero-level points together. Trained for 2 hours
     # of its own quiet rate (``--minutes 120 --steps-per-minute 433``: 400 steps took 55.4 s against
     # 38.4 s for the defaults, `reach --threads 2 train ... --steps 400`, nothing else running)

@@ -17,51 +17,52 @@ set never enters from the box edge.
 
 from __future__ import annotations
 
-import functools
-
 import torch
 
 EPS = 1e-6  # Jiang & Peng's epsilon in the nonlinear weights
 
 
 def pad(v: torch.Tensor, dim: int, periodic: bool, width: int = 3) -> torch.Tensor:
-    """``v`` with ``width`` ghost nodes on both sides of dimension ``dim``."""
+    """``v`` with ``width`` ghost nodes on both sides of dimension ``dim`` (the form compiled solves
+    difference; eager solves difference without it, :func:`padded_differences`)."""
     n = v.shape[dim]
     if periodic:
         return torch.cat([v.narrow(dim, n - width, width), v, v.narrow(dim, 0, width)], dim)
-    if torch.compiler.is_compiling():
-        # fused, one end at a time: the gathers of the eager form below, compiled, were part of what
-        # made DubinsAccel 41^4's right-hand side 29.6-30.0 ms instead of 20-25 ms (docs/groundtruth.md)
-        shape = [1] * v.ndim
-        shape[dim] = width
-        k = torch.arange(1, width + 1, dtype=v.dtype, device=v.device).reshape(shape)
-        first, second = v.narrow(dim, 0, 1), v.narrow(dim, 1, 1)
-        last, before = v.narrow(dim, n - 1, 1), v.narrow(dim, n - 2, 1)
-        left = first + torch.sign(first) * (second - first).abs() * k.flip(dim)
-        right = last + torch.sign(last) * (last - before).abs() * k
-        return torch.cat([left, v, right], dim)
-    # eager: both ends at once, 9 dispatches on the thin ghost slabs instead of about 16 (each one a
-    # cost on every stage of a solve): the edge and its neighbour repeated width times per end, and
-    # the ghosts' distances width .. 1 | 1 .. width from the edge
-    edge_index, inner_index, distance = _ghost_indices(n, width, v.ndim, dim, v.dtype, v.device)
-    edge = v.index_select(dim, edge_index)
-    step = (edge - v.index_select(dim, inner_index)).abs_().mul_(edge.sign())
-    ghosts = step.mul_(distance).add_(edge)
-    return torch.cat([ghosts.narrow(dim, 0, width), v, ghosts.narrow(dim, width, width)], dim)
+    shape = [1] * v.ndim
+    shape[dim] = width
+    k = torch.arange(1, width + 1, dtype=v.dtype, device=v.device).reshape(shape)
+    first, second = v.narrow(dim, 0, 1), v.narrow(dim, 1, 1)
+    last, before = v.narrow(dim, n - 1, 1), v.narrow(dim, n - 2, 1)
+    left = first + torch.sign(first) * (second - first).abs() * k.flip(dim)
+    right = last + torch.sign(last) * (last - before).abs() * k
+    return torch.cat([left, v, right], dim)
 
 
-@functools.cache
-def _ghost_indices(
-    n: int, width: int, ndim: int, dim: int, dtype: torch.dtype, device: torch.device
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The edge and inner node of each ghost of the eager :func:`pad` (left ghosts first) and their
-    distances, shaped to broadcast along ``dim`` of an ``ndim``-dimensional grid."""
-    edge = torch.tensor([0] * width + [n - 1] * width, device=device)
-    inner = torch.tensor([1] * width + [n - 2] * width, device=device)
-    shape = [1] * ndim
-    shape[dim] = 2 * width
-    distance = [float(width - k) for k in range(width)] + [float(k + 1) for k in range(width)]
-    return edge, inner, torch.tensor(distance, dtype=dtype, device=device).reshape(shape)
+def padded_differences(v: torch.Tensor, dim: int, periodic: bool, width: int = 3) -> torch.Tensor:
+    """``torch.diff(pad(v, dim, periodic, width), dim=dim)`` without forming the padded copy.
+
+    The ``n + 2 width - 1`` first differences are written into one buffer: the ``n - 1`` interior
+    ones straight from ``v``, then the ghost ones, which need no ghost node. Periodic, they are the
+    wrap-around difference and copies of interior ones. Extrapolated away from zero, every ghost
+    difference at an end equals the edge's: ``-sign(V_0) |V_1 - V_0|`` on the left and
+    ``sign(V_n-1) |V_n-1 - V_n-2|`` on the right. An eager solve is bound by passes over memory, and
+    the padded copy was one full pass per dimension and stage (with the gathers that filled its
+    ghosts, 7-8 % of a DubinsAccel 31^4 solve, docs/groundtruth.md)."""
+    n = v.shape[dim]
+    shape = list(v.shape)
+    shape[dim] = n + 2 * width - 1
+    d = v.new_empty(shape)
+    torch.sub(v.narrow(dim, 1, n - 1), v.narrow(dim, 0, n - 1), out=d.narrow(dim, width, n - 1))
+    if periodic:  # d holds the cyclic differences from offset width; the ghosts repeat their ends
+        torch.sub(v.narrow(dim, 0, 1), v.narrow(dim, n - 1, 1), out=d.narrow(dim, width + n - 1, 1))
+        d.narrow(dim, 0, width).copy_(d.narrow(dim, n, width))
+        d.narrow(dim, width + n, width - 1).copy_(d.narrow(dim, width, width - 1))
+        return d
+    left = d.narrow(dim, width, 1).abs().mul_(v.narrow(dim, 0, 1).sign()).neg_()
+    right = d.narrow(dim, width + n - 2, 1).abs().mul_(v.narrow(dim, n - 1, 1).sign())
+    d.narrow(dim, 0, width).copy_(left)
+    d.narrow(dim, width + n - 1, width).copy_(right)
+    return d
 
 
 #: :func:`mean_and_half_jump` returns ``SCALE * dx`` times the mean and the half jump of the two
@@ -121,7 +122,7 @@ def mean_and_half_jump(v: torch.Tensor, dim: int, dx: float, periodic: bool) -> 
         left, right = biased_derivatives(v, dim, dx, periodic)
         return (left + right) * (SCALE / (2.0 * BIASED_SCALE)), (right - left) * (SCALE / (2.0 * BIASED_SCALE))
     n = v.shape[dim]
-    d = torch.diff(pad(v, dim, periodic), dim=dim)  # n + 5 first differences, times dx
+    d = padded_differences(v, dim, periodic)  # n + 5 first differences, times dx
     dd = torch.diff(d, dim=dim)  # n + 4 second differences
     t = torch.diff(dd, dim=dim)  # n + 3 third differences: the curvature of each pair (p, q) of dd
 
@@ -132,7 +133,8 @@ def mean_and_half_jump(v: torch.Tensor, dim: int, dx: float, periodic: bool) -> 
     # plus 3/13 of (p - 3q)^2 (Jiang & Peng's IS0 with (a, b) = (p, q)), (p + q)^2 (IS1) or
     # (3p - q)^2 (IS2)
     p, q = dd.narrow(dim, 0, n + 3), dd.narrow(dim, 1, n + 3)
-    curvature = torch.mul(t, t).add_(12.0 / 13.0 * EPS * dx * dx)
+    floor = torch.tensor(12.0 / 13.0 * EPS * dx * dx, dtype=t.dtype)  # a CPU scalar serves any device
+    curvature = torch.addcmul(floor, t, t)  # one pass, not a product and then a sum
     wa, wb, wc = _weights(curvature, p, q)
     e = torch.diff(t, dim=dim)  # n + 2 fourth differences a - 2b + c
     e_mid = at(e, 1)  # b - 2c + d of both biases

@@ -272,6 +272,27 @@ def _textbook_weno5(v: np.ndarray, dx: float) -> tuple[np.ndarray, np.ndarray]:
     return left, right
 
 
+@pytest.mark.parametrize("periodic", [False, True])
+def test_padded_differences_are_the_differences_of_the_padded_grid(periodic):
+    """The eager solver differences without forming the padded copy: along every dimension, on
+    random values with a zero edge, a negative edge and a flat edge, its ghost differences are those
+    of the ghost nodes (periodic wrap, or extrapolation away from zero) to round-off."""
+    from groundtruth.weno import pad, padded_differences
+
+    gen = torch.Generator().manual_seed(3)
+    v = torch.randn(7, 9, 6, 8, dtype=torch.float64, generator=gen)
+    v[0] = 0.0  # sign 0: flat ghosts
+    v[:, 0] = -v[:, 0].abs()  # negative edge: ghosts extrapolate downwards
+    v[..., -1] = v[..., -2]  # flat edge
+    for dim in range(v.ndim):
+        want = torch.diff(pad(v, dim, periodic), dim=dim)
+        got = padded_differences(v, dim, periodic)
+        assert got.shape == want.shape
+        torch.testing.assert_close(got, want, rtol=0, atol=1e-14)
+        if dim > 0:  # (along dim 0 the left edge is the zero slice: its ghost differences are 0)
+            assert got.narrow(dim, 0, 3).abs().sum() > 0
+
+
 @pytest.mark.parametrize("profile", ["smooth", "kinked"])
 def test_weno5_derivatives_match_the_textbook_formula(profile):
     """Both of the solver's WENO5 forms (shared weights, their scale left to the caller) are the
