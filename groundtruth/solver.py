@@ -230,9 +230,8 @@ def solve(
     with (
         keep_heap,
         # nothing here is differentiated, so the Hamiltonian may accumulate in place, and inference mode
-        # skips the version counters and view records of the ~70 tensor calls per dimension and stage
-        # (DubinsAccel 21^4: 5-8 % of a WENO5 pass); the stored slices are stacked outside it, so the
-        # solution's values are ordinary tensors
+        # skips the version counters and view records of the ~70 tensor calls per dimension and stage;
+        # the stored slices are stacked outside it, so the solution's values are ordinary tensors
         torch.inference_mode(),
         tqdm(
             total=out_times[-1],

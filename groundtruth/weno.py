@@ -46,8 +46,8 @@ def padded_differences(v: torch.Tensor, dim: int, periodic: bool, width: int = 3
     wrap-around difference and copies of interior ones. Extrapolated away from zero, every ghost
     difference at an end equals the edge's: ``-sign(V_0) |V_1 - V_0|`` on the left and
     ``sign(V_n-1) |V_n-1 - V_n-2|`` on the right. An eager solve is bound by passes over memory, and
-    the padded copy was one full pass per dimension and stage (with the gathers that filled its
-    ghosts, 7-8 % of a DubinsAccel 31^4 solve, docs/groundtruth.md)."""
+    the padded copy was one full pass per dimension and stage, plus the gathers that filled its
+    ghosts (docs/groundtruth.md, *No padded copy*)."""
     n = v.shape[dim]
     shape = list(v.shape)
     shape[dim] = n + 2 * width - 1
