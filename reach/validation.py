@@ -161,15 +161,53 @@ def device_arg(text: str) -> str:
 
 
 def csv_floats(name: str, text: str, check: Callable[[str, Any], float] = check_float) -> list[float]:
-    """Comma-separated finite numbers (``"0,0.03,0.1"``), each checked by ``check``."""
+    """Comma-separated finite numbers (``"0,0.03,0.1"``), each checked by ``check``.
+
+    An arithmetic progression may be written with an ellipsis, as in the docs' commands:
+    ``"0,0.05,...,1.1"`` is 0, 0.05, 0.1, ..., 1.1 (23 numbers). The ellipsis must stand between the
+    first two terms, which fix the step, and the last; a last term that the step does not reach
+    exactly is refused rather than rounded to the nearest term.
+    """
     items = [v.strip() for v in str(text).split(",") if v.strip()]
     if not items:
         raise ValueError(f"{name} must list at least one number, got {text!r}")
+    if "..." in items:
+        return [check(name, value) for value in _progression(name, text, items)]
     out = []
     for item in items:
-        try:
-            value = float(item)
-        except ValueError:
-            raise ValueError(f"{name} must be comma-separated numbers, got {item!r} in {text!r}") from None
-        out.append(check(name, value))
+        out.append(check(name, _number(name, item, text)))
     return out
+
+
+def _number(name: str, item: str, text: str) -> float:
+    try:
+        return float(item)
+    except ValueError:
+        raise ValueError(f"{name} must be comma-separated numbers, got {item!r} in {text!r}") from None
+
+
+#: the most terms an ellipsis may stand for (a typo such as "0,1e-9,...,1" fails instead of allocating)
+MAX_PROGRESSION_TERMS = 100_000
+
+
+def _progression(name: str, text: str, items: list[str]) -> list[float]:
+    """The terms of ``"a,b,...,c"``: from a in steps of b - a (> 0) up to c, which a whole number of
+    steps must reach (to a relative 1e-9 of the step)."""
+    if len(items) != 4 or items[2] != "...":
+        raise ValueError(f"{name}: an ellipsis must read FIRST,SECOND,...,LAST, got {text!r}")
+    first, second, last = (_number(name, items[i], text) for i in (0, 1, 3))
+    for value in (first, second, last):
+        check_float(name, value)
+    step = second - first
+    if step <= 0:
+        raise ValueError(f"{name}: the step {second!r} - {first!r} of {text!r} must be positive")
+    count = (last - first) / step
+    whole = round(count)
+    if whole < 1 or abs(count - whole) > 1e-9 * max(1.0, whole):
+        raise ValueError(f"{name}: {last!r} is not a whole number of steps of {step:g} from {first!r} in {text!r}")
+    if whole + 1 > MAX_PROGRESSION_TERMS:
+        raise ValueError(f"{name}: {text!r} stands for {whole + 1} numbers (at most {MAX_PROGRESSION_TERMS})")
+    # each term from the first and its index (no accumulated error); the last is the one written
+    # rounded well below the step, so 0.05 * 3 reads 0.15, not 0.15000000000000002
+    decimals = 12 + max(0, math.ceil(-math.log10(step)))
+    return [round(first + k * step, decimals) for k in range(whole)] + [last]

@@ -23,6 +23,7 @@ from reach.atomic import atomic_path
 from reach.cli import main
 from reach.locking import LockedError, exclusive_lock, run_lock
 from reach.systems import Air3D, MultiVehicle9D, RelativePair
+from reach.validation import csv_floats
 from reach_envs.common import EpisodeOverError
 from safety import SafetyFilter
 from training import NeuralValueFunction, TrainConfig, Trainer, ValueNetwork, load_network, save_checkpoint
@@ -401,6 +402,8 @@ def test_ground_truth_of_another_system_is_refused(tmp_path, pair_grid):
         (["groundtruth", "nosuchsystem", "--out", "g.npz"], ["nosuchsystem"]),
         (["groundtruth", "air3d", "--grid", "21", "--out", "/etc/passwd/x.npz"], ["/etc/passwd"]),
         (["groundtruth", "air3d", "--grid", "21", "--times", "0.5,0.2", "--out", "g.npz"], ["--times"]),
+        (["groundtruth", "air3d", "--grid", "21", "--times", "0,0.3,...,1.1", "--out", "g.npz"], ["--times", "1.1"]),
+        (["filter-eval", "--thresholds", "0,0.01,...,inf"], ["--thresholds", "inf"]),
         (["bogus-command"], ["bogus-command"]),
     ],
 )
@@ -414,6 +417,42 @@ def test_cli_errors_are_one_line_naming_the_value(args, needles, tmp_path, capsy
         code = exit_.code
     one_line_error(code, capsys.readouterr().err, *needles)
     assert time.perf_counter() - start < 60  # refused before any work
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("0,0.05,...,1.1", [round(0.05 * k, 12) for k in range(23)]),
+        ("0,0.1,...,1.0", [round(0.1 * k, 12) for k in range(11)]),
+        ("0.5,1,...,2", [0.5, 1.0, 1.5, 2.0]),
+        ("0,0.1,...,0.1", [0.0, 0.1]),
+        ("0.2,0.5,1", [0.2, 0.5, 1.0]),
+    ],
+)
+def test_number_lists_take_an_arithmetic_progression(text, expected):
+    """The docs write output times as ``0,0.05,...,1.1``; each term is exact to round-off and the
+    last is the number written."""
+    values = csv_floats("--times", text)
+    assert values == pytest.approx(expected, abs=1e-12)
+    assert values[-1] == float(text.split(",")[-1])
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        ("0,0.3,...,1", "whole number of steps"),  # the step does not reach the last term
+        ("1,0.5,...,0", "must be positive"),
+        ("0,...,1", "FIRST,SECOND,...,LAST"),
+        ("0,0.1,...", "FIRST,SECOND,...,LAST"),
+        ("0,0.1,...,0.5,...,1", "FIRST,SECOND,...,LAST"),
+        ("0,0.1,...,nan", "nan"),
+        ("0,1e-9,...,1", "at most"),  # refused before a billion numbers are made
+    ],
+)
+def test_a_malformed_progression_is_refused_naming_it(text, needle):
+    with pytest.raises(ValueError, match="--times") as err:
+        csv_floats("--times", text)
+    assert needle in str(err.value)
 
 
 def test_debug_shows_the_traceback(tmp_path):

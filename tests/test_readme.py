@@ -22,3 +22,17 @@ def test_readme_stays_a_door():
     assert len(lines) <= 250, f"README has {len(lines)} lines; measured detail belongs in docs/"
     for link in re.findall(r"\]\((docs/[^)#]+)", README.read_text()):
         assert (README.parent / link).exists(), link
+
+
+def test_readme_tables_are_well_formed():
+    """Every row of a README table has its header's cells (a stray or missing `|` shifts a result
+    into the wrong column, or drops its link to the details)."""
+    header = None
+    for number, line in enumerate(README.read_text().splitlines(), 1):
+        if not line.startswith("|"):
+            header = None
+            continue
+        cells = line.strip().strip("|").count("|") + 1
+        if header is None:
+            header = cells
+        assert cells == header, f"README.md:{number} has {cells} cells, its table's header {header}"

@@ -30,8 +30,8 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--times",
         default=None,
-        help="comma-separated output times, e.g. 0.5,1.0 (default: every 0.1 s from 0 to the horizon, which "
-        "rollouts and filters need)",
+        help="comma-separated output times, e.g. 0.5,1.0 or 0,0.05,...,1.1 (default: every 0.1 s from 0 to the "
+        "horizon, which rollouts and filters need)",
     )
     p.add_argument(
         "--cfl",
