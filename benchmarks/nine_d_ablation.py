@@ -26,6 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from nine_d_accuracy_vs_time import (
     add_run_arguments,
+    ensure_pairwise,
     evaluate_runs,
     read_metrics,
     seed_cells,
@@ -55,6 +56,14 @@ ROWS: dict[str, list[str]] = {
 }
 
 
+def ensure_pairwise_for(rows: list[str], pairwise: Path) -> int:
+    """Solve the pairwise grid ``pairwise`` first where one of ``rows`` trains against it (a run
+    resumed on a fresh machine needs it as much as a new one). Returns the exit status (0: ready)."""
+    if any("{pairwise}" in option for row in rows for option in ROWS[row]):
+        return ensure_pairwise(pairwise)
+    return 0
+
+
 def run_dir(args: argparse.Namespace, row: str, seed: int) -> Path:
     """The run of a row and seed: the study's for the baseline where it exists, else the ablation's."""
     if row == "baseline":
@@ -66,6 +75,9 @@ def run_dir(args: argparse.Namespace, row: str, seed: int) -> Path:
 
 def train(args: argparse.Namespace) -> int:
     steps = round(args.minutes * args.steps_per_minute)
+    code = ensure_pairwise_for(args.rows, Path(args.pairwise))
+    if code:
+        return code
     for row in args.rows:
         options = [option.format(pairwise=args.pairwise) for option in ROWS[row]]
         for seed in args.seeds:

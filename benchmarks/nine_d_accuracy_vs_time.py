@@ -76,14 +76,22 @@ def finished(run: Path) -> bool:
     return target is None or int(meta.get("steps", 0)) >= int(target)
 
 
+def ensure_pairwise(path: Path) -> int:
+    """Solve the union of pairwise BRTs into ``path`` (``reach groundtruth relativepair --grid 101``)
+    unless it is there: the scoring needs it, and so does every run trained with ``--upper-bound``,
+    also when it resumes on a fresh machine. Returns the command's exit status (0 when present)."""
+    if path.exists():
+        return 0
+    return reach_main(["groundtruth", "relativepair", "--grid", "101", "--out", str(path)])
+
+
 def evaluate_runs(runs: list[Path], args: argparse.Namespace) -> int:
     """``reach evaluate`` of the runs that have a checkpoint, with the study's settings (solving the
     pairwise union first if missing), into ``args.out / results.csv``."""
     pairwise = Path(args.pairwise)
-    if not pairwise.exists():
-        code = reach_main(["groundtruth", "relativepair", "--grid", "101", "--out", str(pairwise)])
-        if code:
-            return code
+    code = ensure_pairwise(pairwise)
+    if code:
+        return code
     done = [str(run) for run in runs if finished(run)]
     if not done:
         print("no finished runs yet", file=sys.stderr)

@@ -27,7 +27,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from nine_d_ablation import ROWS
+from nine_d_ablation import ROWS, ensure_pairwise_for
 from nine_d_accuracy_vs_time import (
     add_run_arguments,
     evaluate_runs,
@@ -73,6 +73,9 @@ def steps_for(args: argparse.Namespace, layout: str) -> int:
 
 
 def train(args: argparse.Namespace) -> int:
+    code = ensure_pairwise_for([args.with_row], Path(args.pairwise))
+    if code:
+        return code
     options = [option.format(pairwise=args.pairwise) for option in ROWS[args.with_row]]
     for seed in args.seeds:  # every layout's seed 0 first: a partial study still ranks them all
         for layout in args.layouts:

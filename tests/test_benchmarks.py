@@ -151,3 +151,40 @@ def test_false_safe_levels_shrink_with_the_level(tmp_path: Path, capsys, monkeyp
     assert [r[0] for r in rows] == [0, 0.05, 0.2]
     assert all(a[1] >= b[1] and a[2] >= b[2] for a, b in itertools.pairwise(rows))
     assert rows[0][2] > rows[-1][2]  # an untrained network's V spreads over these levels
+
+
+def test_rows_trained_against_the_union_solve_the_pair_grid_first(tmp_path: Path, monkeypatch):
+    """A run trained with --upper-bound reads the pair grid again when it resumes; on a fresh machine
+    (the grid is not in the repository) the study scripts solve it before training, and only then."""
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    import nine_d_ablation as ablation
+    import nine_d_accuracy_vs_time as study
+    import nine_d_layouts as layouts
+
+    calls: list[list[str]] = []
+    monkeypatch.setattr(study, "reach_main", lambda argv: calls.append(argv) or 0)
+    pairwise = tmp_path / "pair.npz"
+    common = ["--out", str(tmp_path / "s"), "--pairwise", str(pairwise), "--seeds", "0"]
+    assert ablation.main(["train", "--rows", "upper-bound", "--minutes", "0.01", *common]) == 0
+    solve, trained = calls
+    assert solve[:2] == ["groundtruth", "relativepair"] and solve[-1] == str(pairwise)
+    assert trained[0] == "train" and trained[trained.index("--upper-bound") + 1] == str(pairwise)
+
+    calls.clear()
+    assert layouts.main(["train", "--layouts", "ssssl", "--with", "upper-bound", "--minutes", "0.01", *common]) == 0
+    assert calls[0][:2] == ["groundtruth", "relativepair"] and calls[1][0] == "train"
+
+    calls.clear()  # no row that needs it: nothing solved
+    assert ablation.main(["train", "--rows", "zero-level", "--minutes", "0.01", *common]) == 0
+    assert [c[0] for c in calls] == ["train"]
+
+    calls.clear()  # already there: not solved again
+    pairwise.write_bytes(b"")
+    assert ablation.main(["train", "--rows", "upper-bound", "--minutes", "0.01", *common]) == 0
+    assert [c[0] for c in calls] == ["train"]
+    # a failed solve stops before training
+    pairwise.unlink()
+    monkeypatch.setattr(study, "reach_main", lambda argv: calls.append(argv) or 2)
+    calls.clear()
+    assert ablation.main(["train", "--rows", "upper-bound", "--minutes", "0.01", *common]) == 2
+    assert [c[0] for c in calls] == ["groundtruth"]
