@@ -86,15 +86,24 @@ class MinimumOf:
     BRTs (:class:`~groundtruth.pairwise.PairwiseUnion`) bounds its value from above, and
     ``MinimumOf(network, union)`` misses none of the union's unsafe states.
 
-    **Gradient.** The minimising member's (a subgradient where two tie): the induced policy switches
-    to the bound's optimal inputs where the bound is active. :meth:`active` says where that is.
+    **Gradient.** By default the minimising member's (a subgradient where two tie): the induced
+    policy switches to the bound's optimal inputs where the bound is active. :meth:`active` says
+    where that is. ``steer_by=k`` returns member ``k``'s gradient everywhere instead, so the value is
+    capped while the policy stays member ``k``'s. That is what a bound such as the union of pairwise
+    BRTs calls for: its gradient steers only the closest pair and leaves the third car driving
+    straight, which a filter's backup rollout pays for (docs: Verification, capping a 9D network).
+    The capped value and member ``k``'s gradient then disagree where the bound is active; a filter
+    that reads both (the smooth filter's barrier condition) treats the bound's value as a level
+    there, not as a function to descend.
 
     Members must share the physics (:meth:`~reach.systems.base.ControlAffineSystem.same_physics`);
     the composition's ``system`` is the first member's, and its ``time_range`` the times every
     member covers.
     """
 
-    def __init__(self, *members: ValueFunction, labels: tuple[str, ...] | None = None) -> None:
+    def __init__(
+        self, *members: ValueFunction, labels: tuple[str, ...] | None = None, steer_by: int | None = None
+    ) -> None:
         if len(members) < 2:
             raise ValueError(f"MinimumOf needs at least two value functions, got {len(members)}")
         for k, member in enumerate(members):
@@ -104,8 +113,13 @@ class MinimumOf:
                 members[0].system.require_same_physics(member.system, f"MinimumOf member {k}")
         if labels is not None and len(labels) != len(members):
             raise ValueError(f"MinimumOf: {len(labels)} labels for {len(members)} members")
+        if steer_by is not None and (
+            isinstance(steer_by, bool) or not isinstance(steer_by, int) or not 0 <= steer_by < len(members)
+        ):
+            raise ValueError(f"MinimumOf: steer_by must be a member index in [0, {len(members) - 1}], got {steer_by!r}")
         self.members = tuple(members)
         self.labels = labels
+        self.steer_by = steer_by
         self.system = members[0].system
         ranges = [r for r in (time_range(m) for m in members) if r is not None]
         self.time_range = (max(r[0] for r in ranges), min(r[1] for r in ranges)) if ranges else None
@@ -122,6 +136,11 @@ class MinimumOf:
 
     def value_and_gradient(self, x: torch.Tensor, t: float | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         self._check(t)
+        if self.steer_by is not None:  # the others' values only: no gradient of the bound is taken
+            k = self.steer_by
+            value, grad = value_and_gradient(self.members[k], x, t)
+            others = [m.value(x, t) for j, m in enumerate(self.members) if j != k]
+            return torch.stack([value, *others], dim=-1).min(dim=-1).values, grad
         both = [value_and_gradient(m, x, t) for m in self.members]
         values = torch.stack([v for v, _ in both], dim=-1)
         best = values.argmin(dim=-1, keepdim=True)

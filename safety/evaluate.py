@@ -27,7 +27,7 @@ from reach.validation import check_output_path
 from safety.metrics import containment_statistics
 from safety.results_io import markdown_table as format_table
 from safety.results_io import write_results
-from safety.value_functions import MIN_PREFIX, load_value_function, min_sources, resolve_checkpoint
+from safety.value_functions import CAP_PREFIX, is_composition, load_value_function, min_sources, resolve_checkpoint
 from safety.verify import VerifySettings, sample_states, values_at, verify
 from training.evaluate import ReferenceEvaluator
 
@@ -69,14 +69,15 @@ def expand_sources(patterns: Sequence[str]) -> list[str]:
             out.extend(matches)
         else:
             out.append(pattern)
-    return list(dict.fromkeys(p if p.startswith(MIN_PREFIX) else os.path.normpath(p) for p in out))
+    return list(dict.fromkeys(p if is_composition(p) else os.path.normpath(p) for p in out))
 
 
 def fingerprint(path: str) -> dict[str, Any]:
     """What identifies one version of a source: resolved file, size, modification time (of every
-    member of a ``min:A,B`` source)."""
-    if path.startswith(MIN_PREFIX):
-        return {"members": [fingerprint(p) for p in min_sources(path)]}
+    member of a ``min:A,B`` source; a ``cap:A,B`` source, whose policy differs, says so)."""
+    if is_composition(path):
+        members = {"members": [fingerprint(p) for p in min_sources(path)]}
+        return {"kind": "cap", **members} if path.startswith(CAP_PREFIX) else members
     try:
         p = resolve_checkpoint(path)
     except ValueError:

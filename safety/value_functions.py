@@ -28,6 +28,8 @@ Format = Literal["auto", "reach", "deepreach", "grid"]
 FORMATS = ("auto", "reach", "deepreach", "grid")
 #: ``"min:A,B"``: the pointwise minimum of sources A and B (:class:`~reach.value_function.MinimumOf`)
 MIN_PREFIX = "min:"
+#: ``"cap:A,B"``: the same minimum, steered by A's gradient everywhere (``MinimumOf(..., steer_by=0)``)
+CAP_PREFIX = "cap:"
 
 
 @dataclass
@@ -113,7 +115,9 @@ def load_value_function(
 
     ``"min:A,B,..."`` loads the pointwise minimum of the sources (:class:`~reach.value_function.MinimumOf`,
     kind ``"min"``): ``A`` as asked, the others for ``A``'s system, so ``"min:RUN,pair.npz"`` caps a
-    9D network with the union of pairwise BRTs, an upper bound on the cooperative value.
+    9D network with the union of pairwise BRTs, an upper bound on the cooperative value; its policy
+    follows whichever member is smaller. ``"cap:A,B,..."`` is the same minimum steered by ``A``'s
+    gradient everywhere (kind ``"cap"``): the value is capped, the policy stays the network's.
     Grid solutions load with ``outside="clamp"``: states that leave the grid (which closed-loop
     rollouts and episodes do) get the nearest edge value instead of an error.
     """
@@ -121,7 +125,7 @@ def load_value_function(
         raise ValueError(f"format must be one of {FORMATS}, got {format!r}")
     if system is not None:
         system = make_system(system)  # an instance, a registered name or an import path
-    if str(path).startswith(MIN_PREFIX):
+    if str(path).startswith((MIN_PREFIX, CAP_PREFIX)):
         return _load_minimum(str(path), format, system, layout, device, label)
     p = resolve_checkpoint(path)
     if pretrained.is_pretrained(path):
@@ -133,9 +137,15 @@ def load_value_function(
         raise ValueError(f"{p}: cannot be loaded as a value function ({type(err).__name__}: {err})") from err
 
 
+def is_composition(spec: object) -> bool:
+    """Whether ``spec`` is a ``"min:A,B,..."`` or ``"cap:A,B,..."`` source."""
+    return str(spec).startswith((MIN_PREFIX, CAP_PREFIX))
+
+
 def min_sources(spec: str) -> list[str]:
-    """The member sources of a ``"min:A,B,..."`` source."""
-    return [part.strip() for part in spec[len(MIN_PREFIX) :].split(",") if part.strip()]
+    """The member sources of a ``"min:A,B,..."`` or ``"cap:A,B,..."`` source."""
+    prefix = CAP_PREFIX if spec.startswith(CAP_PREFIX) else MIN_PREFIX
+    return [part.strip() for part in spec[len(prefix) :].split(",") if part.strip()]
 
 
 def _load_minimum(
@@ -146,17 +156,20 @@ def _load_minimum(
     device: str | torch.device,
     label: str | None,
 ) -> LoadedValueFunction:
+    capped = spec.startswith(CAP_PREFIX)
+    kind = "cap" if capped else "min"
     parts = min_sources(spec)
     if len(parts) < 2:
-        raise ValueError(f"{spec!r}: a minimum needs at least two sources, 'min:A,B'")
-    if any(part.startswith(MIN_PREFIX) for part in parts):
+        raise ValueError(f"{spec!r}: a minimum needs at least two sources, '{kind}:A,B'")
+    if any(is_composition(part) for part in parts):
         raise ValueError(f"{spec!r}: minimums do not nest")
     first = load_value_function(parts[0], format=format, system=system, layout=layout, device=device)
     rest = [load_value_function(part, system=first.value_function.system, device=device) for part in parts[1:]]
     members = [first, *rest]
-    vf = MinimumOf(*(m.value_function for m in members), labels=tuple(m.label for m in members))
-    name = label or f"min({', '.join(m.label for m in members)})"
-    return LoadedValueFunction(vf, first.path, "min", first.layout, name)
+    labels = tuple(m.label for m in members)
+    vf = MinimumOf(*(m.value_function for m in members), labels=labels, steer_by=0 if capped else None)
+    name = label or f"{kind}({', '.join(labels)})"
+    return LoadedValueFunction(vf, first.path, kind, first.layout, name)
 
 
 def _load(

@@ -173,6 +173,24 @@ def test_network_capped_by_the_union_misses_none_of_it_and_follows_the_active_gr
     with pytest.raises(ValueError, match="at least two sources"):
         load_value_function(f"min:{run}")
 
+    # "cap:": the same capped value, steered by the network's gradient everywhere (the union's gradient
+    # leaves the third car driving straight); the union's gradient is then never taken
+    def no_gradient(*args):
+        raise AssertionError("the union's gradient was taken")
+
+    blind = PairwiseUnion(system, pair_grid)
+    blind.gradient = blind.value_and_gradient = no_gradient
+    steered = MinimumOf(net, blind, steer_by=0)
+    vs, gs = steered.value_and_gradient(x, t)
+    assert torch.equal(vs, v) and torch.equal(gs, gn) and not torch.equal(gs, g)
+    loaded = load_value_function(f"cap:{run},{pair}")
+    assert loaded.kind == "cap" and loaded.label == "cap(run, pair)" and loaded.value_function.steer_by == 0
+    with pytest.raises(ValueError, match="do not nest"):
+        load_value_function(f"cap:{run},min:{run},{pair}")
+    for bad in (2, -1, True, 0.0):
+        with pytest.raises(ValueError, match="steer_by"):
+            MinimumOf(net, union, steer_by=bad)
+
 
 def _air3d_grid(tmp_path):
     from groundtruth import solve

@@ -62,7 +62,7 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "sources",
         nargs="+",
-        help="run directories, checkpoints (.pt), pretrained:NAME, DeepReach (.pth), grid (.npz), min:A,B",
+        help="run directories, checkpoints (.pt), pretrained:NAME, DeepReach (.pth), grid (.npz), min:A,B, cap:A,B",
     )
     for option, field, kwargs, text in VERIFY_OPTIONS:
         p.add_argument(

@@ -25,7 +25,7 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "value_functions",
         nargs="*",
-        help="value functions to filter with (runs, .pt, pretrained:NAME, .pth, .npz, min:A,B)",
+        help="value functions to filter with (runs, .pt, pretrained:NAME, .pth, .npz, min:A,B, cap:A,B)",
     )
     p.add_argument(
         "--scene", default=None, help="named scene (air3d, three-car-merge, three-car-crossing, ...; default air3d)"
