@@ -17,6 +17,7 @@ the value function's own horizon, a fixed-horizon filter).
 from __future__ import annotations
 
 import copy
+import json
 import os
 import time
 from collections.abc import Sequence
@@ -26,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from reach.locking import exclusive_lock
 from reach.value_function import ValueFunction
 from reach_envs.scenes import Scene, make_scene
 from reach_envs.vector import ReachVectorEnv
@@ -321,6 +323,67 @@ def write_filter_results(rows: Sequence[dict[str, Any]], out: str | os.PathLike,
     write_results(out, header, rows, filter_table(rows))
 
 
+#: header keys that describe one invocation's filters rather than its episodes; the rows carry the
+#: same facts (kind, gamma, backup_horizon, backup_disturbance), so tables that differ only in these merge
+PER_INVOCATION_KEYS = ("filters", "gammas", "backup_horizon", "backup_disturbance")
+
+
+def _episode_header(header: dict[str, Any]) -> dict[str, Any]:
+    """The keys of a table's header that fix its episodes, as they read back from the JSON file."""
+    kept = {k: v for k, v in header.items() if k not in PER_INVOCATION_KEYS and k != "results"}
+    return json.loads(json.dumps(kept, default=str, sort_keys=True))
+
+
+def filter_table_rows(out: str | os.PathLike, header: dict[str, Any]) -> list[dict[str, Any]]:
+    """The rows of the filter table already at ``out`` that a study with ``header`` may merge into
+    (none if there is no table). A table of other episodes (another scene, seed, count, start rule,
+    pursuer, nominal policy, ...) raises ``ValueError`` naming the first setting that differs: its
+    rows were not measured on the same episodes, so they cannot share a table. ``reach filter-eval``
+    calls this before any episode runs, and again under the table's lock when it writes."""
+    path = Path(out).with_suffix(".json")
+    if not path.exists():
+        return []
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        unreadable = f"{path}: existing filter results are unreadable ({err}); move the file away to start over"
+        raise ValueError(unreadable) from err
+    if not isinstance(data, dict) or not isinstance(data.get("results"), list):
+        raise ValueError(f"{path} is not a filter results table; use another --out or delete it")
+    old, new = _episode_header(data), _episode_header(header)
+    for key in sorted(old.keys() | new.keys()):
+        if old.get(key) != new.get(key):
+            raise ValueError(
+                f"{path} holds filter results for other episodes ({key}: {old.get(key)!r} there, "
+                f"{new.get(key)!r} now); use another --out or delete it"
+            )
+    return data["results"]
+
+
+def merge_filter_results(
+    rows: Sequence[dict[str, Any]], out: str | os.PathLike, header: dict[str, Any]
+) -> list[dict[str, Any]]:
+    """Merge ``rows`` into the filter table at ``out`` and rewrite it; returns the merged rows.
+
+    As ``reach evaluate`` does with its table: rows of configurations already there and not rerun
+    are kept (a second ``reach filter-eval`` with another value function into the same ``--out``
+    adds its rows instead of erasing the first's), a row with the same label replaces the old one,
+    and the read-merge-write runs under a lock on ``out.lock``."""
+    out = Path(out)
+    with exclusive_lock(out.with_suffix(".lock"), f"filter results {out}", wait=True):
+        previous = filter_table_rows(out, header)
+        mine = {r["label"]: r for r in rows}
+        merged = [mine.pop(r["label"], r) for r in previous] + list(mine.values())
+        stored = json.loads(out.with_suffix(".json").read_text()) if previous else {}
+        joined = dict(header)
+        for key in ("filters", "gammas"):  # the union of what the merged invocations ran
+            lists = [v for v in (stored.get(key), header.get(key)) if isinstance(v, list)]
+            if lists:
+                joined[key] = list(dict.fromkeys(x for values in lists for x in values))
+        write_filter_results(merged, out, joined)
+    return merged
+
+
 def worst_case_disturbance(value_function: ValueFunction, time_to_go: float | None = None) -> Any:
     """A scene disturbance ``state -> d*`` that attacks with the value function's optimal disturbance."""
     import torch
@@ -475,6 +538,7 @@ def run_filter_study(
     nominal: NominalPolicy | None = None,
     backup_horizon: float | None = None,
     backup_disturbance: str = "robust",
+    merge: bool = False,
 ) -> FilterStudy:
     """The one filter-evaluation pipeline: episodes, results, trade-off plot and a side-by-side GIF.
 
@@ -494,6 +558,9 @@ def run_filter_study(
         nominal: the nominal policy (float64 states ``(N, n)`` -> normalised actions ``(N, m_u)``);
             default: the scene system's goal task (:func:`~safety.tasks.make_task`), which for a
             system without goals keeps the centre of the control box.
+        merge: add the rows to a table already at ``out`` (:func:`merge_filter_results`; it must
+            hold the same episodes, checked before any episode runs) instead of replacing it. The
+            study's rows and its trade-off plot are then the merged table's.
     """
     from safety.plots import plot_filter_tradeoff
 
@@ -505,6 +572,9 @@ def run_filter_study(
         overrides["disturbance"] = pursuer if isinstance(pursuer, str) else worst_case_disturbance(pursuer)
     if start_from not in START_FROM:
         raise ValueError(f"start_from must be one of {START_FROM}, got {start_from!r}")
+    table_header = {"scene": sc.name, "episodes": episodes, "seed": seed, **(header or {})}
+    if merge:
+        filter_table_rows(out, table_header)  # refused before any episode runs
     starts = (
         None
         if start_outside is None
@@ -529,12 +599,16 @@ def run_filter_study(
             sc, configs, episodes, seed, time_to_go, task=task, scene_overrides=overrides, initial_states=starts
         )
     out = Path(out)
-    write_filter_results(rows, out, {"scene": sc.name, "episodes": episodes, "seed": seed, **(header or {})})
+    fresh = rows
+    if merge:
+        rows = merge_filter_results(rows, out, table_header)
+    else:
+        write_filter_results(rows, out, table_header)
     paths = [str(out.with_suffix(s)) for s in (".csv", ".json", ".md")]
     tradeoff = out.with_name(out.stem + "_tradeoff.png")
     paths.append(str(plot_filter_tradeoff(rows, tradeoff, title=title or sc.name)))
     if gif is not None and value_functions:
-        picks = list(dict.fromkeys([*rows[0]["collided_episodes"][:3], 0, 1, 2]))[:3]
+        picks = list(dict.fromkeys([*fresh[0]["collided_episodes"][:3], 0, 1, 2]))[:3]
         record_side_by_side(
             sc,
             value_functions[0][1],
@@ -555,11 +629,14 @@ def run_filter_study(
 
 
 __all__ = [
+    "PER_INVOCATION_KEYS",
     "FilterConfig",
     "FilterStudy",
     "default_threshold",
     "evaluate_filter_parallel",
     "evaluate_filters",
+    "filter_table_rows",
+    "merge_filter_results",
     "outside_states",
     "record_side_by_side",
     "run_filter_study",

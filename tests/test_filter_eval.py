@@ -134,3 +134,43 @@ def test_a_bad_backup_horizon_is_refused_before_any_episode(tmp_path: Path, caps
         main(argv)
     assert exit_info.value.code == 2
     assert "--backup-horizon" in capsys.readouterr().err
+
+
+def test_filter_eval_merges_rows_of_the_same_episodes_and_refuses_others_before_any_episode(
+    air3d_grid, tmp_path: Path, capsys, monkeypatch
+):
+    """A second `reach filter-eval` into the same --out adds its rows (it erased the first's before);
+    a rerun of a configuration replaces its row; a table of other episodes is refused, naming the
+    setting, before a single episode runs."""
+    import safety.filter_eval as filter_eval
+
+    grid = tmp_path / "air3d.npz"
+    air3d_grid.save(grid)
+    other = tmp_path / "other.npz"
+    air3d_grid.save(other)
+    out = tmp_path / "fe.csv"
+    base = ["filter-eval", "--episodes", "12", "--out", str(out)]
+    assert main([*base, str(grid), "--thresholds", "0.05"]) == 0
+    first = json.loads(out.with_suffix(".json").read_text())["results"]
+    assert main([*base, str(other), "--thresholds", "0.05", "--filters", "switch,smooth"]) == 0
+    data = json.loads(out.with_suffix(".json").read_text())
+    labels = [r["label"] for r in data["results"]]
+    assert labels == ["nominal", "air3d @ 0.05", "other @ 0.05", "other smooth @ 0.05 g5"]
+    assert data["filters"] == ["switch", "smooth"]
+    assert data["results"][1] == first[1]  # the first invocation's row, untouched
+    assert data["results"][0]["collision_rate"] == first[0]["collision_rate"]  # the same nominal episodes
+    assert "other smooth @ 0.05 g5" in capsys.readouterr().out  # the printed table is the merged one
+    assert main([*base, str(grid), "--thresholds", "0.05"]) == 0  # a rerun replaces its own row only
+    assert [r["label"] for r in json.loads(out.with_suffix(".json").read_text())["results"]] == labels
+
+    def no_episodes(*args, **kwargs):
+        raise AssertionError("episodes ran before the table was checked")
+
+    monkeypatch.setattr(filter_eval, "evaluate_filters", no_episodes)
+    for changed, setting in ((["--episodes", "13"], "episodes"), (["--seed", "4"], "seed")):
+        assert main([*base, *changed, str(grid), "--thresholds", "0.05"]) == 2
+        err = capsys.readouterr().err
+        assert f"({setting}: " in err and "other episodes" in err and len(err.strip().splitlines()) == 1
+    out.with_suffix(".json").write_text("{not json")
+    assert main([*base, str(grid)]) == 2
+    assert "unreadable" in capsys.readouterr().err

@@ -165,6 +165,7 @@ def run(args: argparse.Namespace) -> int:
         nominal=nominal,
         backup_horizon=args.backup_horizon,
         backup_disturbance=args.backup_disturbance,
+        merge=True,  # rows join a table of the same episodes already at --out, as reach evaluate's do
         header={
             "filters": kinds,
             "gammas": gammas if "smooth" in kinds else None,
