@@ -27,7 +27,13 @@ from reach.validation import check_output_path
 from safety.metrics import containment_statistics
 from safety.results_io import markdown_table as format_table
 from safety.results_io import write_results
-from safety.value_functions import CAP_PREFIX, is_composition, load_value_function, min_sources, resolve_checkpoint
+from safety.value_functions import (
+    composition_kind,
+    is_composition,
+    load_value_function,
+    min_sources,
+    resolve_checkpoint,
+)
 from safety.verify import VerifySettings, sample_states, values_at, verify
 from training.evaluate import ReferenceEvaluator
 
@@ -77,7 +83,7 @@ def fingerprint(path: str) -> dict[str, Any]:
     member of a ``min:A,B`` source; a ``cap:A,B`` source, whose policy differs, says so)."""
     if is_composition(path):
         members = {"members": [fingerprint(p) for p in min_sources(path)]}
-        return {"kind": "cap", **members} if path.startswith(CAP_PREFIX) else members
+        return {"kind": "cap", **members} if composition_kind(path) == "cap" else members
     try:
         p = resolve_checkpoint(path)
     except ValueError:

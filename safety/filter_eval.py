@@ -340,9 +340,15 @@ def filter_table_rows(out: str | os.PathLike, header: dict[str, Any]) -> list[di
     pursuer, nominal policy, ...) raises ``ValueError`` naming the first setting that differs: its
     rows were not measured on the same episodes, so they cannot share a table. ``reach filter-eval``
     calls this before any episode runs, and again under the table's lock when it writes."""
+    return _stored_filter_table(out, header).get("results", [])
+
+
+def _stored_filter_table(out: str | os.PathLike, header: dict[str, Any]) -> dict[str, Any]:
+    """The whole table at ``out`` (header and rows; ``{}`` if there is none), checked as
+    :func:`filter_table_rows` says."""
     path = Path(out).with_suffix(".json")
     if not path.exists():
-        return []
+        return {}
     try:
         data = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as err:
@@ -357,7 +363,7 @@ def filter_table_rows(out: str | os.PathLike, header: dict[str, Any]) -> list[di
                 f"{path} holds filter results for other episodes ({key}: {old.get(key)!r} there, "
                 f"{new.get(key)!r} now); use another --out or delete it"
             )
-    return data["results"]
+    return data
 
 
 def merge_filter_results(
@@ -371,10 +377,9 @@ def merge_filter_results(
     and the read-merge-write runs under a lock on ``out.lock``."""
     out = Path(out)
     with exclusive_lock(out.with_suffix(".lock"), f"filter results {out}", wait=True):
-        previous = filter_table_rows(out, header)
+        stored = _stored_filter_table(out, header)  # one read: its rows and its header
         mine = {r["label"]: r for r in rows}
-        merged = [mine.pop(r["label"], r) for r in previous] + list(mine.values())
-        stored = json.loads(out.with_suffix(".json").read_text()) if previous else {}
+        merged = [mine.pop(r["label"], r) for r in stored.get("results", [])] + list(mine.values())
         joined = dict(header)
         for key in ("filters", "gammas"):  # the union of what the merged invocations ran
             lists = [v for v in (stored.get(key), header.get(key)) if isinstance(v, list)]

@@ -125,7 +125,7 @@ def load_value_function(
         raise ValueError(f"format must be one of {FORMATS}, got {format!r}")
     if system is not None:
         system = make_system(system)  # an instance, a registered name or an import path
-    if str(path).startswith((MIN_PREFIX, CAP_PREFIX)):
+    if is_composition(path):
         return _load_minimum(str(path), format, system, layout, device, label)
     p = resolve_checkpoint(path)
     if pretrained.is_pretrained(path):
@@ -137,14 +137,20 @@ def load_value_function(
         raise ValueError(f"{p}: cannot be loaded as a value function ({type(err).__name__}: {err})") from err
 
 
+def composition_kind(spec: object) -> str | None:
+    """``"min"`` for a ``"min:A,B,..."`` source, ``"cap"`` for a ``"cap:A,B,..."`` one, else None."""
+    text = str(spec)
+    return "min" if text.startswith(MIN_PREFIX) else "cap" if text.startswith(CAP_PREFIX) else None
+
+
 def is_composition(spec: object) -> bool:
     """Whether ``spec`` is a ``"min:A,B,..."`` or ``"cap:A,B,..."`` source."""
-    return str(spec).startswith((MIN_PREFIX, CAP_PREFIX))
+    return composition_kind(spec) is not None
 
 
 def min_sources(spec: str) -> list[str]:
     """The member sources of a ``"min:A,B,..."`` or ``"cap:A,B,..."`` source."""
-    prefix = CAP_PREFIX if spec.startswith(CAP_PREFIX) else MIN_PREFIX
+    prefix = CAP_PREFIX if composition_kind(spec) == "cap" else MIN_PREFIX
     return [part.strip() for part in spec[len(prefix) :].split(",") if part.strip()]
 
 
@@ -156,8 +162,7 @@ def _load_minimum(
     device: str | torch.device,
     label: str | None,
 ) -> LoadedValueFunction:
-    capped = spec.startswith(CAP_PREFIX)
-    kind = "cap" if capped else "min"
+    kind = composition_kind(spec)
     parts = min_sources(spec)
     if len(parts) < 2:
         raise ValueError(f"{spec!r}: a minimum needs at least two sources, '{kind}:A,B'")
@@ -167,7 +172,7 @@ def _load_minimum(
     rest = [load_value_function(part, system=first.value_function.system, device=device) for part in parts[1:]]
     members = [first, *rest]
     labels = tuple(m.label for m in members)
-    vf = MinimumOf(*(m.value_function for m in members), labels=labels, steer_by=0 if capped else None)
+    vf = MinimumOf(*(m.value_function for m in members), labels=labels, steer_by=0 if kind == "cap" else None)
     name = label or f"{kind}({', '.join(labels)})"
     return LoadedValueFunction(vf, first.path, kind, first.layout, name)
 
