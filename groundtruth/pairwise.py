@@ -86,6 +86,7 @@ class PairwiseUnion:
         if isinstance(solutions, GridSolution):
             solutions = {solutions.system: solutions}
         self.pairs = _ordered_pairs(system)
+        self._boxes: dict[tuple[torch.dtype, torch.device], tuple[torch.Tensor, ...]] = {}
         self._solutions = []
         for i, j in self.pairs:
             wanted = pair_system(system, i, j).physics_config()
@@ -120,7 +121,7 @@ class PairwiseUnion:
             out.append(torch.stack([c * dx + s * dy, -s * dx + c * dy, rel_th], dim=-1))
         return torch.stack(out, dim=-2)
 
-    def _per_pair(self, method: str, rel: torch.Tensor, t: float | torch.Tensor):
+    def _per_pair(self, method: str, rel: torch.Tensor, t: float | torch.Tensor, **kwargs):
         """``method`` (``"value"`` or ``"value_and_gradient"``) of each pair's solution at its relative
         state ``rel[..., k, :]``, stacked over the pairs. Where every pair shares one solution (the
         usual case: identical cars) it is one interpolation over all pairs at once, not one per pair."""
@@ -128,8 +129,8 @@ class PairwiseUnion:
             tt = t
             if isinstance(t, torch.Tensor) and t.ndim:  # a time per state: the same for each of its pairs
                 tt = t.unsqueeze(-1).expand(rel.shape[:-1])
-            return getattr(self._solutions[0], method)(rel, tt)
-        out = [getattr(sol, method)(rel[..., k, :], t) for k, sol in enumerate(self._solutions)]
+            return getattr(self._solutions[0], method)(rel, tt, **kwargs)
+        out = [getattr(sol, method)(rel[..., k, :], t, **kwargs) for k, sol in enumerate(self._solutions)]
         if method == "value":
             return torch.stack(out, dim=-1)
         return torch.stack([v for v, _ in out], dim=-1), torch.stack([g for _, g in out], dim=-2)
@@ -171,20 +172,39 @@ class PairwiseUnion:
             g[..., 2 * n + i] += g0 * rel[..., k, 1] - g1 * rel[..., k, 0] - g2
         return g
 
-    def value_where_known(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+    def value_where_known(
+        self, x: torch.Tensor, t: float | torch.Tensor, *, check_inputs: bool = True
+    ) -> torch.Tensor:
         """The union's value using only the pairs whose relative state lies inside their grid's box;
         ``+inf`` where none does. An upper bound of the multi-vehicle value that never rests on a
         clamped edge value (which under-states a pair's value beyond the box): what a training
-        penalty may push a network below."""
-        self._check(x)
+        penalty may push a network below.
+
+        ``check_inputs=False`` skips the checks that states are finite and times covered (see
+        :meth:`GridSolution.value`): each waits for a GPU's queue, every training step. Only for
+        states and times the caller sampled inside the system's box and the union's horizon (a NaN
+        state then lies in no grid, so it gets no bound: ``+inf``).
+        """
+        if check_inputs:
+            self._check(x)
         rel = self.relative_states(x)
-        grids = [sol.grid for sol in self._solutions]
-        low = torch.tensor([g.low for g in grids], dtype=rel.dtype, device=rel.device)  # (pairs, 3)
-        high = torch.tensor([g.high for g in grids], dtype=rel.dtype, device=rel.device)
-        periodic = torch.tensor([g.periodic for g in grids], device=rel.device)
+        low, high, periodic = self._grid_boxes(rel.dtype, rel.device)
         inside = (periodic | ((rel >= low) & (rel <= high))).all(-1)  # (..., pairs)
-        values = self._per_pair("value", rel, t)
+        values = self._per_pair("value", rel, t, check_inputs=check_inputs)
         return torch.where(inside, values, torch.full_like(values, torch.inf)).min(dim=-1).values
+
+    def _grid_boxes(self, dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, ...]:
+        """Each pair grid's ``(low, high, periodic)``, shape ``(pairs, 3)``, built once per dtype and
+        device (a fresh host-to-device copy per call waits for a GPU)."""
+        key = (dtype, device)
+        if key not in self._boxes:
+            grids = [sol.grid for sol in self._solutions]
+            self._boxes[key] = (
+                torch.tensor([g.low for g in grids], dtype=dtype, device=device),
+                torch.tensor([g.high for g in grids], dtype=dtype, device=device),
+                torch.tensor([g.periodic for g in grids], device=device),
+            )
+        return self._boxes[key]
 
     @classmethod
     def load(cls, system: MultiVehicle, path: str | os.PathLike) -> PairwiseUnion:
