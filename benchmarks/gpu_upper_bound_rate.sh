@@ -3,13 +3,10 @@
 #
 # Usage: benchmarks/gpu_upper_bound_rate.sh OUTDIR [STEPS] [PAIR]
 #
-# Three runs of `reach train --system multivehicle9d --device cuda --steps STEPS` (default 2000; DEVICE=cpu to try it),
+# Two runs of `reach train --system multivehicle9d --device cuda --steps STEPS` (default 2000; DEVICE=cpu to try it),
 # one after the other, so each has the GPU to itself:
 #   default          the default recipe (no bound)
-#   upper-checked    --upper-bound PAIR, the union's input checks on every step (finite states, times
-#                    covered; each reads a result back from the GPU): the trainer before they were
-#                    skipped, restored here by patching Trainer._upper_bound_at
-#   upper            --upper-bound PAIR as the trainer runs it now (check_inputs=False)
+#   upper            --upper-bound PAIR (the union of pairwise BRTs, interpolated at every step's points)
 # Each run's rate is the median of the `steps_per_s` its metrics.jsonl logs after the first quarter
 # of its steps (compile and warm-up excluded). PAIR defaults to runs/pair_gt.npz (solved if missing).
 set -u
@@ -19,26 +16,13 @@ pair=${3:-runs/pair_gt.npz}
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1 TQDM_DISABLE=1 MPLBACKEND=Agg
 py=${PYTHON:-python3}
-[[ -e $pair ]] || $py -m reach groundtruth relativepair --grid 101 --device cuda --out "$pair" >"$out/pair.log" 2>&1
+[[ -e $pair ]] || $py -m reach groundtruth relativepair --grid 101 --device "${DEVICE:-cuda}" --out "$pair" >"$out/pair.log" 2>&1
 
-train() {  # train NAME PATCH [extra reach train options...]
-    local name=$1 patch=$2; shift 2
+train() {  # train NAME [extra reach train options...]
+    local name=$1; shift
     rm -rf "$out/$name"
-    $py - "$@" --system multivehicle9d --device "${DEVICE:-cuda}" --steps "$steps" --out "$out/$name" >"$out/$name.log" 2>&1 <<EOF
-import sys
-if "$patch" == "checked":
-    import torch
-    from training.trainer import Trainer
-
-    def checked(self, x, t):
-        with torch.no_grad():
-            return self.upper_bound.value_where_known(x.detach(), t.detach(), check_inputs=True).to(x.dtype)
-
-    Trainer._upper_bound_at = checked
-from reach.cli import main
-sys.argv[0] = "reach"
-raise SystemExit(main(["train", *sys.argv[1:]]))
-EOF
+    $py -m reach train "$@" --system multivehicle9d --device "${DEVICE:-cuda}" --steps "$steps" \
+        --out "$out/$name" >"$out/$name.log" 2>&1
     echo "$name exit $?"
 }
 
@@ -52,9 +36,8 @@ print(f'{sys.argv[3]}: {statistics.median(r[\"steps_per_s\"] for r in rows):.1f}
 " "$out/$1/metrics.jsonl" "$steps" "$1"
 }
 
-train default none
-train upper-checked checked --upper-bound "$pair"
-train upper none --upper-bound "$pair"
+train default
+train upper --upper-bound "$pair"
 { nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
   $py -c "import torch; print('torch', torch.__version__)"
-  for name in default upper-checked upper; do rate $name; done; } 2>&1 | tee "$out/rates.txt"
+  for name in default upper; do rate $name; done; } 2>&1 | tee "$out/rates.txt"

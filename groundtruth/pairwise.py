@@ -121,7 +121,7 @@ class PairwiseUnion:
             out.append(torch.stack([c * dx + s * dy, -s * dx + c * dy, rel_th], dim=-1))
         return torch.stack(out, dim=-2)
 
-    def _per_pair(self, method: str, rel: torch.Tensor, t: float | torch.Tensor, **kwargs):
+    def _per_pair(self, method: str, rel: torch.Tensor, t: float | torch.Tensor):
         """``method`` (``"value"`` or ``"value_and_gradient"``) of each pair's solution at its relative
         state ``rel[..., k, :]``, stacked over the pairs. Where every pair shares one solution (the
         usual case: identical cars) it is one interpolation over all pairs at once, not one per pair."""
@@ -129,8 +129,8 @@ class PairwiseUnion:
             tt = t
             if isinstance(t, torch.Tensor) and t.ndim:  # a time per state: the same for each of its pairs
                 tt = t.unsqueeze(-1).expand(rel.shape[:-1])
-            return getattr(self._solutions[0], method)(rel, tt, **kwargs)
-        out = [getattr(sol, method)(rel[..., k, :], t, **kwargs) for k, sol in enumerate(self._solutions)]
+            return getattr(self._solutions[0], method)(rel, tt)
+        out = [getattr(sol, method)(rel[..., k, :], t) for k, sol in enumerate(self._solutions)]
         if method == "value":
             return torch.stack(out, dim=-1)
         return torch.stack([v for v, _ in out], dim=-1), torch.stack([g for _, g in out], dim=-2)
@@ -172,30 +172,21 @@ class PairwiseUnion:
             g[..., 2 * n + i] += g0 * rel[..., k, 1] - g1 * rel[..., k, 0] - g2
         return g
 
-    def value_where_known(
-        self, x: torch.Tensor, t: float | torch.Tensor, *, check_inputs: bool = True
-    ) -> torch.Tensor:
+    def value_where_known(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
         """The union's value using only the pairs whose relative state lies inside their grid's box;
         ``+inf`` where none does. An upper bound of the multi-vehicle value that never rests on a
         clamped edge value (which under-states a pair's value beyond the box): what a training
-        penalty may push a network below.
-
-        ``check_inputs=False`` skips the checks that states are finite and times covered (see
-        :meth:`GridSolution.value`): each waits for a GPU's queue, every training step. Only for
-        states and times the caller sampled inside the system's box and the union's horizon (a NaN
-        state then lies in no grid, so it gets no bound: ``+inf``).
-        """
-        if check_inputs:
-            self._check(x)
+        penalty may push a network below."""
+        self._check(x)
         rel = self.relative_states(x)
         low, high, periodic = self._grid_boxes(rel.dtype, rel.device)
         inside = (periodic | ((rel >= low) & (rel <= high))).all(-1)  # (..., pairs)
-        values = self._per_pair("value", rel, t, check_inputs=check_inputs)
+        values = self._per_pair("value", rel, t)
         return torch.where(inside, values, torch.full_like(values, torch.inf)).min(dim=-1).values
 
     def _grid_boxes(self, dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, ...]:
         """Each pair grid's ``(low, high, periodic)``, shape ``(pairs, 3)``, built once per dtype and
-        device (a fresh host-to-device copy per call waits for a GPU)."""
+        device rather than copied there on every call."""
         key = (dtype, device)
         if key not in self._boxes:
             grids = [sol.grid for sol in self._solutions]

@@ -88,32 +88,29 @@ class GridSolution:
         return self._gradients
 
     def _times_on(self, device: torch.device) -> torch.Tensor:
-        """The stored times on ``device``, copied there once (a copy per call waits for a GPU)."""
+        """The stored times on ``device``, copied there once rather than on every call."""
         key = ("times", self.times.dtype, device)
         if key not in self._cache:
             self._cache[key] = self.times.to(device)
         return self._cache[key]
 
-    def _interpolate(
-        self, table: torch.Tensor, x: torch.Tensor, t: float | torch.Tensor, check_inputs: bool = True
-    ) -> torch.Tensor:
+    def _interpolate(self, table: torch.Tensor, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
         n = self.grid.ndim
         if x.shape[-1] != n:
             raise ValueError(f"states must have shape (..., {n}), got {tuple(x.shape)}")
-        if check_inputs and not torch.isfinite(x).all():
+        if not torch.isfinite(x).all():
             bad = x[~torch.isfinite(x).all(-1)][0].tolist()
             raise ValueError(f"states contain NaN or inf, e.g. {bad}")
         batch = x.shape[:-1]
         xf = x.reshape(-1, n).to(table.dtype)
-        if check_inputs and not torch.isfinite(xf).all():  # a float64 state can overflow a float32 table
+        if not torch.isfinite(xf).all():  # a float64 state can overflow a float32 table
             bad = x.reshape(-1, n)[~torch.isfinite(xf).all(-1)][0].tolist()
             raise ValueError(f"states overflow {table.dtype}, e.g. {bad}")
         m = xf.shape[0]
         tt = torch.as_tensor(t, dtype=torch.float64, device=x.device)
         tt = torch.broadcast_to(tt, batch).reshape(-1) if tt.ndim else tt.expand(m)
         times = self._times_on(x.device)
-        if check_inputs:
-            check_time(tt, *self.time_range)
+        check_time(tt, *self.time_range)
         # time bracket
         # one bracket for a scalar time (the common case); searchsorted over an expanded tensor is slow
         lookup = tt[:1].contiguous() if (isinstance(t, (int, float)) or torch.as_tensor(t).ndim == 0) else tt
@@ -164,15 +161,9 @@ class GridSolution:
         out = (w.reshape((m, 2**n, *extra)) * torch.lerp(v0, v1, wt.reshape((m, 1, *extra)))).sum(1)
         return out.reshape((*batch, *table.shape[1 + n :])).to(x.dtype)
 
-    def value(self, x: torch.Tensor, t: float | torch.Tensor, *, check_inputs: bool = True) -> torch.Tensor:
-        """``V(x, t)`` for states ``(..., n)``; returns ``(...)``.
-
-        States must be finite and times inside :attr:`time_range`, else ``ValueError``. Each of those
-        checks reads a result back from the states' device, which on a GPU waits for its queue;
-        ``check_inputs=False`` skips them, for callers that generated ``x`` and ``t`` inside the
-        grid's range themselves (a trainer's samples). A NaN state then gives a NaN value.
-        """
-        return self._interpolate(self._table("value", x.dtype, x.device), x, t, check_inputs)
+    def value(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        """``V(x, t)`` for states ``(..., n)``; returns ``(...)``."""
+        return self._interpolate(self._table("value", x.dtype, x.device), x, t)
 
     def gradient(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
         """``grad_x V(x, t)``, shape ``(..., n)``."""

@@ -218,27 +218,6 @@ def test_the_union_where_known_drops_pairs_beyond_their_grid(pair_grid):
     assert torch.isinf(union.value_where_known(apart, 1.0)).all()
 
 
-def test_the_unchecked_bound_equals_the_checked_one_and_only_skips_the_checks(pair_grid):
-    """check_inputs=False (the trainer's path: its own samples, no GPU wait per check) gives the
-    checked result bit for bit on valid states, with a time per state; the checked path still
-    refuses NaN states and uncovered times, and the unchecked one gives a NaN state no bound (+inf)."""
-    system = MultiVehicle9D()
-    union = PairwiseUnion(system, pair_grid)
-    g = torch.Generator().manual_seed(5)
-    x = system.sample_states(2000, generator=g)
-    t = torch.rand(2000, generator=g) * system.horizon
-    assert torch.equal(union.value_where_known(x, t, check_inputs=False), union.value_where_known(x, t))
-    bad = x.clone()
-    bad[7, 3] = float("nan")
-    with pytest.raises(ValueError, match="NaN"):
-        union.value_where_known(bad, t)
-    with pytest.raises(ValueError, match="time-to-go"):
-        union.value_where_known(x, t + 2 * system.horizon)
-    bad[7] = float("nan")
-    unchecked = union.value_where_known(bad, t, check_inputs=False)
-    assert unchecked[7] == torch.inf and torch.equal(unchecked[:7], union.value_where_known(x[:7], t[:7]))
-
-
 def test_union_gradient_is_the_autograd_pull_back_of_the_active_pair(pair_grid):
     """The written-out pull-back equals autograd through relative_states, for one time and for a
     time per state (which the batched interpolation over the pairs must spread to each pair)."""

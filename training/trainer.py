@@ -234,13 +234,9 @@ class Trainer:
         self.labels = (x, t, floor)
 
     def _upper_bound_at(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-        """The union's value at the sampled points (``+inf`` where no pair grid covers them).
-
-        The points are the trainer's own samples, inside the box and ``[0, horizon]``, and the
-        union's horizon was checked when it loaded, so the per-call input checks are skipped: on a
-        GPU each would wait for the queue, every step."""
+        """The union's value at the sampled points (``+inf`` where no pair grid covers them)."""
         with torch.no_grad():  # the pair grids interpolate on the points' own device
-            return self.upper_bound.value_where_known(x.detach(), t.detach(), check_inputs=False).to(x.dtype)
+            return self.upper_bound.value_where_known(x.detach(), t.detach()).to(x.dtype)
 
     # ------------------------------------------------------------------ persistence
     @property
