@@ -26,7 +26,7 @@ from reach.systems import ControlAffineSystem, make_system
 from reach.validation import check_output_path
 from safety.metrics import containment_statistics
 from safety.results_io import markdown_table as format_table
-from safety.results_io import write_results
+from safety.results_io import merge_rows, write_results
 from safety.value_functions import (
     composition_kind,
     is_composition,
@@ -105,9 +105,7 @@ def _write_outputs(out: Path, header: dict[str, Any], rows: list[dict[str, Any]]
     source replaces the old one. The read-merge-write runs under a lock on ``out.lock``, so
     concurrent writers serialise instead of overwriting each other's rows."""
     with exclusive_lock(out.with_suffix(".lock"), f"results {out}", wait=True):
-        mine = {r["source"]: r for r in rows}
-        on_disk = _previous(out, header, keep_errors=True)
-        merged = [mine.pop(source, row) for source, row in on_disk.items()] + list(mine.values())
+        merged = merge_rows(_previous(out, header, keep_errors=True).values(), rows, key="source")
         write_results(out, header, merged, markdown_table(merged))
     return merged
 

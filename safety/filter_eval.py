@@ -33,7 +33,7 @@ from reach_envs.scenes import Scene, make_scene
 from reach_envs.vector import ReachVectorEnv
 from safety.filter import DEFAULT_GAMMA, check_filter_settings
 from safety.metrics import wilson_interval
-from safety.results_io import markdown_table, write_results
+from safety.results_io import markdown_table, merge_rows, write_results
 from safety.tasks import GoalTask, NominalPolicy, make_task
 from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper, default_threshold
 
@@ -378,8 +378,7 @@ def merge_filter_results(
     out = Path(out)
     with exclusive_lock(out.with_suffix(".lock"), f"filter results {out}", wait=True):
         stored = _stored_filter_table(out, header)  # one read: its rows and its header
-        mine = {r["label"]: r for r in rows}
-        merged = [mine.pop(r["label"], r) for r in stored.get("results", [])] + list(mine.values())
+        merged = merge_rows(stored.get("results", []), rows, key="label")
         joined = dict(header)
         for key in ("filters", "gammas"):  # the union of what the merged invocations ran
             lists = [v for v in (stored.get(key), header.get(key)) if isinstance(v, list)]

@@ -14,7 +14,7 @@ import io
 import json
 import math
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -77,3 +77,12 @@ def write_results(
         Path(tmp).write_text(buf.getvalue())
     with atomic_path(out.with_suffix(".md")) as tmp:
         Path(tmp).write_text(markdown + "\n")
+
+
+def merge_rows(stored: Iterable[dict[str, Any]], new: Sequence[dict[str, Any]], key: str) -> list[dict[str, Any]]:
+    """The rows of a table rerun in part: ``stored`` rows in their order, each replaced by the row of
+    ``new`` with the same ``key`` (a rerun supersedes), then the ``new`` rows of keys not stored.
+    ``reach evaluate`` (keyed by source) and ``reach filter-eval`` (by label) merge through it, each
+    under its table's lock."""
+    mine = {r[key]: r for r in new}
+    return [mine.pop(r[key], r) for r in stored] + list(mine.values())

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from reach.cli import main
 from reach.systems import Air3D, MultiVehicle9D
@@ -159,3 +161,18 @@ def test_bfloat16_evaluation_applies_to_networks_and_records_it(air3d_grid, chec
     assert [r["matmul_precision"] for r in fast] == ["float32", "bfloat16"]  # the grid stays exact
     assert fast[0]["collision_rate"] == exact[0]["collision_rate"]
     assert abs(fast[1]["collision_rate"] - exact[1]["collision_rate"]) <= 0.03
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    stored=st.lists(st.integers(0, 9), unique=True, max_size=8),
+    new=st.lists(st.integers(0, 9), unique=True, max_size=8),
+)
+def test_merge_rows_keeps_stored_order_lets_reruns_supersede_and_appends_the_rest(stored, new):
+    """The merge both result tables use: every stored key stays in place (its new row if rerun), new
+    keys follow in their order, no key twice and no row lost."""
+    from safety.results_io import merge_rows
+
+    merged = merge_rows([{"k": k, "run": "old"} for k in stored], [{"k": k, "run": "new"} for k in new], key="k")
+    assert [r["k"] for r in merged] == stored + [k for k in new if k not in stored]
+    assert all(r["run"] == ("new" if r["k"] in new else "old") for r in merged)
