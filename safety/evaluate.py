@@ -223,7 +223,7 @@ def evaluate_many(
             if reference is not None:
                 row.update(reference(loaded.value_function))
             if union_values is not None:
-                learned = values_at(loaded.value_function, states, horizon)
+                learned = values_at(loaded.value_function, states, horizon, device=device)
                 row.update(containment_statistics(union_values, learned))
         except (ValueError, RuntimeError, OSError, KeyError, TypeError, EOFError) as err:
             # a corrupt or foreign source is one error row; the others go on

@@ -176,3 +176,40 @@ def test_merge_rows_keeps_stored_order_lets_reruns_supersede_and_appends_the_res
     merged = merge_rows([{"k": k, "run": "old"} for k in stored], [{"k": k, "run": "new"} for k in new], key="k")
     assert [r["k"] for r in merged] == stored + [k for k in new if k not in stored]
     assert all(r["run"] == ("new" if r["k"] in new else "old") for r in merged)
+
+
+def test_capped_networks_evaluate_on_the_chosen_device(pair_grid, checkpoints: Path, device: str):
+    """`min:` and `cap:` of a network and the union of pairwise BRTs under `reach evaluate --device`.
+    The first GPU run of these failed: the misses of the union were computed from states on the CPU,
+    the network returned its values on the GPU and the union on the CPU, and the minimum refused to
+    mix them. A value function now answers on the states' device, wherever its weights are; with
+    states on either device the composition's value and gradient come back there."""
+    from groundtruth.pairwise import PairwiseUnion
+    from reach.value_function import MinimumOf
+    from training import NeuralValueFunction
+
+    system = MultiVehicle9D()
+    torch.manual_seed(0)
+    net = ValueNetwork(system, "ssssl", width=16).to(device)
+    x = system.sample_states(64, generator=torch.Generator().manual_seed(1))
+    for steer_by in (None, 0):
+        vf = MinimumOf(NeuralValueFunction(net), PairwiseUnion(system, pair_grid), steer_by=steer_by)
+        expected = None
+        for where in ("cpu", device):
+            v, g = vf.value_and_gradient(x.to(where), 1.0)
+            assert v.device.type == g.device.type == torch.device(where).type
+            assert vf.value(x.to(where), 1.0).device.type == torch.device(where).type
+            expected = v.cpu() if expected is None else expected
+            assert torch.allclose(v.cpu(), expected, atol=1e-5)
+
+    pair = checkpoints / "pair.npz"
+    pair_grid.save(pair)
+    out = checkpoints / "capped.csv"
+    run = checkpoints / "9d_ssrsl.pt"
+    sources = [f"min:{run},{pair}", f"cap:{run},{pair}"]
+    settings = ["--samples", "300", "--certify-samples", "200", "--robust-samples", "200"]
+    args = ["evaluate", *sources, "--system", "multivehicle9d", *settings, "--pairwise", str(pair)]
+    assert main([*args, "--device", device, "--out", str(out)]) == 0
+    rows = load_results(out)
+    assert len(rows) == 2 and not any(r.get("error") for r in rows), [r.get("error") for r in rows]
+    assert all(r["containment_miss_rate"] == 0.0 for r in rows)  # a minimum with the union misses none of it

@@ -434,8 +434,10 @@ class NeuralValueFunction:
 
     @torch.no_grad()
     def value(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        """``V(x, t)`` on the states' device and dtype, wherever the weights are (as a grid's value
+        is): a minimum of a GPU network and a grid adds tensors of one device."""
         xi, tt = self._inputs(x, t)
-        return self.network(xi, tt).to(x.dtype)
+        return self.network(xi, tt).to(device=x.device, dtype=x.dtype)
 
     def gradient(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
         return self.value_and_gradient(x, t)[1]
@@ -444,7 +446,7 @@ class NeuralValueFunction:
         """``(V, dV/dx)`` from one forward pass (see :meth:`ValueNetwork.value_and_gradient`)."""
         xi, tt = self._inputs(x, t)
         v, g = self.network.value_and_gradient(xi, tt, self.matmul_dtype)
-        return v.to(x.dtype), g.to(x.dtype)
+        return v.to(device=x.device, dtype=x.dtype), g.to(device=x.device, dtype=x.dtype)
 
     def autograd_gradient(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
         """``dV/dx`` by ``torch.autograd`` (the reference the fast path is tested against)."""
@@ -452,4 +454,4 @@ class NeuralValueFunction:
         with torch.enable_grad():
             xi = xi.detach().requires_grad_(True)
             (g,) = torch.autograd.grad(self.network(xi, tt).sum(), xi)
-        return g.to(x.dtype)
+        return g.to(device=x.device, dtype=x.dtype)
