@@ -194,21 +194,20 @@ def test_capped_networks_evaluate_on_the_chosen_device(pair_grid, checkpoints: P
     x = system.sample_states(64, generator=torch.Generator().manual_seed(1))
     for steer_by in (None, 0):
         vf = MinimumOf(NeuralValueFunction(net), PairwiseUnion(system, pair_grid), steer_by=steer_by)
-        expected = None
+        on_cpu = vf.value(x, 1.0)
         for where in ("cpu", device):
             v, g = vf.value_and_gradient(x.to(where), 1.0)
             assert v.device.type == g.device.type == torch.device(where).type
             assert vf.value(x.to(where), 1.0).device.type == torch.device(where).type
-            expected = v.cpu() if expected is None else expected
-            assert torch.allclose(v.cpu(), expected, atol=1e-5)
+            assert on_cpu.device.type == "cpu" and torch.allclose(v.cpu(), on_cpu, atol=1e-5)
 
     pair = checkpoints / "pair.npz"
     pair_grid.save(pair)
     out = checkpoints / "capped.csv"
     run = checkpoints / "9d_ssrsl.pt"
     sources = [f"min:{run},{pair}", f"cap:{run},{pair}"]
-    settings = ["--samples", "300", "--certify-samples", "200", "--robust-samples", "200"]
-    args = ["evaluate", *sources, "--system", "multivehicle9d", *settings, "--pairwise", str(pair)]
+    counts = ["--samples", "300", "--certify-samples", "200", "--robust-samples", "200"]
+    args = ["evaluate", *sources, "--system", "multivehicle9d", *counts, "--pairwise", str(pair)]
     assert main([*args, "--device", device, "--out", str(out)]) == 0
     rows = load_results(out)
     assert len(rows) == 2 and not any(r.get("error") for r in rows), [r.get("error") for r in rows]
