@@ -114,11 +114,14 @@ def evaluate(args: argparse.Namespace) -> int:
         certify_samples=args.certify_samples,
         robust_samples=args.robust_samples,
         seed=args.seed,
+        **({} if args.chunk_size is None else {"chunk_size": args.chunk_size}),
     )
     command = ["reach", "evaluate", source, "--samples", str(args.samples)]
     command += ["--certify-samples", str(args.certify_samples), "--seed", str(args.seed)]
     if args.robust_samples is not None:
         command += ["--robust-samples", str(args.robust_samples)]
+    if args.chunk_size is not None:
+        command += ["--chunk-size", str(args.chunk_size)]
     if args.ground_truth:
         command += ["--ground-truth", args.ground_truth]
     if args.pairwise:
@@ -169,6 +172,7 @@ def main() -> int:
     v.add_argument("--certify-samples", type=int, default=100_000)
     v.add_argument("--robust-samples", type=int, default=None)
     v.add_argument("--seed", type=int, default=0)
+    v.add_argument("--chunk-size", type=int, default=None, help="states per rollout batch (memory, not results)")
     v.add_argument("--ground-truth", default=None)
     v.add_argument("--pairwise", default=None)
     v.add_argument("--hardware", default="2 CPU cores (shared VM), torch 2.13.0+cpu")
