@@ -60,10 +60,14 @@ def _cli_reference() -> str:
 def _pretrained_cards() -> str:
     from training import pretrained
 
+    def robust(m: dict) -> str:
+        volume, eps = m.get("robust_certified_volume"), m.get("robust_eps")
+        return f"{volume:.3g} ({eps:.2g})" if isinstance(volume, (int, float)) and isinstance(eps, (int, float)) else "-"
+
     rows = [
         "| model | system, envs | trained | violation % | false safe % | collision % | certified vol. | "
-        "misses union % | IoU vol. |",
-        "|---|---|---|---:|---:|---:|---:|---:|---:|",
+        "robust vol. (eps) | misses union % | IoU vol. |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     commands = []
     for card in pretrained.cards():
@@ -77,7 +81,7 @@ def _pretrained_cards() -> str:
             f"| `pretrained:{card.name}` | {card.system}; {', '.join(card.env_ids) or '-'} | "
             f"{t.get('steps')} steps, {t.get('wall_time_s', 0) / 60:.0f} min | {cell('violation_rate', 100)} | "
             f"{cell('false_safe_rate', 100)} | {cell('collision_rate', 100)} | {cell('certified_volume')} | "
-            f"{cell('containment_miss_rate', 100)} | {cell('iou_volume')} |"
+            f"{robust(m)} | {cell('containment_miss_rate', 100)} | {cell('iou_volume')} |"
         )
         commands.append(
             f"**`{card.name}`**: {card.summary}\n\n```bash\n{t.get('command', '')}\n"

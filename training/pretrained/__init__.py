@@ -95,6 +95,8 @@ _CARD_METRICS = (
     ("collision_rate", "collision %", 100.0),
     ("delta", "delta", 1.0),
     ("certified_volume", "certified vol.", 1.0),
+    ("robust_certified_volume", "robust vol.", 1.0),
+    ("robust_eps", "at eps", 1.0),
     ("iou_volume", "IoU vol.", 1.0),
     ("containment_miss_rate", "misses union %", 100.0),
 )
