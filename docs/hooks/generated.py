@@ -62,7 +62,8 @@ def _pretrained_cards() -> str:
 
     def robust(m: dict) -> str:
         volume, eps = m.get("robust_certified_volume"), m.get("robust_eps")
-        return f"{volume:.3g} ({eps:.2g})" if isinstance(volume, (int, float)) and isinstance(eps, (int, float)) else "-"
+        known = isinstance(volume, (int, float)) and isinstance(eps, (int, float))
+        return f"{volume:.3g} ({eps:.2g})" if known else "-"
 
     rows = [
         "| model | system, envs | trained | violation % | false safe % | collision % | certified vol. | "
