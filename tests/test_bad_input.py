@@ -537,3 +537,27 @@ def test_an_interrupt_anywhere_is_one_line_and_exit_130(monkeypatch, capsys):
     monkeypatch.setattr(envs_command, "run", interrupted)  # main builds its parser, so it picks this up
     assert main(["envs"]) == 130
     assert capsys.readouterr().err.strip() == "reach envs: interrupted"
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("chunk_size", 0),
+        ("chunk_size", True),
+        ("chunk_size", 2.5),
+        ("dt", 0.0),
+        ("dt", float("nan")),
+        ("dt", -0.01),
+        ("horizon", -1.0),
+        ("horizon", float("inf")),
+        ("integrator", "bogus"),
+    ],
+)
+def test_verify_settings_refuse_bad_rollout_settings_by_name(field, value):
+    """The library path has no argparse in front of it: a verification refuses a setting that would
+    stall, divide by zero or roll out with an unknown integrator before any rollout starts."""
+    from safety.verify import VerifySettings
+
+    with pytest.raises(ValueError, match=field):
+        VerifySettings(**{field: value})
+    VerifySettings(**{field: {"chunk_size": 7, "dt": 0.01, "horizon": 0.5, "integrator": "rk4"}[field]})
