@@ -30,6 +30,7 @@ import tempfile
 from pathlib import Path
 
 from reach.atomic import atomic_path
+from reach.validation import positive_int_arg
 from training import pretrained
 from training.checkpoint import ARCHITECTURE_KEYS, network_from_payload, read_checkpoint, save_checkpoint
 
@@ -172,7 +173,7 @@ def main() -> int:
     v.add_argument("--certify-samples", type=int, default=100_000)
     v.add_argument("--robust-samples", type=int, default=None)
     v.add_argument("--seed", type=int, default=0)
-    v.add_argument("--chunk-size", type=int, default=None, help="states per rollout batch (memory, not results)")
+    v.add_argument("--chunk-size", type=positive_int_arg, default=None, help="states per rollout batch (memory only)")
     v.add_argument("--ground-truth", default=None)
     v.add_argument("--pairwise", default=None)
     v.add_argument("--hardware", default="2 CPU cores (shared VM), torch 2.13.0+cpu")

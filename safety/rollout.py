@@ -81,6 +81,27 @@ def num_steps(horizon: float, dt: float) -> int:
     return max(1, math.ceil(horizon / dt - 1e-9))
 
 
+def check_rollout_settings(*, horizon: float | None, dt: float, integrator: str, chunk_size: int) -> None:
+    """Refuse, by name, a rollout's horizon (None: the system's) or step ``dt`` that is not positive
+    and finite, an unknown integrator or a batch size below 1. :func:`rollout` calls it, and so does
+    ``VerifySettings``, so that a verification refuses them before any source is loaded."""
+    for name, value in (("horizon", horizon), ("dt", dt)):
+        if value is not None and not _positive_finite(value):
+            raise ValueError(f"{name} must be positive and finite, got {value!r}")
+    check_integrator(integrator)
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
+        raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
+
+
+def _positive_finite(value: object) -> bool:
+    if isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(value) and value > 0  # type: ignore[arg-type, operator]
+    except TypeError:
+        return False
+
+
 def rollout(
     value_function: ValueFunction,
     states: torch.Tensor,
@@ -116,14 +137,9 @@ def rollout(
     if states.ndim != 2:
         raise ValueError(f"states must have shape (N, {system.state_dim}), got {tuple(states.shape)}")
     horizon = system.horizon if horizon is None else float(horizon)
-    for name, value in (("horizon", horizon), ("dt", dt)):
-        if not (math.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be positive and finite, got {value!r}")
-    check_integrator(integrator)
+    check_rollout_settings(horizon=horizon, dt=dt, integrator=integrator, chunk_size=chunk_size)
     if not (disturbance in ("optimal", "none") or callable(disturbance)):
         raise ValueError(f"disturbance must be 'optimal', 'none' or a callable, got {disturbance!r}")
-    if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
-        raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
     check_time_coverage(value_function, 0.0, horizon, f"a rollout from time-to-go {horizon:g}")
     if matmul_precision == "bfloat16":
         if not hasattr(value_function, "with_matmul_dtype"):

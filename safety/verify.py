@@ -15,16 +15,11 @@ from typing import Any
 
 import torch
 
-from reach.integrators import check_integrator
 from reach.systems import ControlAffineSystem
 from reach.threads import thread_policy
 from reach.value_function import ValueFunction
 from safety.metrics import robust_level_search, scenario_epsilon, violation_statistics, wilson_interval
-from safety.rollout import rollout
-
-
-def _positive_finite(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+from safety.rollout import check_rollout_settings, rollout
 
 
 @dataclass(frozen=True)
@@ -65,13 +60,9 @@ class VerifySettings:
             raise ValueError(f"robust_samples must be an integer >= 0, got {self.robust_samples!r}")
         if self.matmul_precision not in ("float32", "bfloat16"):
             raise ValueError(f"matmul_precision must be 'float32' or 'bfloat16', got {self.matmul_precision!r}")
-        if isinstance(self.chunk_size, bool) or not isinstance(self.chunk_size, int) or self.chunk_size < 1:
-            raise ValueError(f"chunk_size must be a positive integer, got {self.chunk_size!r}")
-        if not _positive_finite(self.dt):
-            raise ValueError(f"dt must be a positive finite number, got {self.dt!r}")
-        if self.horizon is not None and not _positive_finite(self.horizon):
-            raise ValueError(f"horizon must be None or a positive finite number, got {self.horizon!r}")
-        check_integrator(self.integrator)
+        check_rollout_settings(
+            horizon=self.horizon, dt=self.dt, integrator=self.integrator, chunk_size=self.chunk_size
+        )
 
     @property
     def fresh_samples(self) -> int:
