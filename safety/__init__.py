@@ -4,6 +4,8 @@ Everything here takes a :class:`~reach.value_function.ValueFunction` (a trained
 network, a DeepReach import or a grid solution; :func:`load_value_function` loads any of them):
 
 * :class:`OptimalPolicy` - ``u*``, ``d*`` from the gradient through the system's derived functions;
+* :class:`GreedyPolicy` - the candidate input held for a short step that leaves the most value (the
+  switch filter's default backup input; ``rollout(..., policy="greedy")``);
 * :class:`SafetyFilter` and its environment adapters (:mod:`safety.wrappers`);
 * :func:`rollout` - batched closed-loop simulation that skips decided trajectories;
 * :func:`verify`, :func:`evaluate_many` - violation statistics, delta-level, scenario guarantee,
@@ -18,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 from reach.value_function import MinimumOf, value_and_gradient
 from safety.filter import FilterInfo, SafetyFilter
 from safety.metrics import scenario_epsilon, violation_statistics, wilson_interval
-from safety.policy import OptimalPolicy
+from safety.policy import GreedyPolicy, OptimalPolicy
 from safety.rollout import RolloutResult, rollout
 from safety.value_functions import LoadedValueFunction, as_value_function, load_value_function
 from safety.verify import VerifySettings, sample_states, sample_superlevel_set, verify
@@ -55,6 +57,7 @@ def __dir__() -> list[str]:
 
 __all__ = [
     "FilterInfo",
+    "GreedyPolicy",
     "LoadedValueFunction",
     "MinimumOf",
     "OptimalPolicy",

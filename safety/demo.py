@@ -110,4 +110,3 @@ of `reach train` defaults (run directory `{run.name}`). Total wall time {time.pe
     with atomic_path(report) as tmp:
         Path(tmp).write_text(text)
     return report
-

@@ -120,8 +120,8 @@ def _previous(out: Path, header: dict[str, Any], keep_errors: bool = False) -> d
         data = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as err:
         raise ValueError(f"{path}: existing results are unreadable ({err}); move the file away to start over") from err
-    if isinstance(data.get("settings"), dict):  # files from before matmul_precision existed were float32
-        data["settings"] = _resolved({"matmul_precision": "float32", **data["settings"]})
+    if isinstance(data.get("settings"), dict):  # files from before these settings existed used these values
+        data["settings"] = _resolved({"matmul_precision": "float32", "policy": "gradient", **data["settings"]})
     if any(
         data.get(key) != header[key]
         for key in ("format", "settings", "system", "ground_truth", "ground_truth_time", "pairwise")

@@ -31,7 +31,7 @@ from reach.locking import exclusive_lock
 from reach.value_function import ValueFunction
 from reach_envs.scenes import Scene, make_scene
 from reach_envs.vector import ReachVectorEnv
-from safety.filter import DEFAULT_GAMMA, check_filter_settings
+from safety.filter import DEFAULT_GAMMA, check_filter_settings, resolve_policy
 from safety.metrics import wilson_interval
 from safety.results_io import markdown_table, merge_rows, write_results
 from safety.tasks import GoalTask, NominalPolicy, make_task
@@ -42,7 +42,8 @@ from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapp
 class FilterConfig:
     """One configuration: a label, a value function (``None``: nominal policy alone), a threshold,
     the filter kind (``switch``, ``lookahead``, ``smooth``), the smooth filter's ``gamma`` and the
-    lookahead's ``backup_horizon`` (seconds; ``None``: the system's horizon)."""
+    lookahead's ``backup_horizon`` (seconds; ``None``: the system's horizon), and the backup input's
+    ``policy`` (``"gradient"``, ``"greedy"``, or ``None``: the kind's default)."""
 
     label: str
     value_function: ValueFunction | None = None
@@ -51,10 +52,11 @@ class FilterConfig:
     gamma: float = DEFAULT_GAMMA
     backup_horizon: float | None = None
     backup_disturbance: str = "robust"
+    policy: str | None = None
 
     def __post_init__(self) -> None:
         if self.value_function is not None:  # refused before any episode runs
-            check_filter_settings(self.kind, self.gamma, self.backup_horizon, self.backup_disturbance)
+            check_filter_settings(self.kind, self.gamma, self.backup_horizon, self.backup_disturbance, self.policy)
 
     def filter_options(self) -> dict[str, Any]:
         """The keyword arguments every filter wrapper takes for this configuration's filter."""
@@ -63,6 +65,7 @@ class FilterConfig:
             "gamma": self.gamma,
             "backup_horizon": self.backup_horizon,
             "backup_disturbance": self.backup_disturbance,
+            "policy": self.policy,
         }
 
 
@@ -126,6 +129,7 @@ class _Tally:
             "gamma": config.gamma if config.value_function is not None and config.kind == "smooth" else None,
             "backup_horizon": _backup_horizon(config) if lookahead else None,
             "backup_disturbance": config.backup_disturbance if lookahead else None,
+            "policy": resolve_policy(config.kind, config.policy) if config.value_function is not None else None,
             "goal_rate": float(reached.mean()) if task.has_goal else float("nan"),
             "mean_goal_time": float(np.nanmean(task.reach_time[reached])) if reached.any() else float("nan"),
             "wall_time": wall,
@@ -218,7 +222,8 @@ def _labelled(row: dict[str, Any]) -> dict[str, Any]:
         return {**row, "value_function": name, "label": name}
     kind = "" if row.get("kind") in (None, "switch") else f" {row['kind']}"
     gamma = f" g{row['gamma']:g}" if row.get("gamma") is not None else ""
-    return {**row, "value_function": name, "label": f"{name}{kind} @ {threshold:.3g}{gamma}"}
+    policy = " greedy" if row.get("policy") == "greedy" else ""
+    return {**row, "value_function": name, "label": f"{name}{kind}{policy} @ {threshold:.3g}{gamma}"}
 
 
 def evaluate_filter_parallel(
@@ -324,8 +329,8 @@ def write_filter_results(rows: Sequence[dict[str, Any]], out: str | os.PathLike,
 
 
 #: header keys that describe one invocation's filters rather than its episodes; the rows carry the
-#: same facts (kind, gamma, backup_horizon, backup_disturbance), so tables that differ only in these merge
-PER_INVOCATION_KEYS = ("filters", "gammas", "backup_horizon", "backup_disturbance")
+#: same facts (kind, gamma, backup_horizon, backup_disturbance, policy), so tables that differ only in these merge
+PER_INVOCATION_KEYS = ("filters", "gammas", "backup_horizon", "backup_disturbance", "policy")
 
 
 def _episode_header(header: dict[str, Any]) -> dict[str, Any]:
@@ -457,6 +462,7 @@ def record_side_by_side(
     gamma: float = DEFAULT_GAMMA,
     backup_horizon: float | None = None,
     backup_disturbance: str = "robust",
+    policy: str | None = None,
 ) -> str:
     """A GIF of a few episodes from the same starts: the nominal policy (left), then the same policy
     under each filter kind in ``kinds``, side by side."""
@@ -478,6 +484,7 @@ def record_side_by_side(
             gamma=gamma,
             backup_horizon=backup_horizon,
             backup_disturbance=backup_disturbance,
+            policy=policy,
         )
         for k in kinds
     ]
@@ -543,6 +550,7 @@ def run_filter_study(
     backup_horizon: float | None = None,
     backup_disturbance: str = "robust",
     merge: bool = False,
+    policy: str | None = None,
 ) -> FilterStudy:
     """The one filter-evaluation pipeline: episodes, results, trade-off plot and a side-by-side GIF.
 
@@ -559,6 +567,8 @@ def run_filter_study(
             (default: the first threshold) is the filters' threshold there.
         backup_horizon: the lookahead's backup rollout in seconds (default: the system's horizon).
         backup_disturbance: the lookahead's predicted disturbance paths (``"robust"`` or ``"model"``).
+        policy: the filters' backup input, ``"gradient"`` (``u*``), ``"greedy"``
+            (:class:`~safety.policy.GreedyPolicy`) or ``None``: each kind's default.
         nominal: the nominal policy (float64 states ``(N, n)`` -> normalised actions ``(N, m_u)``);
             default: the scene system's goal task (:func:`~safety.tasks.make_task`), which for a
             system without goals keeps the centre of the control box.
@@ -590,7 +600,7 @@ def run_filter_study(
         for kind in kinds:
             for th in thresholds:
                 for gamma in gammas if kind == "smooth" else (DEFAULT_GAMMA,):
-                    configs.append(FilterConfig(label, vf, th, kind, gamma, backup_horizon, backup_disturbance))
+                    configs.append(FilterConfig(label, vf, th, kind, gamma, backup_horizon, backup_disturbance, policy))
     if pettingzoo:
         if starts is not None:
             raise ValueError("the PettingZoo path samples its own starts; drop start_outside or pettingzoo")
@@ -626,6 +636,7 @@ def run_filter_study(
             gamma=gammas[0],
             backup_horizon=backup_horizon,
             backup_disturbance=backup_disturbance,
+            policy=policy,
             task=task,
         )
         paths.append(str(gif))

@@ -36,7 +36,7 @@ from tqdm.auto import tqdm
 from reach.integrators import check_integrator, make_stepper
 from reach.systems.backend import TORCH
 from reach.value_function import ValueFunction, check_time_coverage
-from safety.policy import check_states
+from safety.policy import GreedyPolicy, check_policy, check_states
 
 DisturbanceSpec = Literal["optimal", "none"] | Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -116,6 +116,7 @@ def rollout(
     dtype: torch.dtype = torch.float32,
     progress: bool = True,
     matmul_precision: Literal["float32", "bfloat16"] = "float32",
+    policy: Literal["gradient", "greedy"] = "gradient",
 ) -> RolloutResult:
     """Roll out every state in ``states`` ``(N, n)`` under the value function's optimal policy.
 
@@ -131,6 +132,10 @@ def rollout(
         matmul_precision: ``"bfloat16"`` runs a network's hidden products in bfloat16 (neural value
             functions only): faster on CPUs and GPUs with bf16 units, and not exact: outcomes can
             differ from float32 near the BRT boundary (measured in ``benchmarks/bench_rollouts.py``).
+        policy: ``"gradient"`` (the bang-bang ``u*`` of ``grad V``) or ``"greedy"``
+            (:class:`~safety.policy.GreedyPolicy`: the candidate input held for
+            :data:`~safety.policy.GREEDY_STEP` that leaves the most value; about ``2^m_u + 1`` times the
+            network work per step). The disturbance is the gradient's ``d*`` either way.
     """
     system = value_function.system
     check_states(states, system.state_dim)
@@ -138,6 +143,7 @@ def rollout(
         raise ValueError(f"states must have shape (N, {system.state_dim}), got {tuple(states.shape)}")
     horizon = system.horizon if horizon is None else float(horizon)
     check_rollout_settings(horizon=horizon, dt=dt, integrator=integrator, chunk_size=chunk_size)
+    check_policy(policy)
     if not (disturbance in ("optimal", "none") or callable(disturbance)):
         raise ValueError(f"disturbance must be 'optimal', 'none' or a callable, got {disturbance!r}")
     check_time_coverage(value_function, 0.0, horizon, f"a rollout from time-to-go {horizon:g}")
@@ -156,16 +162,18 @@ def rollout(
     use_disturbance = system.disturbance_dim > 0 and disturbance != "none"
 
     advance = make_stepper(system, dt, integrator, TORCH)
+    greedy = GreedyPolicy(value_function, dt=dt, integrator=integrator) if policy == "greedy" else None
 
     def step(x: torch.Tensor, t: float) -> torch.Tensor:
-        p = value_function.gradient(x, t)  # networks fuse it with the value; grids interpolate it alone
-        u = system.optimal_control(x, p)
+        # the gradient where u* or d* needs it: networks fuse it with the value; grids interpolate it alone
+        p = value_function.gradient(x, t) if greedy is None or (disturbance == "optimal" and use_disturbance) else None
         if not use_disturbance:
             d = None
         elif disturbance == "optimal":
             d = system.optimal_disturbance(x, p)
         else:
             d = disturbance(x, torch.full(x.shape[:-1], t, dtype=x.dtype, device=x.device))
+        u = system.optimal_control(x, p) if greedy is None else greedy.control(x, t, d)
         cols = TORCH.unbind(x)
         uc = system.input_columns(u, system.control_bounds, "u")
         dc = system.input_columns(d, system.disturbance_bounds, "d")

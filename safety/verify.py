@@ -19,6 +19,7 @@ from reach.systems import ControlAffineSystem
 from reach.threads import thread_policy
 from reach.value_function import ValueFunction
 from safety.metrics import robust_level_search, scenario_epsilon, violation_statistics, wilson_interval
+from safety.policy import check_policy
 from safety.rollout import check_rollout_settings, rollout
 
 
@@ -44,6 +45,10 @@ class VerifySettings:
     #: (123k at the defaults), so the 100k default finds no level and says so in ``robust_error``.
     target_eps: float = 3e-4
     robust_samples: int | None = None
+    #: the induced policy every rollout follows: "gradient" (the bang-bang u* of grad V, DeepReach's)
+    #: or "greedy" (safety.policy.GreedyPolicy: the held candidate input that leaves the most value;
+    #: about 2^m_u + 1 times the network work per step)
+    policy: str = "gradient"
 
     def __post_init__(self) -> None:
         if isinstance(self.samples, bool) or not isinstance(self.samples, int) or self.samples < 1:
@@ -60,9 +65,8 @@ class VerifySettings:
             raise ValueError(f"robust_samples must be an integer >= 0, got {self.robust_samples!r}")
         if self.matmul_precision not in ("float32", "bfloat16"):
             raise ValueError(f"matmul_precision must be 'float32' or 'bfloat16', got {self.matmul_precision!r}")
-        check_rollout_settings(
-            horizon=self.horizon, dt=self.dt, integrator=self.integrator, chunk_size=self.chunk_size
-        )
+        check_policy(self.policy)
+        check_rollout_settings(horizon=self.horizon, dt=self.dt, integrator=self.integrator, chunk_size=self.chunk_size)
 
     @property
     def fresh_samples(self) -> int:
@@ -149,6 +153,7 @@ def _verify(
         "dt": settings.dt,
         "integrator": settings.integrator,
         "chunk_size": settings.chunk_size,
+        "policy": settings.policy,
         "device": device,
         "progress": progress,
     }

@@ -14,6 +14,11 @@ and integrator, then ``backup_horizon`` seconds of the backup policy, default th
 along the ``backup_disturbance`` paths, default ``"robust"``)
 or ``"smooth"`` (``gamma``: the barrier rate); see :mod:`safety.filter`.
 
+Backup input: ``policy="greedy"`` applies :class:`~safety.policy.GreedyPolicy`'s input where a
+filter overrides the nominal input, ``"gradient"`` the gradient's ``u*``; ``None`` (default) takes
+the kind's default, greedy for the switch, gradient for the lookahead and the smooth filter (see
+:mod:`safety.filter`).
+
 Threshold: a switch or smooth filter that acts once per environment step (zero-order hold) lets
 ``V`` fall by up to about ``|dl/dt|_max * dt`` before it can react, so their default threshold
 (``threshold=None``) is ``2 * margin_rate_bound * dt`` (0.06 for Air3D at dt = 0.02; systems that
@@ -83,6 +88,7 @@ class _Adapter:
         gamma: float = DEFAULT_GAMMA,
         backup_horizon: float | None = None,
         backup_disturbance: str = "robust",
+        policy: str | None = None,
     ) -> None:
         _check_time_to_go(time_to_go)
         episode_horizon = scene.episode_horizon
@@ -100,6 +106,7 @@ class _Adapter:
             gamma=gamma,
             backup_horizon=backup_horizon,
             backup_disturbance=backup_disturbance,
+            policy=policy,
         )
         # the times the filter will ask for, checked now rather than mid-episode
         if time_to_go is None:
@@ -165,10 +172,11 @@ class _FilterAdapterMixin:
         gamma: float = DEFAULT_GAMMA,
         backup_horizon: float | None = None,
         backup_disturbance: str = "robust",
+        policy: str | None = None,
     ) -> None:
         super().__init__(env)  # the wrapper base class of the env kind
         self._attach_filter(
-            env, value_function, threshold, time_to_go, device, kind, gamma, backup_horizon, backup_disturbance
+            env, value_function, threshold, time_to_go, device, kind, gamma, backup_horizon, backup_disturbance, policy
         )
 
     def _attach_filter(
@@ -182,6 +190,7 @@ class _FilterAdapterMixin:
         gamma: float = DEFAULT_GAMMA,
         backup_horizon: float | None = None,
         backup_disturbance: str = "robust",
+        policy: str | None = None,
     ) -> None:
         base = env.unwrapped
         if value_function is None:
@@ -197,6 +206,7 @@ class _FilterAdapterMixin:
             gamma,
             backup_horizon,
             backup_disturbance,
+            policy,
         )
 
     @property
@@ -226,6 +236,7 @@ class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordCons
         gamma: float = DEFAULT_GAMMA,
         backup_horizon: float | None = None,
         backup_disturbance: str = "robust",
+        policy: str | None = None,
     ) -> None:
         gym.utils.RecordConstructorArgs.__init__(
             self,
@@ -237,10 +248,11 @@ class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordCons
             gamma=gamma,
             backup_horizon=backup_horizon,
             backup_disturbance=backup_disturbance,
+            policy=policy,
         )
         gym.Wrapper.__init__(self, env)
         self._attach_filter(
-            env, value_function, threshold, time_to_go, device, kind, gamma, backup_horizon, backup_disturbance
+            env, value_function, threshold, time_to_go, device, kind, gamma, backup_horizon, backup_disturbance, policy
         )
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:

@@ -93,7 +93,7 @@ def test_filter_eval_cli(air3d_grid, tmp_path: Path, capsys):
     table = capsys.readouterr().out
     assert "| configuration | threshold | collision % [95 % CI] |" in table
     data = json.loads(out.with_suffix(".json").read_text())
-    assert [r["label"] for r in data["results"]] == ["nominal", "air3d @ 0.03", "air3d @ 0.1"]
+    assert [r["label"] for r in data["results"]] == ["nominal", "air3d greedy @ 0.03", "air3d greedy @ 0.1"]
     assert data["pursuer"] == "worst-case" and data["path"] == "vector"
     assert (tmp_path / "fe_tradeoff.png").stat().st_size > 5000
     assert (tmp_path / "fe.gif").stat().st_size > 10000
@@ -155,7 +155,7 @@ def test_filter_eval_merges_rows_of_the_same_episodes_and_refuses_others_before_
     assert main([*base, str(other), "--thresholds", "0.05", "--filters", "switch,smooth"]) == 0
     data = json.loads(out.with_suffix(".json").read_text())
     labels = [r["label"] for r in data["results"]]
-    assert labels == ["nominal", "air3d @ 0.05", "other @ 0.05", "other smooth @ 0.05 g5"]
+    assert labels == ["nominal", "air3d greedy @ 0.05", "other greedy @ 0.05", "other smooth @ 0.05 g5"]
     assert data["filters"] == ["switch", "smooth"]
     assert data["results"][1] == first[1]  # the first invocation's row, untouched
     assert data["results"][0]["collision_rate"] == first[0]["collision_rate"]  # the same nominal episodes

@@ -135,19 +135,26 @@ def test_the_lookahead_is_safe_at_threshold_zero_where_one_step_is_not(air3d_gri
     assert rollout["collision_rate"] == 0.0 and rollout["min_margin"] > 0 and rollout["backup_horizon"] == 0.5
 
 
-def test_smooth_filter_chatters_less_than_the_switch(air3d_grid):
+def test_smooth_filter_and_greedy_switch_chatter_less_than_the_bang_bang_switch(air3d_grid):
+    """The switch handing over to u* flips between the box's corners; the smooth filter and the
+    switch handing over to the greedy input (which may pick the centre) change the input less."""
     starts = outside_states(air3d_grid, 200, 0.1, 0)
     overrides = {"disturbance": worst_case_disturbance(air3d_grid)}
-    switch, smooth = evaluate_filters(
+    switch, smooth, greedy = evaluate_filters(
         "air3d",
-        [FilterConfig("switch", air3d_grid, 0.06), FilterConfig("smooth", air3d_grid, 0.06, kind="smooth", gamma=5.0)],
+        [
+            FilterConfig("switch", air3d_grid, 0.06, policy="gradient"),
+            FilterConfig("smooth", air3d_grid, 0.06, kind="smooth", gamma=5.0),
+            FilterConfig("greedy", air3d_grid, 0.06),
+        ],
         200,
         0,
         scene_overrides=overrides,
         initial_states=starts,
     )
-    assert smooth["collision_rate"] == 0.0 and switch["collision_rate"] == 0.0
+    assert smooth["collision_rate"] == switch["collision_rate"] == greedy["collision_rate"] == 0.0
     assert smooth["total_variation"] < 0.7 * switch["total_variation"]
+    assert greedy["policy"] == "greedy" and greedy["total_variation"] < 0.7 * switch["total_variation"]
 
 
 def test_the_lookahead_settings_reach_the_filter_through_every_adapter():

@@ -16,6 +16,7 @@ from reach.systems import Air3D, MultiVehicle9D
 from reach_envs.parallel import parallel_env
 from reach_envs.vector import ReachVectorEnv
 from safety import (
+    GreedyPolicy,
     OptimalPolicy,
     SafetyFilter,
     SafetyFilterParallelWrapper,
@@ -58,7 +59,10 @@ def test_fused_gradient_equals_autograd(layout, parameterisation, sincos, nine):
 
 
 # ---------------------------------------------------------------------- filter
-def test_filter_keeps_nominal_or_applies_u_star_exactly():
+@pytest.mark.parametrize("policy", ["gradient", "greedy", None])
+def test_filter_keeps_nominal_or_applies_its_backup_input_exactly(policy):
+    """The switch keeps the nominal input bit for bit or applies its backup input: u* (gradient) or
+    the greedy policy's input (greedy, the switch's default)."""
     system = MultiVehicle9D()
     vf = tiny_network(system)
     x = system.sample_states(512, generator=torch.Generator().manual_seed(0))
@@ -66,12 +70,15 @@ def test_filter_keeps_nominal_or_applies_u_star_exactly():
     v = vf.value(x, t)
     threshold = float(v.median())
     nominal = torch.rand(512, 3, generator=torch.Generator().manual_seed(1)) * 2.2 - 1.1
-    u, info = SafetyFilter(vf, threshold)(x, t, nominal)
-    u_star = OptimalPolicy(vf).control(x, t)
+    u, info = SafetyFilter(vf, threshold, policy=policy)(x, t, nominal)
     active = v <= threshold
+    if policy == "gradient":
+        backup = OptimalPolicy(vf).control(x[active], t)
+    else:
+        backup = GreedyPolicy(vf, integrator="rk4").control(x[active], t)
     assert 0 < int(active.sum()) < 512
     assert torch.equal(info.intervened, active)
-    assert torch.equal(u[active], u_star[active])
+    assert torch.equal(u[active], backup)
     assert torch.equal(u[~active], nominal[~active])
     assert torch.equal(info.applied, u) and torch.equal(info.nominal, nominal)
 

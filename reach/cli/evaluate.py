@@ -41,6 +41,13 @@ VERIFY_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
         {"choices": ["float32", "bfloat16"]},
         "bfloat16: networks' hidden products in bf16 during rollouts (faster, inexact; grids stay exact)",
     ),
+    (
+        "--policy",
+        "policy",
+        {"choices": ["gradient", "greedy"]},
+        "the induced policy rolled out: the bang-bang u* of grad V, or the held candidate input that leaves the "
+        "most value (slower)",
+    ),
     ("--horizon", "horizon", {"type": positive_float_arg}, "time-to-go of the check (None: the system's)"),
     ("--chunk-size", "chunk_size", {"type": positive_int_arg}, "states rolled out at once"),
     ("--target-eps", "target_eps", {"type": probability_arg}, "robust certification: eps to certify"),

@@ -70,6 +70,14 @@ def add_parser(sub: Any) -> None:
         help="lookahead filter: check the value function's d* path and a greedy worst case over the "
         "disturbance box's corners (robust), or the d* path alone (model)",
     )
+    p.add_argument(
+        "--policy",
+        choices=["gradient", "greedy"],
+        default=None,
+        help="the input a filter applies when it overrides the nominal one: the bang-bang u* of grad V "
+        "(gradient), or the candidate input held for a short step that leaves the most value (greedy); "
+        "default: greedy for switch, gradient for lookahead and smooth",
+    )
     p.add_argument("--time-to-go", default=None, help="None (value function horizon), a number, or 'remaining'")
     p.add_argument("--pursuer", choices=["scene", "pursue", "random", "worst-case"], default="scene")
     p.add_argument("--adversary", default=None, help="value function whose d* the worst-case pursuer plays")
@@ -165,12 +173,14 @@ def run(args: argparse.Namespace) -> int:
         nominal=nominal,
         backup_horizon=args.backup_horizon,
         backup_disturbance=args.backup_disturbance,
+        policy=args.policy,
         merge=True,  # rows join a table of the same episodes already at --out, as reach evaluate's do
         header={
             "filters": kinds,
             "gammas": gammas if "smooth" in kinds else None,
             "backup_horizon": args.backup_horizon if "lookahead" in kinds else None,
             "backup_disturbance": args.backup_disturbance if "lookahead" in kinds else None,
+            "policy": args.policy,
             "format": "reach.filter-eval.v1",
             "scene": scene.name,
             "system": system.reference(),
