@@ -4,9 +4,9 @@
 kinds, one interface (every env adapter in :mod:`safety.wrappers` takes each):
 
 - ``"switch"`` (least-restrictive): keep ``u_nominal`` where ``V(x, t) > threshold``, else apply
-  the optimal control ``u*``. Decides on the current state, so between two decisions of a
-  zero-order-hold controller ``V`` can fall by about ``|dl/dt|_max dt``: its default threshold in the
-  env adapters covers that.
+  the backup input (by default the greedy input, see below; ``policy="gradient"``: ``u*``). Decides
+  on the current state, so between two decisions of a zero-order-hold controller ``V`` can fall by
+  about ``|dl/dt|_max dt``: its default threshold in the env adapters covers that.
 - ``"lookahead"`` (a backup shield): predict the state one step ``dt`` ahead under ``u_nominal``
   (the system's own integrator, inputs held over the step), then roll the backup policy ``u*``
   forward from there for ``backup_horizon`` seconds (default: the system's horizon, the time the BRT
