@@ -80,6 +80,22 @@ def test_at_a_kink_the_greedy_input_commits_where_the_gradient_does_not():
     assert torch.all(v_greedy > v_star + 1.5 * GREEDY_STEP)
 
 
+class _OpenPlane(_Plane):
+    """The plane with danger only far outside the domain (l > 0 within radius sqrt(10))."""
+
+    def failure_margin_columns(self, x, xp):
+        return 10.0 - x[0] ** 2 - x[1] ** 2
+
+
+def test_beyond_the_domain_the_greedy_input_still_reads_v():
+    """A held step may leave the domain; V is read there as u* reads grad V (a network extrapolates,
+    a grid takes its edge value), not replaced by l, whose one-step gain would steer instead."""
+    system = _OpenPlane()
+    vf = _Analytic(system, lambda x: x[..., 0] - 2 * x[..., 1])
+    x = torch.tensor([[0.99, -0.99], [-0.99, 0.99]])
+    assert torch.equal(GreedyPolicy(vf).control(x, 1.0), OptimalPolicy(vf).control(x, 1.0))
+
+
 def test_the_greedy_input_avoids_a_step_through_the_failure_set():
     """It scores min(V after the step, l along it): a candidate whose held step leaves the domain's
     safe disc loses even where V after it would be large."""
