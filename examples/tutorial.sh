@@ -26,7 +26,7 @@ step avoid-train reach train --system my_systems:DubinsAvoid --steps 3000 --seed
 step avoid-evaluate reach evaluate "$out/avoid" "$out/avoid_gt.npz" --system my_systems:DubinsAvoid \
     --ground-truth "$out/avoid_gt.npz" --samples 20000 --certify-samples 0 --robust-samples 0 \
     --out "$out/avoid_eval.csv"
-step avoid-filter reach filter-eval "$out/avoid_gt.npz" "$out/avoid" --system my_systems:DubinsAvoid \
+step avoid-filter reach filter-eval --policy gradient "$out/avoid_gt.npz" "$out/avoid" --system my_systems:DubinsAvoid \
     --filters switch,lookahead,smooth --pursuer worst-case --adversary "$out/avoid_gt.npz" \
     --start-outside "$out/avoid_gt.npz" --episodes 500 --out "$out/avoid_filter.csv" --gif "$out/avoid_filter.gif"
 step avoid-sweep reach sweep --system my_systems:DubinsAvoid --layouts ssssl,rrrsl --seeds 1 --steps 500 \
@@ -38,6 +38,6 @@ step accel-train reach train --system my_systems:DubinsAccel --steps 3000 --seed
 step accel-evaluate reach evaluate "$out/accel" "$out/accel_gt.npz" --system my_systems:DubinsAccel \
     --ground-truth "$out/accel_gt.npz" --samples 20000 --certify-samples 0 --robust-samples 0 \
     --out "$out/accel_eval.csv"
-step accel-filter reach filter-eval "$out/accel_gt.npz" "$out/accel" --system my_systems:DubinsAccel \
+step accel-filter reach filter-eval --policy gradient "$out/accel_gt.npz" "$out/accel" --system my_systems:DubinsAccel \
     --filters switch,lookahead,smooth --pursuer worst-case --adversary "$out/accel_gt.npz" \
     --start-outside "$out/accel_gt.npz" --nominal my_systems:cruise --episodes 500 --out "$out/accel_filter.csv"
