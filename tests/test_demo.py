@@ -15,7 +15,7 @@ def test_demo_writes_a_report_and_resumes(tmp_path: Path):
     report = run_demo(out, log=lines.append, **kwargs)
     text = report.read_text()
     assert "| air3d_gt | grid |" in text and "| air3d-ssssl | ssssl |" in text
-    assert "| nominal |" in text and "trained ssssl @ 0.06" in text
+    assert "| nominal |" in text and "trained ssssl greedy @ 0.06" in text  # the switch, its default backup input
     for link in re.findall(r"\]\(([^)]+)\)", text):
         assert (out / link).stat().st_size > 1000, link
     assert [line[:5] for line in lines] == ["[1/5]", "[2/5]", "[3/5]", "[4/5]", "[5/5]"]
