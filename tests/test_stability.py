@@ -52,8 +52,13 @@ def test_zero_gradient_value_gives_tie_break_not_nan():
     assert torch.isfinite(r.trajectories).all()
     # u* = d* = 0 (box centres): the relative heading never changes
     assert torch.allclose(r.trajectories[-1, :, 2], x[:, 2], atol=1e-6) or r.collided.any()
-    u, info = SafetyFilter(Flat(), threshold=2.0)(x, 1.0, torch.zeros(50, 1))
+    u, info = SafetyFilter(Flat(), threshold=2.0, policy="gradient")(x, 1.0, torch.zeros(50, 1))
     assert info.intervened.all() and (u == 0).all()
+    # the greedy input (the switch's default) on a flat V: scored by l where l < V, finite, in the box
+    u, info = SafetyFilter(Flat(), threshold=2.0)(x, 1.0, torch.zeros(50, 1))
+    box = Air3D().control_bounds
+    assert info.intervened.all() and torch.isfinite(u).all()
+    assert ((u >= box.low[0]) & (u <= box.high[0])).all()
 
 
 def test_euler_and_rk4_agree_away_from_the_boundary(air3d_grid):
