@@ -233,14 +233,20 @@ class SafetyFilter:
         batch) when ``policy="greedy"``; only those rows pay for it."""
         if self.greedy is None or not bool(rows.any()):
             return u_star
-        n, m = self.system.state_dim, self.system.control_dim
-        flat_rows = rows.reshape(-1)
-        xs = x.reshape(-1, n)[flat_rows]
-        ts = t.reshape(-1).expand(flat_rows.shape[0])[flat_rows] if isinstance(t, torch.Tensor) and t.ndim else t
-        ds = None if d_star is None else d_star.reshape(-1, d_star.shape[-1])[flat_rows]
-        out = u_star.clone().reshape(-1, m)
-        out[flat_rows] = self.greedy.control(xs, ts, ds).to(out.dtype)
+        index = torch.nonzero(rows.reshape(-1)).squeeze(-1)
+        xs, ts, ds = self._rows(index, x, t, d_star)
+        out = u_star.clone().reshape(-1, self.system.control_dim)
+        out[index] = self.greedy.control(xs, ts, ds).to(out.dtype)
         return out.reshape(u_star.shape)
+
+    def _rows(
+        self, index: torch.Tensor, x: torch.Tensor, t: float | torch.Tensor, d: torch.Tensor | None
+    ) -> tuple[torch.Tensor, float | torch.Tensor, torch.Tensor | None]:
+        """States, times-to-go and disturbances of the flattened batch at ``index`` (a scalar time
+        stays as it is; per-state times follow their states)."""
+        flat = x.reshape(-1, self.system.state_dim)
+        ts = t.reshape(-1).expand(flat.shape[0])[index] if isinstance(t, torch.Tensor) and t.ndim else t
+        return flat[index], ts, None if d is None else d.reshape(-1, d.shape[-1])[index]
 
     def _ahead(self, x: torch.Tensor, u: torch.Tensor, d: torch.Tensor | None) -> torch.Tensor:
         """The state one step ``dt`` ahead under ``u`` and ``d`` held over the step."""
@@ -311,12 +317,10 @@ class SafetyFilter:
         fallback = u_star.clone()
         if not bool(needed.any()):
             return fallback
-        n, m = self.system.state_dim, self.system.control_dim
+        m = self.system.control_dim
         rows = torch.nonzero(needed.reshape(-1)).squeeze(-1)
-        xs = x.reshape(-1, n)[rows]
-        ts = t.reshape(-1).expand(x.reshape(-1, n).shape[0])[rows] if isinstance(t, torch.Tensor) and t.ndim else t
+        xs, ts, ds = self._rows(rows, x, t, d_star)
         us = u_star.reshape(-1, m)[rows]
-        ds = None if d_star is None else d_star.reshape(-1, d_star.shape[-1])[rows]
         failing = ~self._backup_holds(xs, ts, us, ds)
         if not bool(failing.any()):
             return fallback
