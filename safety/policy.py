@@ -123,7 +123,6 @@ class GreedyPolicy:
         self.step = float(step)
         self.substeps = max(1, math.ceil(self.step / float(dt) - 1e-9))
         self._advance = make_stepper(system, self.step / self.substeps, check_integrator(integrator), TORCH)
-        self._backend = TORCH
         box = system.control_bounds
         self._controls = torch.tensor([box.center, *itertools.product(*zip(box.low, box.high))], dtype=torch.float64)
         self._disturbances = (
@@ -135,7 +134,7 @@ class GreedyPolicy:
     def control(self, x: torch.Tensor, t: float | torch.Tensor, d_star: torch.Tensor | None = None) -> torch.Tensor:
         """The greedy inputs ``(..., m_u)`` at states ``(..., n)``; ``d_star`` (same batch) joins the
         disturbance candidates where the system has a disturbance."""
-        system, xp = self.system, self._backend
+        system = self.system
         n, m = system.state_dim, system.control_dim
         batch = x.shape[:-1]
         flat = x.reshape(-1, n)
@@ -160,7 +159,7 @@ class GreedyPolicy:
         dc = system.input_columns(dists, system.disturbance_bounds, "d")
         low = system.failure_margin(y)
         for _ in range(self.substeps):
-            y = xp.stack(self._advance(xp.unbind(y), uc, dc), like=y[:, 0])
+            y = TORCH.stack(self._advance(TORCH.unbind(y), uc, dc), like=y[:, 0])
             low = torch.minimum(low, system.failure_margin(y))
         if isinstance(t, torch.Tensor) and t.ndim:
             t_after = (t.reshape(-1).expand(count) - self.step).clamp_min(0.0).repeat(k * paths)

@@ -395,6 +395,8 @@ def test_ground_truth_of_another_system_is_refused(tmp_path, pair_grid):
         (["evaluate", "x.pt", "--beta", "2"], ["--beta"]),
         (["evaluate", "x.pt", "--target-eps", "0"], ["--target-eps"]),
         (["evaluate", "x.pt", "--robust-samples", "-1"], ["--robust-samples"]),
+        (["evaluate", "x.pt", "--policy", "greedyy"], ["--policy", "greedyy"]),
+        (["filter-eval", "--policy", "greedyy"], ["--policy", "greedyy"]),
         (["filter-eval", "--filters", "switch,bogus"], ["--filters", "bogus"]),
         (["filter-eval", "--filters", "smooth", "--gammas", "-1"], ["--gammas"]),
         (["groundtruth", "air3d", "--grid", "1000", "--out", "g.npz"], ["GiB"]),
