@@ -158,9 +158,11 @@ class GreedyPolicy:
         uc = system.input_columns(u, system.control_bounds, "u")
         dc = system.input_columns(dists, system.disturbance_bounds, "d")
         low = system.failure_margin(y)
+        cols = TORCH.unbind(y)  # the held step stays in columns: one stack at its end
         for _ in range(self.substeps):
-            y = TORCH.stack(self._advance(TORCH.unbind(y), uc, dc), like=y[:, 0])
-            low = torch.minimum(low, system.failure_margin(y))
+            cols = self._advance(cols, uc, dc)
+            low = torch.minimum(low, system.failure_margin_columns(cols, TORCH))
+        y = TORCH.stack(cols, like=low)
         if isinstance(t, torch.Tensor) and t.ndim:
             t_after = (t.reshape(-1).expand(count) - self.step).clamp_min(0.0).repeat(k * paths)
         else:
