@@ -15,6 +15,14 @@ Two steps, each rerunnable:
        python benchmarks/make_pretrained.py evaluate air3d --samples 100000 --certify-samples 100000 \\
            --ground-truth runs/air3d_gt.npz
 
+3. ``record`` adds a ``reach evaluate`` run of the shipped file used another way (capped by the
+   pairwise union, rolled out under the greedy policy, ...) to the card's ``also_evaluated``, from
+   the JSON that run wrote (its settings and row), with the command that made it::
+
+       python benchmarks/make_pretrained.py record multivehicle9d cap-greedy.json \
+           --label "capped by the pairwise union" --command "reach evaluate ..." --commit 4e724e9 \
+           --hardware "2 CPU cores (shared VM), torch 2.13.0+cpu"
+
 The test suite (``tests/test_pretrained.py``) reloads every shipped model and checks its card's
 rates on a fresh small sample.
 """
@@ -140,7 +148,7 @@ def evaluate(args: argparse.Namespace) -> int:
     if row.get("error"):
         print(f"evaluation failed: {row['error']}", file=sys.stderr)
         return 1
-    metrics = {k: row[k] for k in CARD_COLUMNS if row.get(k) is not None and row.get(k) == row.get(k)}
+    metrics = card_metrics(row)
     evaluation = {
         "command": " ".join(shlex.quote(c) for c in command) + " --out results.csv",
         "samples": args.samples,
@@ -151,6 +159,54 @@ def evaluate(args: argparse.Namespace) -> int:
         "metrics": metrics,
     }
     write_card(dataclasses.replace(card, evaluation=evaluation))
+    print(pretrained.card(args.name).describe())
+    return 0
+
+
+def card_metrics(row: dict) -> dict:
+    """The :data:`CARD_COLUMNS` of a ``reach evaluate`` row that hold a number (not None or NaN)."""
+    return {k: row[k] for k in CARD_COLUMNS if row.get(k) is not None and row.get(k) == row.get(k)}
+
+
+def _members(source: str) -> list[str]:
+    """The value functions a ``reach evaluate`` source is made of (itself unless ``min:``/``cap:``)."""
+    from safety.value_functions import is_composition, min_sources
+
+    return min_sources(source) if is_composition(source) else [source]
+
+
+def record(args: argparse.Namespace) -> int:
+    card = pretrained.card(args.name)
+    try:
+        data = json.loads(Path(args.results).read_text())
+        settings, rows = data["settings"], data["results"]
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise SystemExit(f"{args.results}: not the JSON of a reach evaluate run ({type(err).__name__}: {err})") from err
+    shipped = pretrained.PREFIX + args.name
+    rows = [r for r in rows if shipped in _members(str(r.get("source", "")))]
+    if args.source is not None:
+        rows = [r for r in rows if r.get("source") == args.source]
+    if len(rows) != 1 or rows[0].get("error"):
+        found = [r.get("source") for r in rows]
+        raise SystemExit(f"{args.results}: expected one scored row of {shipped} (--source picks one), found {found}")
+    row = rows[0]
+    entry = {
+        "label": args.label,
+        "source": row["source"],
+        "kind": row.get("kind"),
+        "policy": settings.get("policy", "gradient"),
+        "command": args.command,
+        "commit": args.commit,
+        "samples": settings["samples"],
+        "certify_samples": settings.get("certify_samples"),
+        "robust_samples": settings.get("robust_samples"),
+        "seed": settings["seed"],
+        "hardware": args.hardware,
+        "wall_time_s": row.get("wall_time"),
+        "metrics": card_metrics(row),
+    }
+    others = [e for e in card.also_evaluated if e.get("label") != args.label]
+    write_card(dataclasses.replace(card, also_evaluated=(*others, entry)))
     print(pretrained.card(args.name).describe())
     return 0
 
@@ -178,6 +234,15 @@ def main() -> int:
     v.add_argument("--pairwise", default=None)
     v.add_argument("--hardware", default="2 CPU cores (shared VM), torch 2.13.0+cpu")
     v.set_defaults(func=evaluate)
+    r = sub.add_parser("record", help="add a reach evaluate run of the shipped file (its JSON) to the card")
+    r.add_argument("name")
+    r.add_argument("results", help="the .json that reach evaluate --out wrote beside its CSV")
+    r.add_argument("--label", required=True, help="what this evaluation is, e.g. 'capped by the pairwise union'")
+    r.add_argument("--source", default=None, help="which row, where the run scored several sources")
+    r.add_argument("--command", required=True, help="the reach evaluate command, as run from the repo root")
+    r.add_argument("--commit", required=True)
+    r.add_argument("--hardware", required=True)
+    r.set_defaults(func=record)
     args = parser.parse_args()
     return int(args.func(args))
 

@@ -64,6 +64,41 @@ def test_model_reproduces_its_card(name: str) -> None:
         assert low <= metrics[key] <= high, f"{name}: {key} {row[key]:.4f} on {n} states, card {metrics[key]:.4f}"
 
 
+#: (name, index) of every evaluation a card records besides its main one
+ALSO_EVALUATED = [(c.name, i) for c in pretrained.cards() for i in range(len(c.also_evaluated))]
+
+
+@pytest.mark.parametrize(("name", "index"), ALSO_EVALUATED)
+def test_model_reproduces_its_other_evaluations(name: str, index: int, pair_grid, tmp_path) -> None:
+    """Each evaluation a card records besides its main one (capped by the union of pairwise BRTs,
+    rolled out under the greedy policy) lands within 4-sigma Wilson intervals of its rates on a fresh
+    sample, with its recorded source and policy. A grid member of the source (the card's 101^3 pair
+    grid, not package data) is the tests' 45^3 pair grid: it moves V only where the union is below
+    the network."""
+    from safety.value_functions import composition_kind, min_sources
+
+    card = pretrained.card(name)
+    other = card.also_evaluated[index]
+    source, metrics = other["source"], other["metrics"]
+    kind = composition_kind(source)
+    members = min_sources(source) if kind else [source]
+    assert pretrained.PREFIX + name in members, source
+    if any(m.endswith(".npz") for m in members):
+        assert card.system == "multivehicle9d", "the tests' pair grid is the 9D system's"
+        pair_grid.save(tmp_path / "pair.npz")
+        members = [str(tmp_path / "pair.npz") if m.endswith(".npz") else m for m in members]
+    vf = load_value_function(f"{kind}:{','.join(members)}" if kind else members[0]).value_function
+    n = SMALL_SAMPLE.get(name, DEFAULT_SMALL_SAMPLE)
+    seed = other["seed"] + 7919
+    settings = VerifySettings(samples=n, certify_samples=0, robust_samples=0, seed=seed, policy=other["policy"])
+    row = verify(vf, sample_states(vf.system, n, seed), settings, progress=False)
+    for key in ("violation_rate", "false_safe_rate", "collision_rate"):
+        low, high = wilson_interval(round(row[key] * n), n, z=Z)
+        assert low <= metrics[key] <= high, (
+            f"{other['label']}: {key} {row[key]:.4f} on {n} states, card {metrics[key]:.4f}"
+        )
+
+
 def test_unknown_and_tampered_models_are_refused(tmp_path, monkeypatch) -> None:
     with pytest.raises(ValueError, match=r"no pretrained model 'nope'.*air3d"):
         load_value_function("pretrained:nope")
@@ -119,3 +154,42 @@ def test_starts_outside_the_learned_brt_come_from_the_scene() -> None:
     assert (np.abs(starts - fixed) <= jitter + 1e-12).all()
     with pytest.raises(ValueError, match="starts of scene three-car-merge lie in"):
         outside_states(vf, 5, 50.0, seed=0, scene=scene, max_draws_per_episode=2)
+
+
+def test_maintainers_record_another_evaluation_in_a_card(tmp_path, monkeypatch) -> None:
+    """``benchmarks/make_pretrained.py record`` files a ``reach evaluate`` run of the shipped file
+    (here under the greedy policy) in the card's ``also_evaluated``: its source, policy, sample sizes
+    and metrics from the run's JSON. Recording the same label again replaces it; a run that did not
+    score the shipped model is refused by name."""
+    import importlib.util
+    import json
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "make_pretrained.py"
+    spec = importlib.util.spec_from_file_location("make_pretrained", script)
+    make_pretrained = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(make_pretrained)
+    for f in pretrained.DIRECTORY.glob("air3d.*"):
+        shutil.copy(f, tmp_path / f.name)
+    monkeypatch.setattr(pretrained, "DIRECTORY", tmp_path)
+    out = tmp_path / "greedy.csv"
+    counts = ["--samples", "200", "--certify-samples", "0", "--robust-samples", "0"]
+    assert main(["evaluate", "pretrained:air3d", "--policy", "greedy", *counts, "--out", str(out)]) == 0
+    results = json.loads(out.with_suffix(".json").read_text())
+    record = ["make_pretrained.py", "record", "air3d", str(out.with_suffix(".json")), "--label", "greedy"]
+    record += ["--command", "reach evaluate ...", "--commit", "abc", "--hardware", "test"]
+    for _ in range(2):
+        monkeypatch.setattr(sys, "argv", record)
+        assert make_pretrained.main() == 0
+    (entry,) = pretrained.card("air3d").also_evaluated
+    row = results["results"][0]
+    assert entry["policy"] == "greedy" and entry["source"] == "pretrained:air3d" and entry["samples"] == 200
+    assert entry["metrics"]["collision_rate"] == row["collision_rate"]
+    assert entry["metrics"]["false_safe_rate"] == row["false_safe_rate"]
+    assert "greedy [pretrained:air3d, greedy policy], on 200 states" in pretrained.card("air3d").describe()
+    results["results"][0]["source"] = "runs/another.pt"
+    (tmp_path / "another.json").write_text(json.dumps(results))
+    monkeypatch.setattr(sys, "argv", [*record[:3], str(tmp_path / "another.json"), *record[4:]])
+    with pytest.raises(SystemExit, match=r"expected one scored row of pretrained:air3d .*found \[\]"):
+        make_pretrained.main()

@@ -8,6 +8,9 @@ any checkpoint), and ``NAME.card.json``, its model card:
   filter uses it when no value function is given;
 - ``training``: the command that trained it, the commit, wall time, steps and hardware;
 - ``evaluation``: the ``reach evaluate`` command, its sample sizes and the metrics it printed;
+- ``also_evaluated``: the same file scored other ways, each a labelled evaluation with its
+  ``source`` and ``policy`` (e.g. capped by the pairwise union, rolled out under the greedy policy
+  the switch filter applies), so a card states what the filters built on it were measured to do;
 - ``sha256``: the digest of ``NAME.pt``, so a swapped or damaged file is refused by name.
 
 Anything that takes a value function takes ``"pretrained:NAME"`` (:data:`PREFIX`), through
@@ -40,6 +43,7 @@ class ModelCard:
     summary: str
     training: dict[str, Any] = field(default_factory=dict)
     evaluation: dict[str, Any] = field(default_factory=dict)
+    also_evaluated: tuple[dict[str, Any], ...] = ()
     sha256: str = ""
 
     @classmethod
@@ -52,13 +56,14 @@ class ModelCard:
                 summary=str(data.get("summary", "")),
                 training=dict(data.get("training", {})),
                 evaluation=dict(data.get("evaluation", {})),
+                also_evaluated=tuple(dict(e) for e in data.get("also_evaluated", ())),
                 sha256=str(data["sha256"]),
             )
         except (KeyError, TypeError, ValueError) as err:
             raise ValueError(f"{where}: not a model card ({type(err).__name__}: {err})") from err
 
     def to_dict(self) -> dict[str, Any]:
-        return {**asdict(self), "env_ids": list(self.env_ids)}
+        return {**asdict(self), "env_ids": list(self.env_ids), "also_evaluated": list(self.also_evaluated)}
 
     @property
     def metrics(self) -> dict[str, Any]:
@@ -77,14 +82,14 @@ class ModelCard:
             if t.get("command"):
                 lines.append(f"    {t['command']}")
         if m:
-            shown = ", ".join(
-                f"{label} {_number(m.get(key), scale)}"
-                for key, label, scale in _CARD_METRICS
-                if m.get(key) is not None
-            )
-            lines.append(f"  evaluated on {e.get('samples', '?')} states: {shown}")
+            lines.append(f"  evaluated on {e.get('samples', '?')} states: {_shown(m)}")
             if e.get("command"):
                 lines.append(f"    {e['command']}")
+        for other in self.also_evaluated:
+            what = f"{other.get('label', '?')} [{other.get('source', '?')}, {other.get('policy', 'gradient')} policy]"
+            lines.append(f"  also, {what}, on {other.get('samples', '?')} states: {_shown(other.get('metrics', {}))}")
+            if other.get("command"):
+                lines.append(f"    {other['command']}")
         return "\n".join(lines)
 
 
@@ -100,6 +105,14 @@ _CARD_METRICS = (
     ("iou_volume", "IoU vol.", 1.0),
     ("containment_miss_rate", "misses union %", 100.0),
 )
+
+
+def _shown(metrics: dict[str, Any]) -> str:
+    return ", ".join(
+        f"{label} {_number(metrics.get(key), scale)}"
+        for key, label, scale in _CARD_METRICS
+        if metrics.get(key) is not None
+    )
 
 
 def _minutes(seconds: Any) -> str:
