@@ -7,13 +7,22 @@ multi-vehicle systems, against the union of pairwise BRTs (the containment metri
 every source rewrites ``<out>.csv``, ``<out>.json`` and ``<out>.md`` atomically. A second call with
 the same settings skips sources already evaluated (same path, size and modification time); a source
 that fails to load or evaluate becomes a row with its error, and the others go on.
+
+Within a source, the rollouts are kept block by block in ``<out>.rollouts/`` (a
+:class:`~safety.rollout_store.RolloutStore` per source, keyed by its fingerprint and the settings)
+until its row is written: a run killed in the middle of a million-state certification resumes
+where it stopped when the same command runs again (``rollout_blocks_resumed`` counts the blocks it
+loaded; ``rollout_seconds`` is the blocks' own simulation time, whichever run did it).
 """
 
 from __future__ import annotations
 
+import contextlib
 import glob
+import hashlib
 import json
 import os
+import shutil
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -27,6 +36,7 @@ from reach.validation import check_output_path
 from safety.metrics import containment_statistics
 from safety.results_io import markdown_table as format_table
 from safety.results_io import merge_rows, write_results
+from safety.rollout_store import RolloutStore
 from safety.value_functions import (
     composition_kind,
     is_composition,
@@ -219,7 +229,11 @@ def evaluate_many(
             if isinstance(loaded.value_function, GridSolution):
                 loaded.value_function.outside = "clamp"  # rollouts may leave the grid; documented
             row.update(label=loaded.label, layout=loaded.layout, kind=loaded.kind)
-            row.update(verify(loaded.value_function, states, settings, device=device, progress=progress))
+            store = RolloutStore(
+                _store_directory(out, path), {"source": path, "fingerprint": fp, "device": device, **header}
+            )
+            row.update(verify(loaded.value_function, states, settings, device=device, progress=progress, store=store))
+            row["rollout_blocks_resumed"] = store.loaded_blocks
             if reference is not None:
                 row.update(reference(loaded.value_function))
             if union_values is not None:
@@ -230,8 +244,17 @@ def evaluate_many(
             row["error"] = f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"[:300]
         rows.append(row)
         _write_outputs(out, header, rows)
+        shutil.rmtree(_store_directory(out, path), ignore_errors=True)  # the row holds it now
     _write_outputs(out, header, rows)
+    with contextlib.suppress(OSError):
+        _store_directory(out, None).rmdir()  # only if no other source's store is left in it
     return rows
+
+
+def _store_directory(out: Path, source: str | None) -> Path:
+    """Where the rollouts of ``source`` are kept until its row is written (None: the parent of all)."""
+    parent = out.parent / f"{out.name}.rollouts"
+    return parent if source is None else parent / hashlib.sha256(source.encode()).hexdigest()[:16]
 
 
 def load_results(path: str | os.PathLike) -> list[dict[str, Any]]:

@@ -20,7 +20,8 @@ from reach.threads import thread_policy
 from reach.value_function import ValueFunction
 from safety.metrics import robust_level_search, scenario_epsilon, violation_statistics, wilson_interval
 from safety.policy import check_policy
-from safety.rollout import check_rollout_settings, rollout
+from safety.rollout import RolloutResult, check_rollout_settings, rollout
+from safety.rollout_store import RolloutStore
 
 
 @dataclass(frozen=True)
@@ -132,17 +133,32 @@ def verify(
     settings: VerifySettings,
     device: str | torch.device = "cpu",
     progress: bool = True,
+    store: RolloutStore | None = None,
 ) -> dict[str, Any]:
     """Violation statistics of ``vf`` on ``states`` and, if asked, the certified delta-level.
 
+    With a ``store`` (:class:`~safety.rollout_store.RolloutStore`) every rollout is saved block by
+    block and a repeated call loads what an interrupted one finished: the same row, resumed.
     Unless the caller chose a thread count, torch uses the cores other processes leave free while
     it runs (:func:`reach.threads.thread_policy`)."""
     with thread_policy():
-        return _verify(vf, states, settings, device, progress)
+        return _verify(vf, states, settings, device, progress, store)
+
+
+def _rollout(
+    store: RolloutStore | None, name: str, vf: ValueFunction, states: torch.Tensor, common: dict[str, Any]
+) -> RolloutResult:
+    """One of a verification's rollouts (``name``: which), through the store where there is one."""
+    return rollout(vf, states, **common) if store is None else store.rollout(name, vf, states, **common)
 
 
 def _verify(
-    vf: ValueFunction, states: torch.Tensor, settings: VerifySettings, device: str | torch.device, progress: bool
+    vf: ValueFunction,
+    states: torch.Tensor,
+    settings: VerifySettings,
+    device: str | torch.device,
+    progress: bool,
+    store: RolloutStore | None = None,
 ) -> dict[str, Any]:
     start = time.perf_counter()
     horizon = vf.system.horizon if settings.horizon is None else settings.horizon
@@ -157,7 +173,7 @@ def _verify(
         "device": device,
         "progress": progress,
     }
-    result = rollout(vf, states, **common)
+    result = _rollout(store, "samples", vf, states, common)
     row: dict[str, Any] = violation_statistics(result.initial_value, result.collided)
     row["matmul_precision"] = precision
     collisions = int(result.collided.sum())
@@ -174,7 +190,7 @@ def _verify(
         except ValueError as err:
             row["certify_error"] = str(err)
         else:
-            check = rollout(vf, fresh, **common)
+            check = _rollout(store, "certify", vf, fresh, common)
             k = int(check.collided.sum())
             n = check.num_states
             row.update(
@@ -184,13 +200,18 @@ def _verify(
                 certified_volume=row["safe_fraction"],
             )
     if settings.robust_sample_count:
-        row.update(robust_certification(vf, settings, horizon, common, device))
+        row.update(robust_certification(vf, settings, horizon, common, device, store))
     row["wall_time"] = time.perf_counter() - start
     return row
 
 
 def robust_certification(
-    vf: ValueFunction, settings: VerifySettings, horizon: float, common: dict[str, Any], device: str | torch.device
+    vf: ValueFunction,
+    settings: VerifySettings,
+    horizon: float,
+    common: dict[str, Any],
+    device: str | torch.device,
+    store: RolloutStore | None = None,
 ) -> dict[str, Any]:
     """Robust scenario certification (Lin & Bansal, L4DC 2024, Thm 2), in two independent samples.
 
@@ -211,7 +232,7 @@ def robust_certification(
         "robust_certified_volume": math.nan,
     }
     search_states = sample_states(vf.system, n, settings.seed + 2)
-    search = rollout(vf, search_states, **common)
+    search = _rollout(store, "robust-search", vf, search_states, common)
     found = robust_level_search(search.initial_value, search.collided, settings.target_eps, settings.beta)
     if found is None:
         need = math.ceil(math.log(1 / settings.beta) / settings.target_eps)
@@ -225,7 +246,7 @@ def robust_certification(
     except ValueError as err:
         out["robust_error"] = str(err)
         return out
-    check = rollout(vf, fresh, **common)
+    check = _rollout(store, "robust-check", vf, fresh, common)
     k = int(check.collided.sum())
     out.update(
         robust_level=level,

@@ -1,0 +1,148 @@
+"""Rollout outcomes kept on disk block by block, so that an interrupted verification resumes.
+
+Certifying a 9D value function rolls out millions of states (the model card's protocol: 100k, then
+1M fresh, then 1M + 1M for the robust level); under the greedy policy that is hours on a CPU. A
+:class:`RolloutStore` saves each block of ``chunk_size`` states' outcomes (initial value, collided,
+collision and decision times, work done) as soon as it is rolled out, and a later call with the
+same states loads it instead of simulating again. :func:`safety.evaluate.evaluate_many` keeps one
+store per source beside its results (``<out>.rollouts/``) and removes it once the source's row is
+written, so ``reach evaluate`` killed at any point (SIGKILL, Ctrl-C, the end of a session) loses
+at most the block it was simulating.
+
+Trust is checked, not assumed: the store's ``key`` (what was rolled out: the value function's
+fingerprint and the verification settings) is written once as ``manifest.json``, and a store
+written under another key is emptied before use. Each block file records the SHA-256 of its
+states and its shapes; a block whose digest, shapes or dtypes do not match, or that cannot be
+read, is simulated again. Files are read with ``torch.load(weights_only=True)`` and written
+atomically.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from reach.atomic import atomic_path
+from reach.value_function import ValueFunction
+from safety.rollout import RolloutResult, rollout
+
+MANIFEST = "manifest.json"
+#: per-state outcome tensors a block keeps, with their dtypes
+OUTCOMES = {"collided": torch.bool, "collision_time": torch.float64, "decided_time": torch.float64}
+
+
+def states_digest(states: torch.Tensor) -> str:
+    """SHA-256 of a block of states (shape, dtype and bytes): what the block's outcomes belong to."""
+    x = states.detach().cpu().contiguous()
+    head = f"{tuple(x.shape)}:{x.dtype}:".encode()
+    return hashlib.sha256(head + x.numpy().tobytes()).hexdigest()
+
+
+class RolloutStore:
+    """A directory of rolled-out blocks for one value function and one set of settings."""
+
+    def __init__(self, directory: str | os.PathLike, key: dict[str, Any]) -> None:
+        self.directory = Path(directory)
+        self.key = json.loads(json.dumps(key, sort_keys=True, default=str))
+        self.directory.mkdir(parents=True, exist_ok=True)
+        manifest = self.directory / MANIFEST
+        try:
+            stored = json.loads(manifest.read_text())
+        except (OSError, ValueError):
+            stored = None
+        if stored != self.key:  # another value function or settings (or none yet): start empty
+            for block in self.directory.glob("*.pt"):
+                block.unlink()
+            with atomic_path(manifest) as tmp, open(tmp, "w") as fh:
+                json.dump(self.key, fh, sort_keys=True)
+        self.loaded_blocks = 0
+        self.simulated_blocks = 0
+
+    def rollout(self, name: str, value_function: ValueFunction, states: torch.Tensor, **settings: Any) -> RolloutResult:
+        """:func:`~safety.rollout.rollout` of ``states`` in blocks of ``settings["chunk_size"]``,
+        each loaded from the store if it holds that block of these states, else simulated and saved.
+        The same outcomes as one call (the engine chunks the same way); ``wall_time`` and the work
+        sum the blocks' own simulation, whenever it ran."""
+        if settings.get("record"):
+            raise ValueError("a RolloutStore keeps outcomes, not trajectories (record=True)")
+        block = int(settings.get("chunk_size", 16384))
+        parts: list[RolloutResult] = []
+        for index, lo in enumerate(range(0, states.shape[0], block)):
+            part = states[lo : lo + block]
+            path = self.directory / f"{name}-{index:05d}.pt"
+            digest = states_digest(part)
+            result = self._load(path, digest, part.shape[0])
+            if result is None:
+                result = rollout(value_function, part, **settings)
+                self._save(path, digest, result)
+                self.simulated_blocks += 1
+            else:
+                self.loaded_blocks += 1
+            parts.append(result)
+        if not parts:
+            return rollout(value_function, states, **settings)
+        return RolloutResult(
+            initial_value=torch.cat([p.initial_value for p in parts]),
+            collided=torch.cat([p.collided for p in parts]),
+            collision_time=torch.cat([p.collision_time for p in parts]),
+            decided_time=torch.cat([p.decided_time for p in parts]),
+            state_steps=sum(p.state_steps for p in parts),
+            steps=parts[0].steps,
+            wall_time=sum(p.wall_time for p in parts),
+        )
+
+    def remove(self) -> None:
+        """Delete the store (its results are in the table now)."""
+        shutil.rmtree(self.directory, ignore_errors=True)
+
+    @staticmethod
+    def _save(path: Path, digest: str, result: RolloutResult) -> None:
+        payload = {
+            "digest": digest,
+            "initial_value": result.initial_value,
+            **{k: getattr(result, k) for k in OUTCOMES},
+            "state_steps": int(result.state_steps),
+            "steps": int(result.steps),
+            "wall_time": float(result.wall_time),
+        }
+        with atomic_path(path) as tmp:
+            torch.save(payload, tmp)
+
+    @staticmethod
+    def _load(path: Path, digest: str, count: int) -> RolloutResult | None:
+        """The block at ``path`` if it is these states' and well formed, else None (simulate it)."""
+        if not path.is_file():
+            return None
+        try:
+            data = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception:  # an unreadable block is not trusted: it is simulated again
+            return None
+        if not isinstance(data, dict) or data.get("digest") != digest:
+            return None
+        tensors = {"initial_value": None, **OUTCOMES}
+        for name, dtype in tensors.items():
+            t = data.get(name)
+            if not isinstance(t, torch.Tensor) or t.shape != (count,) or (dtype is not None and t.dtype != dtype):
+                return None
+        numbers = [data.get(k) for k in ("state_steps", "steps", "wall_time")]
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in numbers):
+            return None
+        return RolloutResult(
+            initial_value=data["initial_value"],
+            collided=data["collided"],
+            collision_time=data["collision_time"],
+            decided_time=data["decided_time"],
+            state_steps=int(data["state_steps"]),
+            steps=int(data["steps"]),
+            wall_time=float(data["wall_time"]),
+        )
+
+
+__all__ = ["RolloutStore", "states_digest"]

@@ -1,0 +1,106 @@
+"""Interrupted verifications resume: rollout blocks kept on disk, trusted only when they match."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+import safety.rollout_store as rollout_store
+from reach.systems import Air3D
+from reach.threads import thread_policy
+from safety.evaluate import evaluate_many
+from safety.rollout_store import RolloutStore
+from safety.verify import VerifySettings, sample_states
+from training import NeuralValueFunction, ValueNetwork
+
+#: columns that time the run rather than describe the value function
+TIMING = {"wall_time", "rollout_seconds", "state_steps_per_second", "rollout_blocks_resumed"}
+
+
+class SimulatedKillError(Exception):
+    """Stands for SIGKILL or Ctrl-C in the middle of a verification."""
+
+
+def _counting_rollout(monkeypatch: pytest.MonkeyPatch, fail_at: int | None = None) -> list[int]:
+    """Count the store's simulated blocks; raise on block ``fail_at`` (1-based) if given."""
+    calls: list[int] = []
+    real = rollout_store.rollout
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        if fail_at is not None and len(calls) == fail_at:
+            raise SimulatedKillError
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(rollout_store, "rollout", counted)
+    return calls
+
+
+def test_an_interrupted_evaluation_resumes_to_the_same_row(tmp_path: Path, monkeypatch) -> None:
+    """A verification killed after five rollout blocks (of the samples, the delta-level's fresh
+    states and the robust search and check) loads those five when rerun, simulates only the rest,
+    and writes the row an uninterrupted run writes; the store is gone once the row is written."""
+    run = "pretrained:air3d"
+    settings = VerifySettings(samples=600, certify_samples=300, robust_samples=400, target_eps=0.2, chunk_size=128)
+    whole = evaluate_many([run], tmp_path / "whole.csv", settings, progress=False)[0]
+    assert not whole.get("error") and whole["rollout_blocks_resumed"] == 0, whole.get("error")
+    assert whole["robust_failures"] is not None and whole["certified_samples"] == 300, whole.get("robust_error")
+    assert not (tmp_path / "whole.csv.rollouts").exists()
+    blocks = 5 + 3 + 4 + 4  # ceil(600 / 128), ceil(300 / 128), and 400 for the search and the check
+
+    out = tmp_path / "resumed.csv"
+    with monkeypatch.context() as m:
+        _counting_rollout(m, fail_at=6)
+        with pytest.raises(SimulatedKillError):
+            evaluate_many([run], out, settings, progress=False)
+    kept = list((tmp_path / "resumed.csv.rollouts").rglob("*.pt"))
+    assert len(kept) == 5
+    with monkeypatch.context() as m:
+        calls = _counting_rollout(m)
+        resumed = evaluate_many([run], out, settings, progress=False)[0]
+    assert len(calls) == blocks - 5 and resumed["rollout_blocks_resumed"] == 5
+    assert {k: v for k, v in resumed.items() if k not in TIMING} == {k: v for k, v in whole.items() if k not in TIMING}
+    assert not (tmp_path / "resumed.csv.rollouts").exists()
+
+
+def test_the_store_distrusts_blocks_it_cannot_vouch_for(tmp_path: Path) -> None:
+    """Blocks are reused only for the same key and the same states: a damaged file, a block of
+    other states or of the wrong shape is simulated again, and a store opened under another key
+    (another value function or settings) starts empty."""
+    with thread_policy():  # torch's default threads collapse beside other work
+        _distrust(tmp_path)
+
+
+def _distrust(tmp_path: Path) -> None:
+    torch.manual_seed(0)
+    vf = NeuralValueFunction(ValueNetwork(Air3D(), "ssssl", width=16))
+    x = sample_states(vf.system, 200, 0)
+    kw = {"chunk_size": 50, "progress": False}
+    first = RolloutStore(tmp_path / "s", {"vf": 1}).rollout("samples", vf, x, **kw)
+    files = sorted((tmp_path / "s").glob("samples-*.pt"))
+    assert len(files) == 4
+
+    files[0].write_bytes(b"not a block")
+    payload = torch.load(files[1], weights_only=True)
+    payload["collided"] = payload["collided"][:10]
+    torch.save(payload, files[1])
+    store = RolloutStore(tmp_path / "s", {"vf": 1})
+    again = store.rollout("samples", vf, x, **kw)
+    assert (store.simulated_blocks, store.loaded_blocks) == (2, 2)
+    for name in ("initial_value", "collided", "collision_time", "decided_time"):
+        torch.testing.assert_close(getattr(again, name), getattr(first, name), rtol=0, atol=0, equal_nan=True)
+
+    other = x.clone()
+    other[0, 0] += 0.01
+    store = RolloutStore(tmp_path / "s", {"vf": 1})
+    store.rollout("samples", vf, other, **kw)
+    assert (store.simulated_blocks, store.loaded_blocks) == (1, 3)
+
+    store = RolloutStore(tmp_path / "s", {"vf": 2})
+    assert not list((tmp_path / "s").glob("*.pt"))
+    store.rollout("samples", vf, x, **kw)
+    assert (store.simulated_blocks, store.loaded_blocks) == (4, 0)
+    with pytest.raises(ValueError, match="record=True"):
+        store.rollout("samples", vf, x, record=True, **kw)
