@@ -60,11 +60,6 @@ def _cli_reference() -> str:
 def _pretrained_cards() -> str:
     from training import pretrained
 
-    def robust(m: dict) -> str:
-        volume, eps = m.get("robust_certified_volume"), m.get("robust_eps")
-        known = isinstance(volume, (int, float)) and isinstance(eps, (int, float))
-        return f"{volume:.3g} ({eps:.2g})" if known else "-"
-
     rows = [
         "| model | system, envs | trained | violation % | false safe % | collision % | certified vol. | "
         "robust vol. (eps) | misses union % | IoU vol. |",
@@ -72,24 +67,40 @@ def _pretrained_cards() -> str:
     ]
     commands = []
     for card in pretrained.cards():
-        t, m = card.training, card.metrics
-
-        def cell(key: str, scale: float = 1.0, m: dict = m) -> str:
-            value = m.get(key)
-            return f"{value * scale:.3g}" if isinstance(value, (int, float)) else "-"
-
-        rows.append(
-            f"| `pretrained:{card.name}` | {card.system}; {', '.join(card.env_ids) or '-'} | "
-            f"{t.get('steps')} steps, {t.get('wall_time_s', 0) / 60:.0f} min | {cell('violation_rate', 100)} | "
-            f"{cell('false_safe_rate', 100)} | {cell('collision_rate', 100)} | {cell('certified_volume')} | "
-            f"{robust(m)} | {cell('containment_miss_rate', 100)} | {cell('iou_volume')} |"
+        t = card.training
+        trained = f"{t.get('steps')} steps, {t.get('wall_time_s', 0) / 60:.0f} min"
+        rows.append(_card_row(f"`pretrained:{card.name}`", f"{card.system}; {', '.join(card.env_ids) or '-'}", trained,
+                              card.metrics))  # fmt: skip
+        for other in card.also_evaluated:
+            what = f"`{other.get('source')}`, {other.get('policy', 'gradient')} policy"
+            rows.append(_card_row(f"&nbsp;&nbsp;{other.get('label')}", what, "the same file", other.get("metrics", {})))
+        extra = "".join(
+            f"\n\nAlso {other.get('label')} ({other.get('samples', '?')} states, commit {other.get('commit', '?')}; "
+            f"{other.get('hardware', '?')}):\n\n```bash\n{other.get('command', '')}\n```"
+            for other in card.also_evaluated
         )
         commands.append(
             f"**`{card.name}`**: {card.summary}\n\n```bash\n{t.get('command', '')}\n"
             f"{card.evaluation.get('command', '')}\n```\n\nHardware: {t.get('hardware', '?')}; "
-            f"commit {t.get('commit', '?')}; evaluated on {card.evaluation.get('samples', '?')} states."
+            f"commit {t.get('commit', '?')}; evaluated on {card.evaluation.get('samples', '?')} states.{extra}"
         )
     return "\n".join(rows) + "\n\n" + "\n\n".join(commands) + "\n"
+
+
+def _card_row(model: str, what: str, trained: str, m: dict) -> str:
+    """One row of the cards' table: a card's evaluation or one of its other evaluations."""
+
+    def cell(key: str, scale: float = 1.0) -> str:
+        value = m.get(key)
+        return f"{value * scale:.3g}" if isinstance(value, (int, float)) else "-"
+
+    volume, eps = m.get("robust_certified_volume"), m.get("robust_eps")
+    robust = f"{volume:.3g} ({eps:.2g})" if isinstance(volume, (int, float)) and isinstance(eps, (int, float)) else "-"
+    return (
+        f"| {model} | {what} | {trained} | {cell('violation_rate', 100)} | {cell('false_safe_rate', 100)} | "
+        f"{cell('collision_rate', 100)} | {cell('certified_volume')} | {robust} | "
+        f"{cell('containment_miss_rate', 100)} | {cell('iou_volume')} |"
+    )
 
 
 GENERATORS = {
