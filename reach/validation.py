@@ -65,6 +65,16 @@ def check_float(
     return out
 
 
+def is_positive_finite(value: Any) -> bool:
+    """Whether ``value`` is a number (not a bool or a string) that is finite and above zero."""
+    if isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(value) and value > 0
+    except TypeError:
+        return False
+
+
 def check_seed(name: str, value: Any) -> int:
     """A seed for NumPy and torch generators: an integer in ``[0, 2**32 - 1]``."""
     return check_int(name, value, 0, MAX_SEED)

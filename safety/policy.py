@@ -17,6 +17,7 @@ import torch
 
 from reach.integrators import check_integrator, make_stepper
 from reach.systems.backend import TORCH
+from reach.validation import is_positive_finite
 from reach.value_function import ValueFunction, value_and_gradient
 
 
@@ -109,7 +110,7 @@ class GreedyPolicy:
         integrator: str = "euler",
     ) -> None:
         for name, v in (("step", step), ("dt", dt)):
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+            if not is_positive_finite(v):
                 raise ValueError(f"the greedy policy's {name} must be a finite number > 0, got {v!r}")
         system = value_function.system
         corners = 2**system.control_dim + 1

@@ -35,6 +35,7 @@ from tqdm.auto import tqdm
 
 from reach.integrators import check_integrator, make_stepper
 from reach.systems.backend import TORCH
+from reach.validation import is_positive_finite
 from reach.value_function import ValueFunction, check_time_coverage
 from safety.policy import GreedyPolicy, check_policy, check_states
 
@@ -86,20 +87,11 @@ def check_rollout_settings(*, horizon: float | None, dt: float, integrator: str,
     and finite, an unknown integrator or a batch size below 1. :func:`rollout` calls it, and so does
     ``VerifySettings``, so that a verification refuses them before any source is loaded."""
     for name, value in (("horizon", horizon), ("dt", dt)):
-        if value is not None and not _positive_finite(value):
+        if value is not None and not is_positive_finite(value):
             raise ValueError(f"{name} must be positive and finite, got {value!r}")
     check_integrator(integrator)
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
         raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
-
-
-def _positive_finite(value: object) -> bool:
-    if isinstance(value, bool):
-        return False
-    try:
-        return math.isfinite(value) and value > 0  # type: ignore[arg-type, operator]
-    except TypeError:
-        return False
 
 
 def rollout(
