@@ -9,7 +9,8 @@ network, a DeepReach import or a grid solution; :func:`load_value_function` load
 * :class:`SafetyFilter` and its environment adapters (:mod:`safety.wrappers`);
 * :func:`rollout` - batched closed-loop simulation that skips decided trajectories;
 * :func:`verify`, :func:`evaluate_many` - violation statistics, delta-level, scenario guarantee,
-  across many checkpoints on the same states.
+  across many checkpoints on the same states;
+* :class:`RolloutStore` - rollout outcomes kept block by block, so a long verification resumes.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from safety.filter import FilterInfo, SafetyFilter
 from safety.metrics import scenario_epsilon, violation_statistics, wilson_interval
 from safety.policy import GreedyPolicy, OptimalPolicy
 from safety.rollout import RolloutResult, rollout
+from safety.rollout_store import RolloutStore
 from safety.value_functions import LoadedValueFunction, as_value_function, load_value_function
 from safety.verify import VerifySettings, sample_states, sample_superlevel_set, verify
 
@@ -62,6 +64,7 @@ __all__ = [
     "MinimumOf",
     "OptimalPolicy",
     "RolloutResult",
+    "RolloutStore",
     "SafetyFilter",
     "SafetyFilterParallelWrapper",
     "SafetyFilterVectorWrapper",
