@@ -168,13 +168,6 @@ def card_metrics(row: dict) -> dict:
     return {k: row[k] for k in CARD_COLUMNS if row.get(k) is not None and row.get(k) == row.get(k)}
 
 
-def _members(source: str) -> list[str]:
-    """The value functions a ``reach evaluate`` source is made of (itself unless ``min:``/``cap:``)."""
-    from safety.value_functions import is_composition, min_sources
-
-    return min_sources(source) if is_composition(source) else [source]
-
-
 def record(args: argparse.Namespace) -> int:
     card = pretrained.card(args.name)
     try:
@@ -182,8 +175,10 @@ def record(args: argparse.Namespace) -> int:
         settings, rows = data["settings"], data["results"]
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise SystemExit(f"{args.results}: not the JSON of a reach evaluate run ({type(err).__name__}: {err})") from err
+    from safety.value_functions import member_sources
+
     shipped = pretrained.PREFIX + args.name
-    rows = [r for r in rows if shipped in _members(str(r.get("source", "")))]
+    rows = [r for r in rows if shipped in member_sources(str(r.get("source", "")))]
     if args.source is not None:
         rows = [r for r in rows if r.get("source") == args.source]
     if len(rows) != 1 or rows[0].get("error"):

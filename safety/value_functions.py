@@ -154,6 +154,11 @@ def min_sources(spec: str) -> list[str]:
     return [part.strip() for part in spec[len(prefix) :].split(",") if part.strip()]
 
 
+def member_sources(spec: str) -> list[str]:
+    """The sources a source is made of: the members of a ``"min:"``/``"cap:"`` one, else itself."""
+    return min_sources(spec) if is_composition(spec) else [spec]
+
+
 def _load_minimum(
     spec: str,
     format: Format,

@@ -75,13 +75,13 @@ def test_model_reproduces_its_other_evaluations(name: str, index: int, pair_grid
     sample, with its recorded source and policy. A grid member of the source (the card's 101^3 pair
     grid, not package data) is the tests' 45^3 pair grid: it moves V only where the union is below
     the network."""
-    from safety.value_functions import composition_kind, min_sources
+    from safety.value_functions import composition_kind, member_sources
 
     card = pretrained.card(name)
     other = card.also_evaluated[index]
     source, metrics = other["source"], other["metrics"]
     kind = composition_kind(source)
-    members = min_sources(source) if kind else [source]
+    members = member_sources(source)
     assert pretrained.PREFIX + name in members, source
     if any(m.endswith(".npz") for m in members):
         assert card.system == "multivehicle9d", "the tests' pair grid is the 9D system's"
