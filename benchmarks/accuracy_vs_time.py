@@ -16,7 +16,7 @@ import json
 import sys
 from pathlib import Path
 
-from reach.cli import main as reach_main
+from reach_cli import main as reach_main
 
 
 def table(rows: list[dict]) -> str:
@@ -64,7 +64,7 @@ def score_deepreach(path: Path, gt: Path) -> str:
     from groundtruth import GridSolution
     from reach.systems import make_system
     from training import NeuralValueFunction, load_deepreach
-    from training.evaluate import ReferenceEvaluator
+    from training.accuracy import ReferenceEvaluator
 
     network = load_deepreach(path, make_system("air3d"), "ssssl")
     m = ReferenceEvaluator(GridSolution.load(gt, outside="clamp"), 1.0)(NeuralValueFunction(network))

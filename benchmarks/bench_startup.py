@@ -7,8 +7,8 @@ Each repeat starts fresh processes side by side, in alternating order:
 - ``python -c pass``: the interpreter alone;
 - ``import torch``, then a normal exit;
 - ``import torch``, then ``gc.freeze()`` before the exit (what the ``reach`` console script does,
-  :func:`reach.cli.console_main`);
-- ``reach envs`` through :func:`reach.cli.main` with a normal exit, and through ``console_main``.
+  :func:`reach_cli.console_main`);
+- ``reach envs`` through :func:`reach_cli.main` with a normal exit, and through ``console_main``.
 
 It prints each one's median and range of wall times (seconds, start-up and exit included), and the
 median per-repeat difference that freezing makes. Time it on a quiet machine: other work on the
@@ -27,9 +27,9 @@ CASES = {
     "python alone": "pass",
     "import torch, normal exit": "import torch",
     "import torch, gc.freeze() at exit": "import gc, torch; gc.freeze()",
-    "reach envs, main() then normal exit": "import sys; from reach.cli import main; sys.exit(main(['envs']))",
+    "reach envs, main() then normal exit": "import sys; from reach_cli import main; sys.exit(main(['envs']))",
     "reach envs, console_main()": (
-        "import sys; sys.argv = ['reach', 'envs']; from reach.cli import console_main; console_main()"
+        "import sys; sys.argv = ['reach', 'envs']; from reach_cli import console_main; console_main()"
     ),
 }
 #: (without, with) pairs whose per-repeat difference is what freezing saves

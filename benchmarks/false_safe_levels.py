@@ -18,10 +18,10 @@ import time
 
 import torch
 
-from safety.evaluate import pairwise_union_values
 from safety.rollout import rollout
-from safety.value_functions import load_value_function
+from safety.sources import load_value_function
 from safety.verify import sample_states
+from studies.batch_verification import pairwise_union_values
 
 
 def main(argv: list[str] | None = None) -> int:

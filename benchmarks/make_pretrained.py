@@ -77,7 +77,7 @@ def write_card(card: pretrained.ModelCard) -> None:
 
 
 def export(args: argparse.Namespace) -> int:
-    from safety.value_functions import resolve_checkpoint
+    from safety.sources import resolve_checkpoint
 
     source = resolve_checkpoint(args.run)
     payload = read_checkpoint(source)
@@ -113,8 +113,8 @@ def export(args: argparse.Namespace) -> int:
 
 
 def evaluate(args: argparse.Namespace) -> int:
-    from safety.evaluate import evaluate_many
     from safety.verify import VerifySettings
+    from studies.batch_verification import evaluate_many
 
     card = pretrained.card(args.name)
     source = pretrained.PREFIX + args.name
@@ -175,7 +175,7 @@ def record(args: argparse.Namespace) -> int:
         settings, rows = data["settings"], data["results"]
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise SystemExit(f"{args.results}: not the JSON of a reach evaluate run ({type(err).__name__}: {err})") from err
-    from safety.value_functions import member_sources
+    from safety.sources import member_sources
 
     shipped = pretrained.PREFIX + args.name
     rows = [r for r in rows if shipped in member_sources(str(r.get("source", "")))]

@@ -2,9 +2,9 @@
 
 Run (resumable; every stage skips what is already done)::
 
-    python benchmarks/nine_d_ablation.py train  --out studies/9d-ablation
-    python benchmarks/nine_d_ablation.py score  --out studies/9d-ablation
-    python benchmarks/nine_d_ablation.py report --out studies/9d-ablation
+    python benchmarks/nine_d_ablation.py train  --out runs/studies/9d-ablation
+    python benchmarks/nine_d_ablation.py score  --out runs/studies/9d-ablation
+    python benchmarks/nine_d_ablation.py report --out runs/studies/9d-ablation
 
 Rows (``--rows``, default all): ``baseline`` (the defaults) and each change of :data:`ROWS`, trained
 for ``--minutes`` of the quiet 2-core rate (as steps: ``minutes x --steps-per-minute``, so a run that
@@ -109,8 +109,8 @@ def report(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("stage", choices=["train", "score", "report"])
-    parser.add_argument("--out", type=Path, default=Path("studies/9d-ablation"))
-    parser.add_argument("--study", type=Path, default=Path("studies/9d-time"), help="the accuracy-vs-time study")
+    parser.add_argument("--out", type=Path, default=Path("runs/studies/9d-ablation"))
+    parser.add_argument("--study", type=Path, default=Path("runs/studies/9d-time"), help="the accuracy-vs-time study")
     parser.add_argument("--rows", type=lambda s: s.split(","), default=list(ROWS))
     parser.add_argument("--minutes", type=float, default=10.0)
     add_run_arguments(parser)

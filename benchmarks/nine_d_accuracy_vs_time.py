@@ -2,9 +2,9 @@
 
 Run (resumable; every stage skips what is already done)::
 
-    python benchmarks/nine_d_accuracy_vs_time.py train  --out studies/9d-time
-    python benchmarks/nine_d_accuracy_vs_time.py score  --out studies/9d-time
-    python benchmarks/nine_d_accuracy_vs_time.py report --out studies/9d-time
+    python benchmarks/nine_d_accuracy_vs_time.py train  --out runs/studies/9d-time
+    python benchmarks/nine_d_accuracy_vs_time.py score  --out runs/studies/9d-time
+    python benchmarks/nine_d_accuracy_vs_time.py report --out runs/studies/9d-time
 
 ``train`` trains ``reach train --system multivehicle9d`` with the defaults, one run per
 (budget, seed), in the order of the budgets (so short budgets finish first). A budget of M minutes
@@ -33,8 +33,8 @@ import re
 import sys
 from pathlib import Path
 
-from reach.cli import main as reach_main
 from reach.validation import device_arg, positive_int_arg
+from reach_cli import main as reach_main
 
 #: 9D default network (ssssl, 4x128, 8192 points, compiled) on a quiet 2-core machine: 36,917 steps
 #: in 40 minutes (the run that opened issue 18); minutes are converted to steps with this rate
@@ -264,7 +264,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("stage", choices=["train", "score", "report"])
-    parser.add_argument("--out", type=Path, default=Path("studies/9d-time"))
+    parser.add_argument("--out", type=Path, default=Path("runs/studies/9d-time"))
     parser.add_argument("--minutes", type=lambda s: [float(v) for v in s.split(",")], default=[10, 30, 60, 120])
     add_run_arguments(parser)
     args = parser.parse_args(argv)

@@ -2,9 +2,9 @@
 
 Run (resumable; every stage skips what is already done)::
 
-    python benchmarks/nine_d_layouts.py train  --out studies/9d-layouts
-    python benchmarks/nine_d_layouts.py score  --out studies/9d-layouts
-    python benchmarks/nine_d_layouts.py report --out studies/9d-layouts
+    python benchmarks/nine_d_layouts.py train  --out runs/studies/9d-layouts
+    python benchmarks/nine_d_layouts.py score  --out runs/studies/9d-layouts
+    python benchmarks/nine_d_layouts.py report --out runs/studies/9d-layouts
 
 The 3-minute layout study (docs/studies.md) ranks early training only. Here each of the paper's
 six layouts (``--layouts``, default ssrsl, rsrsl, rrrsl, srrrl, ssssl, rrrrl) trains for
@@ -112,7 +112,7 @@ def report(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("stage", choices=["train", "score", "report"])
-    parser.add_argument("--out", type=Path, default=Path("studies/9d-layouts"))
+    parser.add_argument("--out", type=Path, default=Path("runs/studies/9d-layouts"))
     parser.add_argument("--layouts", type=lambda s: s.split(","), default=list(PAPER_LAYOUTS))
     parser.add_argument("--minutes", type=float, default=15.0)
     parser.add_argument("--with", dest="with_row", default="baseline", help=f"an ablation change: {', '.join(ROWS)}")

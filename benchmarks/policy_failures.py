@@ -40,12 +40,12 @@ from reach.systems.backend import TORCH
 from reach.validation import positive_int_arg
 from reach_envs.scenes import make_scene
 from reach_envs.vector import ReachVectorEnv
-from safety.filter_eval import outside_states
 from safety.rollout import rollout
-from safety.tasks import make_task
-from safety.value_functions import load_value_function
+from safety.sources import load_value_function
 from safety.verify import sample_states, values_at
 from safety.wrappers import SafetyFilterVectorWrapper
+from studies.filter_eval import outside_states
+from studies.tasks import make_task
 
 DT = 0.0025  # the verification protocol's step
 

@@ -1,3 +1,3 @@
-from reach.cli import console_main
+from reach_cli import console_main
 
 console_main()

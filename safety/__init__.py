@@ -1,4 +1,7 @@
-"""Safety: optimal policies from grad V, a least-restrictive filter, rollouts and verification.
+"""Safety core: optimal policies from grad V, a least-restrictive filter, rollouts and verification.
+
+This is the layer above training; batch evaluation tables, filter studies, plots and the demo sit
+one floor up, in :mod:`studies`.
 
 Everything here takes a :class:`~reach.value_function.ValueFunction` (a trained
 network, a DeepReach import or a grid solution; :func:`load_value_function` loads any of them):
@@ -8,43 +11,51 @@ network, a DeepReach import or a grid solution; :func:`load_value_function` load
   switch filter's default backup input; ``rollout(..., policy="greedy")``);
 * :class:`SafetyFilter` and its environment adapters (:mod:`safety.wrappers`);
 * :func:`rollout` - batched closed-loop simulation that skips decided trajectories;
-* :func:`verify`, :func:`evaluate_many` - violation statistics, delta-level, scenario guarantee,
-  across many checkpoints on the same states;
+* :func:`verify` - violation statistics, delta-level and the scenario guarantee of one value
+  function (:func:`studies.evaluate_many` runs it across many checkpoints on the same states);
 * :class:`RolloutStore` - rollout outcomes kept block by block, so a long verification resumes.
 """
 
 from __future__ import annotations
 
 import importlib
+import warnings
 from typing import TYPE_CHECKING, Any
 
 from reach.value_function import MinimumOf, value_and_gradient
 from safety.filter import FilterInfo, SafetyFilter
 from safety.metrics import scenario_epsilon, violation_statistics, wilson_interval
-from safety.policy import GreedyPolicy, OptimalPolicy
 from safety.rollout import RolloutResult, rollout
 from safety.rollout_store import RolloutStore
-from safety.value_functions import LoadedValueFunction, as_value_function, load_value_function
+from safety.sources import LoadedValueFunction, as_value_function, load_value_function
+from safety.value_policies import GreedyPolicy, OptimalPolicy, worst_case_disturbance
 from safety.verify import VerifySettings, sample_states, sample_superlevel_set, verify
 
 if TYPE_CHECKING:
-    from safety.evaluate import evaluate_many, load_results, markdown_table
     from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper, SafetyFilterWrapper
 
-#: names whose modules load Gymnasium, PettingZoo and the evaluation stack, imported on first use so
-#: that ``import safety.filter`` (the CLI's start-up) stays light. (A name that equals its module's,
+#: names whose module loads Gymnasium and PettingZoo, imported on first use so that
+#: ``import safety.filter`` (the CLI's start-up) stays light. (A name that equals its module's,
 #: like ``rollout`` and ``verify``, must stay eager: importing the submodule would shadow it.)
 _LAZY = {
-    "evaluate_many": "safety.evaluate",
-    "load_results": "safety.evaluate",
-    "markdown_table": "safety.evaluate",
     "SafetyFilterParallelWrapper": "safety.wrappers",
     "SafetyFilterVectorWrapper": "safety.wrappers",
     "SafetyFilterWrapper": "safety.wrappers",
 }
 
 
+#: names that moved up to :mod:`studies` (deprecated here; removed in reach 0.3)
+_MOVED_UP = {"evaluate_many", "load_results", "markdown_table"}
+
+
 def __getattr__(name: str) -> Any:
+    if name in _MOVED_UP:
+        warnings.warn(
+            f"safety.{name} moved to studies.{name}; import it from there (removed here in reach 0.3)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return getattr(importlib.import_module("studies"), name)  # deprecated alias (the one upward name)
     module = _LAZY.get(name)
     if module is None:
         raise AttributeError(f"module 'safety' has no attribute {name!r}")
@@ -71,10 +82,7 @@ __all__ = [
     "SafetyFilterWrapper",
     "VerifySettings",
     "as_value_function",
-    "evaluate_many",
-    "load_results",
     "load_value_function",
-    "markdown_table",
     "rollout",
     "sample_states",
     "sample_superlevel_set",
@@ -83,4 +91,5 @@ __all__ = [
     "verify",
     "violation_statistics",
     "wilson_interval",
+    "worst_case_disturbance",
 ]

@@ -31,7 +31,7 @@ kinds, one interface (every env adapter in :mod:`safety.wrappers` takes each):
   of the env adapters), so ``dV/dt`` drops out.
 
 The backup input (``policy``): ``"gradient"`` is ``u*``; ``"greedy"`` is
-:class:`~safety.policy.GreedyPolicy`'s input, the candidate input held for a short step that leaves
+:class:`~safety.value_policies.GreedyPolicy`'s input, the candidate input held for a short step that leaves
 the most value. It replaces ``u*`` wherever a filter applies or rolls out its backup input (the
 switch's intervention, the lookahead's backup rollout and fallback, the smooth filter's infeasible
 steps). Where ``grad V`` blends two manoeuvres (three cars converging, each able to turn either
@@ -57,7 +57,7 @@ import torch
 from reach.integrators import check_integrator, make_stepper
 from reach.systems.backend import TORCH
 from reach.value_function import ValueFunction
-from safety.policy import GreedyPolicy, OptimalPolicy, check_policy, check_states
+from safety.value_policies import GreedyPolicy, OptimalPolicy, check_policy, check_states
 
 #: the filter kinds :class:`SafetyFilter` offers
 KINDS = ("switch", "lookahead", "smooth")
@@ -133,7 +133,7 @@ class SafetyFilter:
         backup_disturbance: the lookahead's predicted disturbance paths, ``"robust"`` or ``"model"``.
         gamma: the smooth filter's barrier rate (1/s, finite, >= 0; 0 forbids any decrease of ``V``).
         policy: the backup input: ``"gradient"`` (``u*`` of ``grad V``), ``"greedy"``
-            (:class:`~safety.policy.GreedyPolicy`, predicted with ``integrator`` in steps of ``dt``)
+            (:class:`~safety.value_policies.GreedyPolicy`, predicted with ``integrator`` in steps of ``dt``)
             or ``None``: the kind's default (:data:`DEFAULT_POLICIES`).
     """
 

@@ -37,7 +37,7 @@ from reach.integrators import check_integrator, make_stepper
 from reach.systems.backend import TORCH
 from reach.validation import is_positive_finite
 from reach.value_function import ValueFunction, check_time_coverage
-from safety.policy import GreedyPolicy, check_policy, check_states
+from safety.value_policies import GreedyPolicy, check_policy, check_states
 
 DisturbanceSpec = Literal["optimal", "none"] | Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -125,8 +125,8 @@ def rollout(
             functions only): faster on CPUs and GPUs with bf16 units, and not exact: outcomes can
             differ from float32 near the BRT boundary (measured in ``benchmarks/bench_rollouts.py``).
         policy: ``"gradient"`` (the bang-bang ``u*`` of ``grad V``) or ``"greedy"``
-            (:class:`~safety.policy.GreedyPolicy`: the candidate input held for
-            :data:`~safety.policy.GREEDY_STEP` that leaves the most value; about ``2^m_u + 1`` times the
+            (:class:`~safety.value_policies.GreedyPolicy`: the candidate input held for
+            :data:`~safety.value_policies.GREEDY_STEP` that leaves the most value; about ``2^m_u + 1`` times the
             network work per step). The disturbance is the gradient's ``d*`` either way.
     """
     system = value_function.system

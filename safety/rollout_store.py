@@ -4,7 +4,7 @@ Certifying a 9D value function rolls out millions of states (the model card's pr
 1M fresh, then 1M + 1M for the robust level); under the greedy policy that is hours on a CPU. A
 :class:`RolloutStore` saves each block of ``chunk_size`` states' outcomes (initial value, collided,
 collision and decision times, work done) as soon as it is rolled out, and a later call with the
-same states loads it instead of simulating again. :func:`safety.evaluate.evaluate_many` keeps one
+same states loads it instead of simulating again. :func:`studies.batch_verification.evaluate_many` keeps one
 store per source beside its results (``<out>.rollouts/``) and removes it once the source's row is
 written, so ``reach evaluate`` killed at any point (SIGKILL, Ctrl-C, the end of a session) loses
 at most the block it was simulating.

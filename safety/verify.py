@@ -19,9 +19,9 @@ from reach.systems import ControlAffineSystem
 from reach.threads import thread_policy
 from reach.value_function import ValueFunction
 from safety.metrics import robust_level_search, scenario_epsilon, violation_statistics, wilson_interval
-from safety.policy import check_policy
 from safety.rollout import RolloutResult, check_rollout_settings, rollout
 from safety.rollout_store import RolloutStore
+from safety.value_policies import check_policy
 
 
 @dataclass(frozen=True)
@@ -47,7 +47,7 @@ class VerifySettings:
     target_eps: float = 3e-4
     robust_samples: int | None = None
     #: the induced policy every rollout follows: "gradient" (the bang-bang u* of grad V, DeepReach's)
-    #: or "greedy" (safety.policy.GreedyPolicy: the held candidate input that leaves the most value;
+    #: or "greedy" (safety.value_policies.GreedyPolicy: the held candidate input that leaves the most value;
     #: about 2^m_u + 1 times the network work per step)
     policy: str = "gradient"
 

@@ -14,7 +14,7 @@ and integrator, then ``backup_horizon`` seconds of the backup policy, default th
 along the ``backup_disturbance`` paths, default ``"robust"``)
 or ``"smooth"`` (``gamma``: the barrier rate); see :mod:`safety.filter`.
 
-Backup input: ``policy="greedy"`` applies :class:`~safety.policy.GreedyPolicy`'s input where a
+Backup input: ``policy="greedy"`` applies :class:`~safety.value_policies.GreedyPolicy`'s input where a
 filter overrides the nominal input, ``"gradient"`` the gradient's ``u*``; ``None`` (default) takes
 the kind's default, greedy for the switch, gradient for the lookahead and the smooth filter (see
 :mod:`safety.filter`).
@@ -46,7 +46,7 @@ from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from reach.value_function import ValueFunction, check_time_coverage
 from safety.filter import DEFAULT_GAMMA, FilterInfo, SafetyFilter
-from safety.value_functions import as_value_function
+from safety.sources import as_value_function
 from training import pretrained
 
 

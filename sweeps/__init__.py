@@ -1,23 +1,5 @@
-"""Sweeps on top of training and safety: layout sweeps of accuracy against training time.
+"""Deprecated alias of :mod:`studies.sweeps` (moved there; this path is removed in reach 0.3)."""
 
-Data flows one way: systems -> envs / ground truth -> training -> safety -> sweeps.
-"""
+from reach.deprecation import moved
 
-from sweeps.report import claims, pareto_front, plot_pareto, summary_table
-from sweeps.spec import AIR3D_LAYOUTS, NINE_D_LAYOUTS, SweepSpec, load_spec
-from sweeps.sweep import run_sweep, write_report
-from sweeps.task import run_task
-
-__all__ = [
-    "AIR3D_LAYOUTS",
-    "NINE_D_LAYOUTS",
-    "SweepSpec",
-    "claims",
-    "load_spec",
-    "pareto_front",
-    "plot_pareto",
-    "run_sweep",
-    "run_task",
-    "summary_table",
-    "write_report",
-]
+moved(__name__, submodules=("backends", "report", "scoring", "spec", "sweep", "task"))

@@ -20,10 +20,10 @@ import torch
 
 import reach_envs  # noqa: F401  (registers the environments)
 from reach.atomic import atomic_path
-from reach.cli import main
 from reach.locking import LockedError, exclusive_lock, run_lock
 from reach.systems import Air3D, MultiVehicle9D, RelativePair
 from reach.validation import csv_floats
+from reach_cli import main
 from reach_envs.common import EpisodeOverError
 from safety import SafetyFilter
 from training import NeuralValueFunction, TrainConfig, Trainer, ValueNetwork, load_network, save_checkpoint
@@ -271,8 +271,8 @@ def test_sigint_saves_and_the_run_resumes(tmp_path):
 
 
 def test_evaluate_merges_rows_instead_of_replacing_them(tmp_path, air3d_grid):
-    from safety.evaluate import evaluate_many
     from safety.verify import VerifySettings
+    from studies.batch_verification import evaluate_many
 
     a = str(tiny_checkpoint(tmp_path / "a.pt"))
     b = str(tiny_checkpoint(tmp_path / "b.pt", layout="rrrrl"))
@@ -531,7 +531,7 @@ def test_pettingzoo_reset_reports_collision_truthfully():
 
 
 def test_an_interrupt_anywhere_is_one_line_and_exit_130(monkeypatch, capsys):
-    import reach.cli.envs as envs_command
+    import reach_cli.envs as envs_command
 
     def interrupted(args):
         raise KeyboardInterrupt

@@ -6,12 +6,12 @@ import dataclasses
 
 import pytest
 
-from reach.cli import build_parser
-from reach.cli import evaluate as evaluate_command
-from reach.cli import sweep as sweep_command
-from reach.cli import train as train_command
+from reach_cli import build_parser
+from reach_cli import evaluate as evaluate_command
+from reach_cli import sweep as sweep_command
+from reach_cli import train as train_command
 from safety.verify import VerifySettings
-from sweeps.spec import SweepSpec
+from studies.sweeps.spec import SweepSpec
 from training import TrainConfig
 
 
@@ -43,7 +43,7 @@ def test_options_default_to_none_and_help_shows_the_dataclass_default(command, t
 
 
 def test_parsed_defaults_reach_the_library_unchanged(tmp_path):
-    from reach.cli.train import _config_fields
+    from reach_cli.train import _config_fields
 
     args = build_parser().parse_args(["train", "--out", str(tmp_path / "r")])
     assert _config_fields(args) == {}  # nothing given: TrainConfig's own defaults apply
@@ -60,7 +60,7 @@ def test_parsed_defaults_reach_the_library_unchanged(tmp_path):
     ],
 )
 def test_threads_given_before_or_after_the_subcommand_are_kept(argv, threads):
-    from reach.cli.common import finish_namespace
+    from reach_cli.options import finish_namespace
 
     assert finish_namespace(build_parser().parse_args(argv)).threads == threads
 
@@ -139,7 +139,7 @@ def test_the_cli_starts_without_the_env_stack():
     import sys
 
     code = (
-        "import sys; from reach.cli import main; "
+        "import sys; from reach_cli import main; "
         "print(sorted(m for m in ('gymnasium', 'pettingzoo', 'matplotlib') if m in sys.modules)); "
         "import safety, safety.rollout, safety.wrappers; from safety import rollout, SafetyFilterWrapper; "
         "print(callable(rollout) and isinstance(SafetyFilterWrapper, type) and set(safety.__all__) <= set(dir(safety)))"
@@ -153,7 +153,7 @@ def test_the_console_script_freezes_the_collector_after_the_command_not_main(mon
     command has returned and its output is flushed; main() called in-process never touches it."""
     import gc
 
-    import reach.cli as cli
+    import reach_cli as cli
 
     events = []
     real_main = cli.main

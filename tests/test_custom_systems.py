@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 import torch
 
-from reach.cli import main
 from reach.systems import TORCH, Box, ControlAffineSystem, make_system, register_system, system_from_config
 from reach.systems.registry import SYSTEMS
+from reach_cli import main
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 if str(EXAMPLES) not in sys.path:
@@ -174,9 +174,9 @@ def test_user_system_through_grid_training_verification_filter_and_sweep(tmp_pat
     from groundtruth import solve
     from groundtruth.solution import GridSolution
     from safety import SafetyFilter, load_value_function
-    from safety.filter_eval import run_filter_study
     from safety.verify import VerifySettings, sample_states, verify
-    from sweeps import SweepSpec, run_sweep
+    from studies.filter_eval import run_filter_study
+    from studies.sweeps import SweepSpec, run_sweep
     from training import TrainConfig, Trainer
 
     # grid: by import path, saved and reloaded

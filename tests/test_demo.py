@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from safety.demo import run_demo
+from studies.demo import run_demo
 
 
 def test_demo_writes_a_report_and_resumes(tmp_path: Path):

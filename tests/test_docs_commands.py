@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from reach.cli import build_parser
 from reach.validation import csv_floats
+from reach_cli import build_parser
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]

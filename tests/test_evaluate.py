@@ -10,9 +10,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from reach.cli import main
 from reach.systems import Air3D, MultiVehicle9D
-from safety.evaluate import load_results
+from reach_cli import main
+from studies.batch_verification import load_results
 from training import ValueNetwork, save_checkpoint
 
 
@@ -171,7 +171,7 @@ def test_bfloat16_evaluation_applies_to_networks_and_records_it(air3d_grid, chec
 def test_merge_rows_keeps_stored_order_lets_reruns_supersede_and_appends_the_rest(stored, new):
     """The merge both result tables use: every stored key stays in place (its new row if rerun), new
     keys follow in their order, no key twice and no row lost."""
-    from safety.results_io import merge_rows
+    from studies.tables import merge_rows
 
     merged = merge_rows([{"k": k, "run": "old"} for k in stored], [{"k": k, "run": "new"} for k in new], key="k")
     assert [r["k"] for r in merged] == stored + [k for k in new if k not in stored]

@@ -9,16 +9,16 @@ import numpy as np
 import pytest
 import torch
 
-from reach.cli import main
 from reach.systems import Air3D, MultiVehicle9D
-from safety.filter_eval import (
+from reach_cli import main
+from safety import worst_case_disturbance
+from studies.filter_eval import (
     FilterConfig,
     evaluate_filter_parallel,
     evaluate_filters,
     outside_states,
-    worst_case_disturbance,
 )
-from safety.tasks import EvaderGoalTask, WaypointTask
+from studies.tasks import EvaderGoalTask, WaypointTask
 from training import NeuralValueFunction, ValueNetwork
 
 
@@ -103,7 +103,7 @@ def test_filter_eval_cli(air3d_grid, tmp_path: Path, capsys):
 
 def test_unknown_start_source_is_refused_before_any_episode(tmp_path: Path, capsys):
     """start_from names where --start-outside draws from; anything else fails with the bad value."""
-    from safety.filter_eval import run_filter_study
+    from studies.filter_eval import run_filter_study
 
     vf = NeuralValueFunction(ValueNetwork(MultiVehicle9D(), "ssssl", width=16))
     with pytest.raises(ValueError, match=r"start_from must be one of .*'nowhere'"):
@@ -119,7 +119,7 @@ def test_unknown_start_source_is_refused_before_any_episode(tmp_path: Path, caps
 def test_a_bad_backup_horizon_is_refused_before_any_episode(tmp_path: Path, capsys):
     """The lookahead's backup horizon is checked when the configuration is made (library) and when
     the arguments are parsed (CLI), before the nominal episodes run."""
-    from safety.filter_eval import FilterConfig, run_filter_study
+    from studies.filter_eval import FilterConfig, run_filter_study
 
     vf = NeuralValueFunction(ValueNetwork(Air3D(), "ssssl", width=16))
     with pytest.raises(ValueError, match=r"backup_horizon .*-0.5"):
@@ -142,7 +142,7 @@ def test_filter_eval_merges_rows_of_the_same_episodes_and_refuses_others_before_
     """A second `reach filter-eval` into the same --out adds its rows (it erased the first's before);
     a rerun of a configuration replaces its row; a table of other episodes is refused, naming the
     setting, before a single episode runs."""
-    import safety.filter_eval as filter_eval
+    import studies.filter_eval as filter_eval
 
     grid = tmp_path / "air3d.npz"
     air3d_grid.save(grid)

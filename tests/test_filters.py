@@ -9,10 +9,10 @@ import torch
 
 import reach_envs  # noqa: F401  (registers the environments)
 from reach.systems import Air3D, MultiVehicle9D
-from safety import SafetyFilter, SafetyFilterWrapper
-from safety.filter_eval import FilterConfig, evaluate_filters, outside_states, worst_case_disturbance
-from safety.value_functions import load_value_function
+from safety import SafetyFilter, SafetyFilterWrapper, worst_case_disturbance
+from safety.sources import load_value_function
 from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper
+from studies.filter_eval import FilterConfig, evaluate_filters, outside_states
 from training import NeuralValueFunction, ValueNetwork
 
 

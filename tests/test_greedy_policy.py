@@ -8,11 +8,11 @@ import torch
 
 from reach.systems.base import Box, ControlAffineSystem
 from safety import SafetyFilter
-from safety.filter_eval import FilterConfig, evaluate_filters, outside_states
-from safety.policy import GREEDY_STEP, GreedyPolicy, OptimalPolicy
 from safety.rollout import rollout
-from safety.value_functions import load_value_function
+from safety.sources import load_value_function
+from safety.value_policies import GREEDY_STEP, GreedyPolicy, OptimalPolicy
 from safety.verify import VerifySettings
+from studies.filter_eval import FilterConfig, evaluate_filters, outside_states
 
 
 class _Plane(ControlAffineSystem):

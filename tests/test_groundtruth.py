@@ -11,8 +11,8 @@ import torch
 
 from groundtruth import Grid, GridSolution, solve
 from groundtruth.plotting import plot_zero_level_slices
-from reach.cli import main
 from reach.systems import Air3D, MultiVehicle9D
+from reach_cli import main
 
 REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference" / "air3d_levelset_slice.npz"
 

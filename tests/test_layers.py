@@ -1,9 +1,211 @@
-"""The base layer and the solver and training packages import without Gymnasium or PettingZoo."""
+"""The house's floors: every module imports only its own floor or those below, and nothing loops.
+
+Floors, bottom up (``docs/design.md`` draws them):
+
+1. ``reach`` - systems, value-function protocol, integrators, atomic writes, locks, validation;
+2. ``reach_envs`` and ``groundtruth`` - environments and the grid solver, side by side (neither
+   imports the other);
+3. ``training`` - value networks, their training and checkpoints, the DeepReach import;
+4. ``safety`` - the safety core: policies, filters, rollouts, verification, loaders, env adapters;
+5. ``studies`` - batch evaluation, filter studies, sweeps, plots, tables, the demo;
+6. ``reach_cli`` (and ``reach.__main__``, the ``python -m reach`` entry) - the command line.
+
+Every ``import`` statement counts, function-local and ``TYPE_CHECKING`` ones included, and so does
+``importlib.import_module("literal")``. The only modules allowed to name a higher floor are the
+deprecation aliases (:data:`reach.deprecation.MOVED`), and no other module may import an alias.
+"""
 
 from __future__ import annotations
 
+import ast
 import subprocess
 import sys
+from pathlib import Path
+
+import pytest
+
+from reach.deprecation import MOVED
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("reach", "reach_envs", "groundtruth", "training", "safety", "studies", "reach_cli", "sweeps")
+FLOORS = {
+    "reach": 1,
+    "reach_envs": 2,
+    "groundtruth": 2,
+    "training": 3,
+    "safety": 4,
+    "studies": 5,
+    "reach_cli": 6,
+    "reach.__main__": 6,
+}
+#: an upward import on a line carrying this comment is a deprecated alias of a moved name
+ALIAS_MARK = "# deprecated alias"
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _modules() -> dict[str, Path]:
+    found = {}
+    for package in PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            found[_module_name(path)] = path
+    return found
+
+
+MODULES = _modules()
+ALIASES = {name for name in MODULES if name in MOVED}
+
+
+def _floor(module: str) -> int:
+    """The floor of a module: its longest prefix in :data:`FLOORS`."""
+    parts = module.split(".")
+    for n in range(len(parts), 0, -1):
+        prefix = ".".join(parts[:n])
+        if prefix in FLOORS:
+            return FLOORS[prefix]
+    raise AssertionError(f"{module} lies on no floor; add its package to FLOORS")
+
+
+def _resolve(name: str) -> str | None:
+    """The project module an import names (``a.b.c`` may be a module or a name in ``a.b``)."""
+    while name:
+        if name in MODULES:
+            return name
+        name = name.rpartition(".")[0]
+    return None
+
+
+def _imports(module: str) -> list[tuple[str, int, str]]:
+    """``(imported module, line, source line)`` for every project import in ``module``."""
+    path = MODULES[module]
+    source = path.read_text()
+    lines = source.splitlines()
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        names: list[str] = []
+        if isinstance(node, ast.Import):
+            names = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*anchor, base]) if base else ".".join(anchor)
+            names = [f"{base}.{alias.name}" for alias in node.names]
+        elif (
+            isinstance(node, ast.Call)
+            and getattr(node.func, "attr", getattr(node.func, "id", None)) == "import_module"
+            and node.args
+            and isinstance(node.args[0], ast.Constant)
+            and isinstance(node.args[0].value, str)
+        ):
+            names = [node.args[0].value]
+        for name in names:
+            target = _resolve(name)
+            if target is not None and target != module:
+                found.append((target, node.lineno, lines[node.lineno - 1]))
+    return found
+
+
+GRAPH = {module: _imports(module) for module in MODULES}
+
+
+def test_every_module_lies_on_a_floor():
+    assert MODULES, "no modules found"
+    for module in set(MODULES) - ALIASES:
+        _floor(module)
+
+
+@pytest.mark.parametrize("module", sorted(set(MODULES) - ALIASES))
+def test_imports_run_down_the_floors(module):
+    floor = _floor(module)
+    for target, line, text in GRAPH[module]:
+        if ALIAS_MARK in text:
+            continue
+        assert target not in ALIASES, f"{module}:{line} imports the deprecated alias {target}; use {MOVED[target]}"
+        assert _floor(target) <= floor, f"{module}:{line} (floor {floor}) imports {target} (floor {_floor(target)})"
+
+
+def test_envs_and_grid_solver_do_not_import_each_other():
+    for module in MODULES:
+        if module.split(".")[0] in ("reach_envs", "groundtruth"):
+            other = "groundtruth" if module.startswith("reach_envs") else "reach_envs"
+            for target, line, _ in GRAPH[module]:
+                assert target.split(".")[0] != other, f"{module}:{line} imports {target}"
+
+
+def test_no_import_loops():
+    """No module reaches itself through imports, however deep and wherever the import sits."""
+    edges = {m: {t for t, _, text in GRAPH[m] if ALIAS_MARK not in text} for m in MODULES if m not in ALIASES}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    loops: list[list[str]] = []
+    sys.setrecursionlimit(max(sys.getrecursionlimit(), 10_000))
+
+    def visit(v: str) -> None:  # Tarjan's strongly connected components
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in edges.get(v, ()):
+            if w not in edges:
+                continue
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                loops.append(sorted(component))
+
+    for v in edges:
+        if v not in index:
+            visit(v)
+    assert not loops, f"import loops: {loops}"
+
+
+@pytest.mark.parametrize("old", sorted(MOVED))
+def test_each_moved_path_is_an_alias_that_warns(old):
+    code = (
+        "import importlib, warnings\n"
+        "warnings.simplefilter('error', DeprecationWarning)\n"
+        f"new = importlib.import_module({MOVED[old]!r})\n"
+        "try:\n"
+        f"    importlib.import_module({old!r})\n"
+        "except DeprecationWarning as w:\n"
+        "    print('warned:', w)\n"
+        "warnings.simplefilter('ignore', DeprecationWarning)\n"
+        f"print(importlib.import_module({old!r}) is new)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    parent = old.rpartition(".")[0]
+    warned_for = parent if parent in ALIASES else old  # a moved package's submodule warns for the package
+    assert f"warned: {warned_for} moved to {MOVED[warned_for]}" in out, out
+    assert out.strip().endswith("True"), out
+
+
+def test_moved_names_of_safety_warn_and_resolve():
+    import studies
+
+    for name in ("evaluate_many", "load_results", "markdown_table"):
+        with pytest.warns(DeprecationWarning, match=f"safety.{name} moved to studies.{name}"):
+            import safety
+
+            assert getattr(safety, name) is getattr(studies, name)
 
 
 def test_groundtruth_and_training_load_no_gymnasium():

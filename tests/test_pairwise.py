@@ -10,7 +10,7 @@ import torch
 from groundtruth.pairwise import PairwiseUnion, pair_system
 from reach.systems import Car, MultiVehicle, MultiVehicle9D
 from safety import rollout
-from safety.value_functions import load_value_function
+from safety.sources import load_value_function
 
 
 def _rigid_motion(x: torch.Tensor, angle: float, shift: tuple[float, float], n: int) -> torch.Tensor:
@@ -97,9 +97,9 @@ def test_pair_npz_loads_as_union_for_nine_d(pair_grid, tmp_path):
 
 
 def test_union_overlay_plot_and_slice_parsing(pair_grid, tmp_path):
-    from reach.cli import main
     from reach.systems.multivehicle import DEEPREACH_9D_SLICE
-    from safety.plots import eval_number, parse_slice
+    from reach_cli import main
+    from studies.plots import eval_number, parse_slice
     from training import ValueNetwork, save_checkpoint
 
     assert eval_number("3pi/4") == pytest.approx(3 * math.pi / 4) and eval_number("-pi") == -math.pi
@@ -120,7 +120,7 @@ def test_union_overlay_plot_and_slice_parsing(pair_grid, tmp_path):
 
 def test_the_2021_figure_slice_is_drawn_and_its_cars_sit_in_the_union(pair_grid):
     from reach.systems.multivehicle import PAPER_2021_9D_SLICE
-    from safety.plots import default_slices
+    from studies.plots import default_slices
 
     system = MultiVehicle9D()
     assert [s.base for s in default_slices(system)].count(PAPER_2021_9D_SLICE) == 1

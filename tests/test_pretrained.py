@@ -9,9 +9,9 @@ import gymnasium as gym
 import pytest
 
 import reach_envs
-from reach.cli import main
+from reach_cli import main
 from safety.metrics import wilson_interval
-from safety.value_functions import load_value_function
+from safety.sources import load_value_function
 from safety.verify import VerifySettings, sample_states, verify
 from safety.wrappers import SafetyFilterWrapper
 from training import pretrained
@@ -75,7 +75,7 @@ def test_model_reproduces_its_other_evaluations(name: str, index: int, pair_grid
     sample, with its recorded source and policy. A grid member of the source (the card's 101^3 pair
     grid, not package data) is the tests' 45^3 pair grid: it moves V only where the union is below
     the network."""
-    from safety.value_functions import composition_kind, member_sources
+    from safety.sources import composition_kind, member_sources
 
     card = pretrained.card(name)
     other = card.also_evaluated[index]
@@ -141,8 +141,8 @@ def test_starts_outside_the_learned_brt_come_from_the_scene() -> None:
     import torch
 
     from reach_envs.scenes import make_scene
-    from safety.filter_eval import outside_states
     from safety.verify import values_at
+    from studies.filter_eval import outside_states
 
     vf = load_value_function("pretrained:multivehicle9d").value_function
     scene = make_scene("three-car-merge")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import reach_envs  # noqa: F401
-from reach.cli import main
+from reach_cli import main
 from reach_envs.recording import record_episode, save_gif
 
 

@@ -10,9 +10,9 @@ import torch
 import safety.rollout_store as rollout_store
 from reach.systems import Air3D
 from reach.threads import thread_policy
-from safety.evaluate import evaluate_many
 from safety.rollout_store import RolloutStore
 from safety.verify import VerifySettings, sample_states
+from studies.batch_verification import evaluate_many
 from training import NeuralValueFunction, ValueNetwork
 
 #: columns that time the run rather than describe the value function

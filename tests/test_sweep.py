@@ -8,10 +8,10 @@ import math
 import pytest
 import torch
 
-from reach.cli import main as reach_main
-from sweeps import SweepSpec, claims, pareto_front, run_sweep
-from sweeps.report import _spearman, spearman_permutation_p, spread, summary_table
-from sweeps.spec import load_spec, store_spec
+from reach_cli import main as reach_main
+from studies.sweeps import SweepSpec, claims, pareto_front, run_sweep
+from studies.sweeps.report import _spearman, spearman_permutation_p, spread, summary_table
+from studies.sweeps.spec import load_spec, store_spec
 from training import TrainConfig, Trainer
 
 
@@ -170,7 +170,7 @@ def test_sweep_writes_the_report_and_resumes_without_redoing_work(tmp_path, gt21
 
 
 def test_interrupted_sweep_continues_where_it_stopped(tmp_path, gt21, monkeypatch):
-    import sweeps.backends as backends
+    import studies.sweeps.backends as backends
 
     out = tmp_path / "sweep"
     spec = tiny_spec(groundtruth=gt21, seeds=[0])

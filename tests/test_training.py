@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 import torch
 
-from reach.cli import main
 from reach.systems import Air3D, MultiVehicle9D, ValueFunction
+from reach_cli import main
 from training import (
     Encoding,
     NeuralValueFunction,

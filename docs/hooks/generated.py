@@ -43,7 +43,7 @@ def _environment_table() -> str:
 
 
 def _cli_reference() -> str:
-    from reach.cli import COMMANDS, build_parser
+    from reach_cli import COMMANDS, build_parser
 
     parser = build_parser()
     sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")

@@ -14,7 +14,7 @@ any checkpoint), and ``NAME.card.json``, its model card:
 - ``sha256``: the digest of ``NAME.pt``, so a swapped or damaged file is refused by name.
 
 Anything that takes a value function takes ``"pretrained:NAME"`` (:data:`PREFIX`), through
-:func:`safety.value_functions.load_value_function`. ``reach pretrained`` lists the cards.
+:func:`safety.sources.load_value_function`. ``reach pretrained`` lists the cards.
 Maintainers add or replace a model with ``benchmarks/make_pretrained.py``.
 """
 

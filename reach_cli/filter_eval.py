@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from reach.cli.common import add_subparser
 from reach.validation import (
     check_float,
     check_output_path,
@@ -14,6 +13,7 @@ from reach.validation import (
     positive_int_arg,
     seed_arg,
 )
+from reach_cli.options import add_subparser
 from safety.filter import DEFAULT_GAMMA, KINDS
 
 
@@ -112,9 +112,9 @@ def parse_time_to_go(text: str | None) -> float | str | None:
 
 def run(args: argparse.Namespace) -> int:
     from reach_envs.scenes import env_scene
-    from safety.evaluate import expand_sources
-    from safety.filter_eval import filter_table, run_filter_study
-    from safety.value_functions import load_value_function
+    from safety.sources import load_value_function
+    from studies.batch_verification import expand_sources
+    from studies.filter_eval import filter_table, run_filter_study
 
     # checks first: scene, numbers, output paths, then the value functions (their time ranges too)
     # a named scene or a plain scene of --system (not both); air3d when neither is given

@@ -2,7 +2,7 @@
 
 A sweep directory::
 
-    OUT/sweep.json                 the spec (see :mod:`sweeps.spec`)
+    OUT/sweep.json                 the spec (see :mod:`studies.sweeps.spec`)
     OUT/groundtruth.npz            the grid ground truth, solved once (ground-truth evaluations only)
     OUT/runs/<layout>-s<seed>/     each task's training run, snapshots and cached scores
     OUT/results.{json,csv,md}      every (layout, seed, snapshot) row, rewritten as tasks finish
@@ -28,10 +28,10 @@ from tqdm.auto import tqdm
 from reach.atomic import atomic_path
 from reach.locking import run_lock
 from reach.validation import check_int, check_output_dir
-from sweeps.report import claims_table, final_rows, plot_pareto, rank_layouts, summary_table
-from sweeps.scoring import headline_of
-from sweeps.spec import SweepSpec, store_spec
-from sweeps.task import run_dir
+from studies.sweeps.report import claims_table, final_rows, plot_pareto, rank_layouts, summary_table
+from studies.sweeps.scoring import headline_of
+from studies.sweeps.spec import SweepSpec, store_spec
+from studies.sweeps.task import run_dir
 
 RESULTS_FORMAT = "reach.sweep-results.v1"
 
@@ -108,7 +108,7 @@ def _run_locked(
     progress: bool,
     log: Callable[[str], Any],
 ) -> tuple[Path, list[tuple[str, int, str]]]:
-    from sweeps.backends import run_local, run_ray
+    from studies.sweeps.backends import run_local, run_ray
 
     store_spec(spec, out)
     groundtruth = _ground_truth(spec, out, progress, log)
@@ -147,7 +147,7 @@ def _in_task_order(spec: SweepSpec, rows_by_task: dict) -> list[dict[str, Any]]:
 
 
 def _write_rows(out: Path, spec: SweepSpec, rows_by_task: dict, failed: list) -> None:
-    from safety.results_io import write_results
+    from studies.tables import write_results
 
     rows = _in_task_order(spec, rows_by_task)
     header = {"format": RESULTS_FORMAT, "spec": spec.to_dict(), "failed": failed}
@@ -158,8 +158,8 @@ def _write_rows(out: Path, spec: SweepSpec, rows_by_task: dict, failed: list) ->
 def _slice_plot(spec: SweepSpec, out: Path, rows: list[dict[str, Any]], groundtruth: str | None) -> Path | None:
     """BRT slices of the best and the worst layout (by the first headline metric), the seed nearest
     its layout's mean, final snapshot; the ground truth filled where there is one."""
-    from safety.plots import plot_brt_slices
-    from safety.value_functions import load_value_function
+    from studies.plots import plot_brt_slices
+    from safety.sources import load_value_function
 
     metric, higher = headline_of(spec.evaluation)[0]
     ranked = rank_layouts(rows, metric, higher)

@@ -12,7 +12,6 @@ import argparse
 import sys
 from typing import Any
 
-from reach.cli.common import add_subparser, default
 from reach.validation import (
     device_arg,
     finite_float_arg,
@@ -23,6 +22,7 @@ from reach.validation import (
     seed_arg,
     unit_interval_arg,
 )
+from reach_cli.options import add_subparser, default
 
 
 def _optional_float(text: str) -> float | str:
@@ -163,7 +163,7 @@ def _evaluator(args: argparse.Namespace) -> Any:
     if not args.groundtruth:
         return None
     from groundtruth import GridSolution
-    from training.evaluate import ReferenceEvaluator
+    from training.accuracy import ReferenceEvaluator
 
     reference = GridSolution.load(args.groundtruth, outside="clamp")
     t_eval = args.eval_time if args.eval_time is not None else float(reference.times[-1])

@@ -6,7 +6,7 @@ import argparse
 import json
 from typing import Any
 
-from reach.cli.common import add_subparser
+from reach_cli.options import add_subparser
 
 
 def add_parser(sub: Any) -> None:

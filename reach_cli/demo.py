@@ -5,12 +5,12 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from reach.cli.common import add_subparser, signature_default
 from reach.validation import check_int, check_output_dir, positive_int_arg, seed_arg
+from reach_cli.options import add_subparser, signature_default
 
 
 def add_parser(sub: Any) -> None:
-    from safety.demo import run_demo
+    from studies.demo import run_demo
 
     def d(name: str) -> Any:
         return signature_default(run_demo, name)
@@ -34,7 +34,7 @@ def add_parser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from safety.demo import run_demo
+    from studies.demo import run_demo
     from training.config import parse_duration
 
     options: dict[str, Any] = {

@@ -31,7 +31,7 @@ class GroundTruthScorer:
         self, system: ControlAffineSystem, path: str | os.PathLike, t: float | None, slice_value: float | None
     ):
         from groundtruth.solution import GridSolution
-        from training.evaluate import ReferenceEvaluator
+        from training.accuracy import ReferenceEvaluator
 
         solution = GridSolution.load(path, outside="clamp")
         system.require_same_physics(solution.system, f"ground truth {path}")
@@ -92,7 +92,7 @@ class RolloutScorer:
         self.key = {"kind": "rollout", "system": system.config(), **settings, "pairwise": None}
         self.union_values = None
         if pairwise is not None:  # containment in the union of pairwise BRTs (a sound model misses none)
-            from safety.evaluate import pairwise_union_values
+            from studies.batch_verification import pairwise_union_values
 
             self.union_values = pairwise_union_values(pairwise, system, self.states, system.horizon)
             self.key["pairwise"] = {"file": str(Path(pairwise).resolve()), "size": Path(pairwise).stat().st_size}

@@ -1,6 +1,6 @@
 """A sweep's report: per-layout summaries over seeds, the Pareto plot, and checks of the paper's claims.
 
-Everything here reads the rows of :func:`sweeps.task.run_task` (one per layout, seed and snapshot)
+Everything here reads the rows of :func:`studies.sweeps.task.run_task` (one per layout, seed and snapshot)
 and computes; nothing trains or evaluates, so a report can be redrawn from ``results.json`` alone.
 """
 
@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from safety.results_io import format_cell, render_markdown
+from studies.tables import format_cell, render_markdown
 
 Row = dict[str, Any]
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from reach.cli.common import add_subparser
 from reach.validation import check_output_path, positive_int_arg, seed_arg
+from reach_cli.options import add_subparser
 
 
 def add_parser(sub: Any) -> None:

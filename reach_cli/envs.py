@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from reach.cli.common import add_subparser
+from reach_cli.options import add_subparser
 
 
 def add_parser(sub: Any) -> None:

@@ -1,6 +1,6 @@
 """``reach sweep``: train many layouts x seeds on one budget, score them along training, report.
 
-Options that set a :class:`~sweeps.spec.SweepSpec` field default to ``None`` and fall back to the
+Options that set a :class:`~studies.sweeps.spec.SweepSpec` field default to ``None`` and fall back to the
 dataclass. Everything (spec, training options, ground truth's system, workers) is checked before
 the ground truth is solved or any run is trained.
 """
@@ -12,7 +12,6 @@ import json
 from collections.abc import Sequence
 from typing import Any
 
-from reach.cli.common import add_subparser, default
 from reach.validation import (
     device_arg,
     finite_float_arg,
@@ -20,6 +19,7 @@ from reach.validation import (
     positive_int_arg,
     seed_arg,
 )
+from reach_cli.options import add_subparser, default
 
 #: (option, SweepSpec field, argparse keywords, help)
 SPEC_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
@@ -51,7 +51,7 @@ SPEC_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
 
 
 def add_parser(sub: Any) -> None:
-    from sweeps.spec import SweepSpec
+    from studies.sweeps.spec import SweepSpec
 
     p = add_subparser(
         sub,
@@ -116,8 +116,8 @@ def parse_train_options(items: Sequence[str]) -> dict[str, object]:
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from sweeps.spec import SweepSpec, default_layouts
-    from sweeps.sweep import run_sweep
+    from studies.sweeps.spec import SweepSpec, default_layouts
+    from studies.sweeps.sweep import run_sweep
     from training import parse_duration
 
     fields: dict[str, Any] = {f: getattr(args, f) for _, f, _, _ in SPEC_OPTIONS if getattr(args, f) is not None}

@@ -6,7 +6,7 @@ Ray workers run the very same code. A task's files live in ``OUT/runs/<layout>-s
 * the training run (``config.json``, ``checkpoint.pt``, ``metrics.jsonl``, ``snapshots/NNN.pt``),
   continued with :meth:`training.Trainer.resume` when a previous sweep was interrupted;
 * ``scores.json``: the score of every evaluated snapshot, keyed by the snapshot file's
-  :func:`safety.evaluate.fingerprint` (path, size, modification time) and by the scorer's
+  :func:`studies.batch_verification.fingerprint` (path, size, modification time) and by the scorer's
   settings, rewritten atomically after each snapshot, so a task interrupted during evaluation
   keeps what it had scored.
 """
@@ -29,7 +29,7 @@ def run_dir(out: str | os.PathLike, layout: str, seed: int) -> Path:
 
 
 def _scorer(spec: Any, groundtruth: str | None) -> Any:
-    from sweeps.scoring import GroundTruthScorer, RolloutScorer
+    from studies.sweeps.scoring import GroundTruthScorer, RolloutScorer
 
     ident = json.dumps([spec.to_dict(), groundtruth], sort_keys=True, default=str)
     if ident not in _SCORERS:
@@ -80,9 +80,9 @@ def run_task(
     (training seconds, evaluation excluded), ``steps_per_s`` and the scorer's metrics.
     """
     from reach.threads import apply_thread_policy
-    from safety.evaluate import fingerprint
-    from safety.value_functions import load_value_function
-    from sweeps.spec import SweepSpec
+    from studies.batch_verification import fingerprint
+    from safety.sources import load_value_function
+    from studies.sweeps.spec import SweepSpec
 
     if threads:
         apply_thread_policy(threads)  # the sweep's per-run count, which training then keeps

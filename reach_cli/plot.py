@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from reach.cli.common import add_subparser
 from reach.validation import check_output_path, finite_float_arg, nonnegative_float_arg, seed_arg
+from reach_cli.options import add_subparser
 
 
 def add_parser(sub: Any) -> None:
@@ -38,9 +38,9 @@ def add_parser(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from reach.value_function import check_time_coverage
-    from safety import plots
-    from safety.evaluate import expand_sources, load_results
-    from safety.value_functions import load_value_function
+    from safety.sources import load_value_function
+    from studies import plots
+    from studies.batch_verification import expand_sources, load_results
 
     check_output_path(args.out, "--out")
     if args.kind == "bars":

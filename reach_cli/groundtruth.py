@@ -6,7 +6,6 @@ import argparse
 import itertools
 from typing import Any
 
-from reach.cli.common import add_subparser
 from reach.validation import (
     check_int,
     check_output_path,
@@ -14,11 +13,12 @@ from reach.validation import (
     device_arg,
     positive_float_arg,
 )
+from reach_cli.options import add_subparser
 
 
 def add_parser(sub: Any) -> None:
     from groundtruth.solver import solve
-    from reach.cli.common import signature_default
+    from reach_cli.options import signature_default
 
     p = add_subparser(sub, "groundtruth", help="solve a low-dimensional system's BRT on a grid (level-set method)")
     p.add_argument(

@@ -1,6 +1,6 @@
 """Where sweep tasks run: in this process, in local worker processes, or as tasks on a Ray cluster.
 
-Every backend takes the same list of task arguments for :func:`sweeps.task.run_task` and yields
+Every backend takes the same list of task arguments for :func:`studies.sweeps.task.run_task` and yields
 ``(task, rows or exception)`` as tasks finish, so the sweep writes its results incrementally and a
 failed task is reported without stopping the others.
 """
@@ -12,7 +12,7 @@ import multiprocessing
 from collections.abc import Iterator, Sequence
 from typing import Any
 
-from sweeps.task import run_task
+from studies.sweeps.task import run_task
 
 TaskArgs = tuple[str, dict[str, Any], str, int, "str | None", "int | None"]  # run_task's positional arguments
 Outcome = tuple[TaskArgs, "list[dict[str, Any]] | BaseException"]

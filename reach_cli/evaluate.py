@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from reach.cli.common import add_subparser, default
 from reach.validation import (
     check_output_path,
     device_arg,
@@ -21,6 +20,7 @@ from reach.validation import (
     probability_arg,
     seed_arg,
 )
+from reach_cli.options import add_subparser, default
 
 #: (option, VerifySettings field, argparse keywords, help)
 VERIFY_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
@@ -97,9 +97,9 @@ def add_parser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from safety.evaluate import evaluate_many, markdown_table
-    from safety.plots import plot_violation_bars
     from safety.verify import VerifySettings
+    from studies.batch_verification import evaluate_many, markdown_table
+    from studies.plots import plot_violation_bars
 
     settings = VerifySettings(
         **{field: getattr(args, field) for _, field, _, _ in VERIFY_OPTIONS if getattr(args, field) is not None}

@@ -1,0 +1,54 @@
+"""Deprecation aliases: an import path that moved keeps working, with a warning, for one release.
+
+A public module that moves leaves behind a one-line alias module at its old path that calls
+:func:`moved`. The alias *is* the new module (``sys.modules`` maps the old name to it), so
+``from old.path import name``, ``import old.path`` and monkeypatching through the old path all
+reach the same objects. Aliases are the only modules allowed to name a higher layer, and nothing in
+the library imports one (``tests/test_layers.py`` holds both rules).
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+import warnings
+from types import ModuleType
+
+#: the release in which every alias listed in :data:`MOVED` is removed
+REMOVED_IN = "0.3"
+
+#: every moved public path and where it lives now (old -> new); the alias modules read it, and the
+#: tests check each alias resolves to its target and warns
+MOVED: dict[str, str] = {
+    "reach.cli": "reach_cli",
+    "reach.cli.common": "reach_cli.options",
+    "safety.evaluate": "studies.batch_verification",
+    "safety.filter_eval": "studies.filter_eval",
+    "safety.plots": "studies.plots",
+    "safety.demo": "studies.demo",
+    "safety.results_io": "studies.tables",
+    "safety.tasks": "studies.tasks",
+    "safety.policy": "safety.value_policies",
+    "safety.value_functions": "safety.sources",
+    "sweeps": "studies.sweeps",
+    "training.evaluate": "training.accuracy",
+}
+
+
+def moved(old: str, submodules: tuple[str, ...] = ()) -> ModuleType:
+    """Make the module being imported as ``old`` an alias of its new home in :data:`MOVED`.
+
+    Warns once per import with a :class:`DeprecationWarning` naming both paths. ``submodules``
+    names the submodules of a moved package, so that ``import old.sub`` reaches ``new.sub`` too.
+    """
+    new = MOVED[old]
+    warnings.warn(
+        f"{old} moved to {new}; import it from there (the old path is removed in reach {REMOVED_IN})",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+    module = importlib.import_module(new)
+    sys.modules[old] = module
+    for sub in submodules:
+        sys.modules[f"{old}.{sub}"] = importlib.import_module(MOVED.get(f"{old}.{sub}", f"{new}.{sub}"))
+    return module

@@ -1,0 +1,272 @@
+"""Batch evaluation of many value functions on the same sampled states, resumable.
+
+:func:`evaluate_many` verifies each source (run directory, checkpoint, DeepReach file, grid
+solution) with :func:`~safety.verify.verify` on states drawn once from the seed, optionally scores
+it against a grid ground truth (value MSE and BRT IoU over the volume and one slice) and, for
+multi-vehicle systems, against the union of pairwise BRTs (the containment metric), and after
+every source rewrites ``<out>.csv``, ``<out>.json`` and ``<out>.md`` atomically. A second call with
+the same settings skips sources already evaluated (same path, size and modification time); a source
+that fails to load or evaluate becomes a row with its error, and the others go on.
+
+Within a source, the rollouts are kept block by block in ``<out>.rollouts/`` (a
+:class:`~safety.rollout_store.RolloutStore` per source, keyed by its fingerprint and the settings)
+until its row is written: a run killed in the middle of a million-state certification resumes
+where it stopped when the same command runs again (``rollout_blocks_resumed`` counts the blocks it
+loaded; ``rollout_seconds`` is the blocks' own simulation time, whichever run did it).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import glob
+import hashlib
+import json
+import os
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from tqdm.auto import tqdm
+
+from groundtruth.solution import GridSolution
+from reach.locking import exclusive_lock
+from reach.systems import ControlAffineSystem, make_system
+from reach.validation import check_output_path
+from safety.metrics import containment_statistics
+from studies.tables import markdown_table as format_table
+from studies.tables import merge_rows, write_results
+from safety.rollout_store import RolloutStore
+from safety.sources import (
+    composition_kind,
+    is_composition,
+    load_value_function,
+    min_sources,
+    resolve_checkpoint,
+)
+from safety.verify import VerifySettings, sample_states, values_at, verify
+from training.accuracy import ReferenceEvaluator
+
+FORMAT = "reach.evaluation.v1"
+GLOB_CHARS = set("*?[")
+
+#: (column, header, format) of the printed table
+TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
+    ("label", "model", "{}"),
+    ("layout", "layout", "{}"),
+    ("violation_rate", "violation %", "pct"),
+    ("false_safe_rate", "false safe %", "pct"),
+    ("false_unsafe_rate", "false unsafe %", "pct"),
+    ("collision_rate", "collision %", "pct"),
+    ("delta", "delta", "{:.3g}"),  # 3 significant digits: small deltas are the point
+    ("eps", "eps", "{:.2e}"),
+    ("certified_volume", "certified vol.", "{:.3f}"),
+    ("robust_eps", "robust eps", "{:.2e}"),
+    ("robust_certified_volume", "robust vol.", "{:.3f}"),
+    ("iou_volume", "IoU vol.", "{:.3f}"),
+    ("mse_volume", "MSE vol.", "{:.2e}"),
+    ("iou_slice", "IoU slice", "{:.3f}"),
+    ("mse_slice", "MSE slice", "{:.2e}"),
+    ("containment_miss_rate", "misses union %", "pct"),
+    ("wall_time", "time (s)", "{:.1f}"),
+)
+
+
+def expand_sources(patterns: Sequence[str]) -> list[str]:
+    """Paths from arguments; unexpanded glob patterns are expanded here. Empty results raise."""
+    if not patterns:
+        raise ValueError("no value functions given (expected run directories, checkpoints or .npz files)")
+    out: list[str] = []
+    for pattern in patterns:
+        if not os.path.exists(pattern) and GLOB_CHARS & set(pattern):
+            matches = sorted(glob.glob(pattern))
+            if not matches:
+                raise ValueError(f"pattern {pattern!r} matched no file or directory")
+            out.extend(matches)
+        else:
+            out.append(pattern)
+    return list(dict.fromkeys(p if is_composition(p) else os.path.normpath(p) for p in out))
+
+
+def fingerprint(path: str) -> dict[str, Any]:
+    """What identifies one version of a source: resolved file, size, modification time (of every
+    member of a ``min:A,B`` source; a ``cap:A,B`` source, whose policy differs, says so)."""
+    if is_composition(path):
+        members = {"members": [fingerprint(p) for p in min_sources(path)]}
+        return {"kind": "cap", **members} if composition_kind(path) == "cap" else members
+    try:
+        p = resolve_checkpoint(path)
+    except ValueError:
+        return {"file": os.path.abspath(path), "size": None, "mtime_ns": None}
+    st = p.stat()
+    return {"file": str(p.resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
+    """The paper-style table; columns nobody has (e.g. ground truth for 9D) are left out."""
+    return format_table(rows, TABLE_COLUMNS, drop_empty=True)
+
+
+def _write_outputs(out: Path, header: dict[str, Any], rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Merge ``rows`` into the table on disk and rewrite it; returns the merged rows.
+
+    Rows of other sources already in the table are kept (a rerun with fewer sources, or another
+    process evaluating other sources into the same ``out``, loses nothing); a row for the same
+    source replaces the old one. The read-merge-write runs under a lock on ``out.lock``, so
+    concurrent writers serialise instead of overwriting each other's rows."""
+    with exclusive_lock(out.with_suffix(".lock"), f"results {out}", wait=True):
+        merged = merge_rows(_previous(out, header, keep_errors=True).values(), rows, key="source")
+        write_results(out, header, merged, markdown_table(merged))
+    return merged
+
+
+def _previous(out: Path, header: dict[str, Any], keep_errors: bool = False) -> dict[str, dict[str, Any]]:
+    """Rows already in ``out`` by source (error rows only with ``keep_errors``); a table written with
+    other settings raises, since its rows would not be comparable."""
+    path = out.with_suffix(".json")
+    if not path.exists():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: existing results are unreadable ({err}); move the file away to start over") from err
+    if isinstance(data.get("settings"), dict):  # files from before these settings existed used these values
+        data["settings"] = _resolved({"matmul_precision": "float32", "policy": "gradient", **data["settings"]})
+    if any(
+        data.get(key) != header[key]
+        for key in ("format", "settings", "system", "ground_truth", "ground_truth_time", "pairwise")
+    ):
+        raise ValueError(
+            f"{path} holds results for other settings ({data.get('settings')}, system {data.get('system')}); "
+            "use another --out or delete it"
+        )
+    return {r["source"]: r for r in data.get("results", []) if keep_errors or not r.get("error")}
+
+
+def _resolved(settings: dict[str, Any]) -> dict[str, Any]:
+    """Settings with the sample counts that default to another count written out (by
+    :class:`VerifySettings`' own rule), so that ``--robust-samples`` left out and given as the value
+    it defaults to compare equal; tables written before the counts were resolved are read the same
+    way. Settings of another version, which :class:`VerifySettings` does not take, stay as written."""
+    try:
+        parsed = VerifySettings(**settings)
+    except (TypeError, ValueError):
+        return settings
+    return {**settings, "certify_samples": parsed.fresh_samples, "robust_samples": parsed.robust_sample_count}
+
+
+def pairwise_union_values(pairwise: str | os.PathLike, system: ControlAffineSystem, states: Any, horizon: float) -> Any:
+    """Values of the union of pairwise BRTs (a two-car ``relativepair`` solution) at ``states``."""
+    union = load_value_function(pairwise, format="grid", system=system)
+    if union.kind != "pairwise":
+        raise ValueError(f"{pairwise}: not a two-car (relativepair) solution for {system.name}")
+    return values_at(union.value_function, states, horizon)
+
+
+def evaluate_many(
+    sources: Sequence[str],
+    out: str | os.PathLike,
+    settings: VerifySettings,
+    system: ControlAffineSystem | str | None = None,
+    format: str = "auto",
+    layout: str | None = None,
+    ground_truth: str | os.PathLike | None = None,
+    gt_time: float | None = None,
+    gt_slice: float | None = None,
+    pairwise: str | os.PathLike | None = None,
+    device: str = "cpu",
+    progress: bool = True,
+) -> list[dict[str, Any]]:
+    """Evaluate every source on the same states; returns the rows (also written to ``out``)."""
+    paths = expand_sources(sources)
+    out = check_output_path(out, "results")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if isinstance(system, str):
+        system = make_system(system)
+    if system is None:  # the first source that loads decides, so every row shares the states
+        errors = []
+        for p in paths:
+            try:
+                system = load_value_function(p, format=format, layout=layout).value_function.system
+                break
+            except ValueError as err:
+                errors.append(str(err))
+        if system is None:
+            if len(errors) == 1:
+                raise ValueError(errors[0])
+            raise ValueError(
+                f"none of {len(paths)} sources could be loaded (first: {errors[0]}); "
+                "give --system to see each error in the table"
+            )
+    reference = None
+    if ground_truth is not None:
+        gt = GridSolution.load(ground_truth, outside="clamp")
+        system.require_same_physics(gt.system, f"ground truth {ground_truth}")
+        t_ref = float(gt.times[-1]) if gt_time is None else gt_time
+        reference = ReferenceEvaluator(gt, t_ref, slice_value=gt_slice)
+    header = {
+        "format": FORMAT,
+        "system": system.config(),
+        "settings": _resolved(settings.to_dict()),
+        "ground_truth": str(Path(ground_truth).resolve()) if ground_truth else None,
+        "ground_truth_time": gt_time,
+        "pairwise": str(Path(pairwise).resolve()) if pairwise else None,
+    }
+    done = _previous(out, header)
+    states = sample_states(system, settings.samples, settings.seed)
+    horizon = system.horizon if settings.horizon is None else settings.horizon
+    union_values = None if pairwise is None else pairwise_union_values(pairwise, system, states, horizon)
+    rows: list[dict[str, Any]] = []
+    for path in tqdm(paths, desc="value functions", unit="vf", **({} if progress else {"disable": True})):
+        fp = fingerprint(path)
+        old = done.get(path)
+        if old is not None and old.get("fingerprint") == fp:
+            rows.append(old)
+            continue
+        row: dict[str, Any] = {"source": path, "fingerprint": fp, "label": Path(path).name or path}
+        try:
+            loaded = load_value_function(path, format=format, system=system, layout=layout, device=device)
+            if isinstance(loaded.value_function, GridSolution):
+                loaded.value_function.outside = "clamp"  # rollouts may leave the grid; documented
+            row.update(label=loaded.label, layout=loaded.layout, kind=loaded.kind)
+            store = RolloutStore(
+                _store_directory(out, path), {"source": path, "fingerprint": fp, "device": device, **header}
+            )
+            row.update(verify(loaded.value_function, states, settings, device=device, progress=progress, store=store))
+            row["rollout_blocks_resumed"] = store.loaded_blocks
+            if reference is not None:
+                row.update(reference(loaded.value_function))
+            if union_values is not None:
+                learned = values_at(loaded.value_function, states, horizon, device=device)
+                row.update(containment_statistics(union_values, learned))
+        except (ValueError, RuntimeError, OSError, KeyError, TypeError, EOFError) as err:
+            # a corrupt or foreign source is one error row; the others go on
+            row["error"] = f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"[:300]
+        rows.append(row)
+        _write_outputs(out, header, rows)
+        shutil.rmtree(_store_directory(out, path), ignore_errors=True)  # the row holds it now
+    _write_outputs(out, header, rows)
+    with contextlib.suppress(OSError):
+        _store_directory(out, None).rmdir()  # only if no other source's store is left in it
+    return rows
+
+
+def _store_directory(out: Path, source: str | None) -> Path:
+    """Where the rollouts of ``source`` are kept until its row is written (None: the parent of all)."""
+    parent = out.parent / f"{out.name}.rollouts"
+    return parent if source is None else parent / hashlib.sha256(source.encode()).hexdigest()[:16]
+
+
+def load_results(path: str | os.PathLike) -> list[dict[str, Any]]:
+    """Rows of a results ``.json`` written by :func:`evaluate_many`."""
+    p = Path(path).with_suffix(".json")
+    try:
+        data = json.loads(p.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ValueError(f"{p}: not readable evaluation results ({err})") from err
+    if data.get("format") != FORMAT:
+        raise ValueError(f"{p}: not a reach evaluation file (format {FORMAT!r} expected)")
+    return data["results"]
+
+
+__all__ = ["evaluate_many", "expand_sources", "load_results", "markdown_table"]
