@@ -8,7 +8,9 @@ a training run, a rollout). The ``*_arg`` helpers are ``argparse`` types built f
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
+import numbers
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -21,16 +23,45 @@ MAX_SEED = 2**32 - 1
 
 
 def check_int(name: str, value: Any, low: int | None = None, high: int | None = None) -> int:
-    """``value`` as an int within ``[low, high]``; bools and non-integers are refused."""
-    if isinstance(value, bool) or (not isinstance(value, (int,)) and not (
-        isinstance(value, float) and value.is_integer()
-    )):
+    """``value`` as an int within ``[low, high]``: a Python or NumPy integer, a 0-d integer tensor, or
+    a float with no fractional part; bools and non-integers are refused."""
+    if isinstance(value, torch.Tensor) and value.ndim == 0 and not value.is_meta and not value.dtype.is_floating_point:
+        value = value.item() if value.dtype != torch.bool else True  # a bool tensor is refused below
+    integral = isinstance(value, numbers.Integral) or (isinstance(value, float) and value.is_integer())
+    if isinstance(value, bool) or not integral:  # np.bool_ is not a numbers.Integral
         raise ValueError(f"{name} must be an integer, got {value!r}")
     value = int(value)
     if (low is not None and value < low) or (high is not None and value > high):
         bounds = f">= {low}" if high is None else (f"<= {high}" if low is None else f"in [{low}, {high}]")
         raise ValueError(f"{name} must be {bounds}, got {value}")
     return value
+
+
+def real_number(name: str, value: Any) -> float:
+    """``value`` as a float, whatever real it arrives as: a Python ``int``/``float``, a NumPy real
+    scalar (``np.float32(0.05)``, ``np.int64(2)``) or a 0-d real tensor.
+
+    Bools (Python, NumPy or tensor), strings, complex numbers and arrays of more than one element are
+    refused with ``ValueError`` naming the value: ``"0.5"`` or ``True`` given as a number is a caller's
+    mistake, not a number. Finiteness is not checked here (see :func:`check_float`).
+    """
+    if isinstance(value, torch.Tensor):
+        if value.ndim != 0 or value.dtype == torch.bool or value.is_complex() or value.is_meta:
+            where = " on the meta device" if value.is_meta else ""
+            kind = f"a tensor of shape {tuple(value.shape)} ({value.dtype}{where})"
+            raise ValueError(f"{name} must be a real number, got {kind}")
+        return float(value.item())
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):  # np.bool_ is not a numbers.Real
+        raise ValueError(f"{name} must be a real number, got {value!r}")
+    return float(value)
+
+
+def positive_finite(name: str, value: Any) -> float:
+    """``value`` as a float that is finite and above zero (a real, as :func:`real_number` takes)."""
+    out = real_number(name, value)
+    if not (math.isfinite(out) and out > 0):
+        raise ValueError(f"{name} must be positive and finite, got {value!r}")
+    return out
 
 
 def check_float(
@@ -42,11 +73,9 @@ def check_float(
     high_open: bool = False,
 ) -> float:
     """``value`` as a finite float within the given bounds (open where ``*_open``); NaN and inf are refused."""
-    if isinstance(value, bool):
-        raise ValueError(f"{name} must be a number, got {value!r}")
     try:
-        out = float(value)
-    except (TypeError, ValueError):
+        out = real_number(name, value)
+    except ValueError:
         raise ValueError(f"{name} must be a number, got {value!r}") from None
     if not math.isfinite(out):
         raise ValueError(f"{name} must be finite, got {value!r}")
@@ -66,13 +95,23 @@ def check_float(
 
 
 def is_positive_finite(value: Any) -> bool:
-    """Whether ``value`` is a number (not a bool or a string) that is finite and above zero."""
-    if isinstance(value, bool):
-        return False
+    """Whether ``value`` is a real number (see :func:`real_number`) that is finite and above zero."""
     try:
-        return math.isfinite(value) and value > 0
-    except TypeError:
+        positive_finite("value", value)
+    except ValueError:
         return False
+    return True
+
+
+def check_known_fields(cls: type, data: Any, what: str) -> None:
+    """Refuse a mapping with keys that are not fields of the dataclass ``cls``, naming them and the
+    fields there are (a misspelt key would otherwise be dropped or fail deep inside ``cls(**data)``)."""
+    if not isinstance(data, dict):
+        raise ValueError(f"{what} must be a mapping of field names to values, got {type(data).__name__}")
+    names = [f.name for f in dataclasses.fields(cls)]
+    unknown = sorted(str(key) for key in set(data) - set(names))
+    if unknown:
+        raise ValueError(f"{what}: unknown field(s) {unknown}; fields are {names}")
 
 
 def check_seed(name: str, value: Any) -> int:

@@ -12,7 +12,7 @@ horizon. The reward is -1 on a step that ends in collision and 0 otherwise: the 
 testbed, and reward shaping belongs in a wrapper.
 
 Stepping before ``reset`` or after the episode ended raises
-:class:`~reach_envs.common.EpisodeOverError`, and unknown ``reset`` options raise ``ValueError``.
+:class:`~reach_envs.spaces.EpisodeOverError`, and unknown ``reset`` options raise ``ValueError``.
 
 ``info`` holds ``margin`` (``l(x)``), ``collision``, ``out_of_arena``, ``control`` and
 ``disturbance`` (inputs actually applied, physical units, after clipping) and ``time`` (seconds).
@@ -29,19 +29,17 @@ import gymnasium as gym
 import numpy as np
 
 from reach.systems.backend import FLOAT
-from reach_envs.common import (
+from reach_envs.scenes import Scene, env_scene
+from reach_envs.simulator import SceneSimulator
+from reach_envs.spaces import (
     EpisodeOverError,
     action_space,
     check_action,
     check_reset_options,
     check_state,
-    make_renderer,
     observation_space,
-    render_frame,
-    trail_points,
 )
-from reach_envs.scenes import Scene, env_scene
-from reach_envs.simulator import SceneSimulator
+from reach_envs.views import make_renderer, render_frame, trail_points
 
 
 class ReachEnv(gym.Env[np.ndarray, np.ndarray]):

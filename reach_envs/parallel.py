@@ -20,16 +20,10 @@ from pettingzoo import ParallelEnv
 
 from reach.systems.backend import FLOAT
 from reach.systems.multivehicle import MultiVehicle
-from reach_envs.common import (
-    action_space,
-    check_action,
-    check_reset_options,
-    check_state,
-    make_renderer,
-    observation_space,
-)
 from reach_envs.scenes import Scene, make_scene
 from reach_envs.simulator import SceneSimulator
+from reach_envs.spaces import action_space, check_action, check_reset_options, check_state, observation_space
+from reach_envs.views import make_renderer
 
 
 class MultiVehicleParallelEnv(ParallelEnv):

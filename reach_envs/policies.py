@@ -11,7 +11,6 @@ margin's gradient, toward the failure set).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
@@ -19,6 +18,7 @@ import numpy as np
 
 from reach.systems.backend import FLOAT, Backend, Column
 from reach.systems.base import ControlAffineSystem
+from reach.validation import positive_finite
 
 
 class DisturbancePolicy(Protocol):
@@ -41,10 +41,8 @@ class PursuitPolicy:
 
     def __init__(self, system: ControlAffineSystem, gain: float = 4.0) -> None:
         _require_vehicles(system, "PursuitPolicy")
-        if not (math.isfinite(gain) and gain > 0):
-            raise ValueError(f"PursuitPolicy: gain must be positive and finite, got {gain!r}")
         self.system = system
-        self.gain = float(gain)
+        self.gain = positive_finite("PursuitPolicy: gain", gain)
         roles = system.car_roles
         self._controls = [i for i, r in enumerate(roles) if r == "control"]
         self._pursuers = [i for i, r in enumerate(roles) if r == "disturbance"]
@@ -83,8 +81,7 @@ class MarginPursuit:
     """
 
     def __init__(self, system: ControlAffineSystem, rel_step: float = 1e-6) -> None:
-        if not (math.isfinite(rel_step) and rel_step > 0):
-            raise ValueError(f"MarginPursuit: rel_step must be positive and finite, got {rel_step!r}")
+        rel_step = positive_finite("MarginPursuit: rel_step", rel_step)
         self.system = system
         self._steps = [rel_step * (hi - lo) for lo, hi in system.domain]
 

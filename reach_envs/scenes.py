@@ -33,6 +33,7 @@ from reach.systems import (
     MultiVehicle9D,
     make_system,
 )
+from reach.validation import check_known_fields
 from reach_envs.policies import DISTURBANCE_KINDS, make_disturbance_policy
 
 
@@ -208,10 +209,7 @@ class Scene:
 
 def _check_fields(fields: dict[str, Any]) -> None:
     """``ValueError`` naming the keys of ``fields`` that are not :class:`Scene` fields."""
-    names = [f.name for f in dataclasses.fields(Scene)]
-    unknown = set(fields) - set(names)
-    if unknown:
-        raise ValueError(f"Scene: unknown field(s) {sorted(unknown)}; fields are {names}")
+    check_known_fields(Scene, fields, "Scene")
 
 
 def _view_dims(system: ControlAffineSystem, dims: Any) -> tuple[int, int]:

@@ -22,17 +22,10 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from reach.systems.backend import NUMPY
-from reach_envs.common import (
-    action_space,
-    check_action,
-    check_reset_options,
-    check_state,
-    make_renderer,
-    observation_space,
-    render_frame,
-)
 from reach_envs.scenes import Scene, env_scene
 from reach_envs.simulator import SceneSimulator
+from reach_envs.spaces import action_space, check_action, check_reset_options, check_state, observation_space
+from reach_envs.views import make_renderer, render_frame
 
 
 class ReachVectorEnv(VectorEnv):

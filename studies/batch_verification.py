@@ -34,8 +34,6 @@ from reach.locking import exclusive_lock
 from reach.systems import ControlAffineSystem, make_system
 from reach.validation import check_output_path
 from safety.metrics import containment_statistics
-from studies.tables import markdown_table as format_table
-from studies.tables import merge_rows, write_results
 from safety.rollout_store import RolloutStore
 from safety.sources import (
     composition_kind,
@@ -45,6 +43,8 @@ from safety.sources import (
     resolve_checkpoint,
 )
 from safety.verify import VerifySettings, sample_states, values_at, verify
+from studies.tables import markdown_table as format_table
+from studies.tables import merge_rows, write_results
 from training.accuracy import ReferenceEvaluator
 
 FORMAT = "reach.evaluation.v1"

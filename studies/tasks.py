@@ -24,6 +24,7 @@ from collections.abc import Callable
 import numpy as np
 
 from reach.systems import NUMPY, ControlAffineSystem, MultiVehicle, RelativePair
+from reach.validation import positive_finite
 
 _wrap = NUMPY.wrap_angle  # the package's one angle wrap, on NumPy arrays
 
@@ -35,12 +36,9 @@ class GoalTask(ABC):
     has_goal = True
 
     def __init__(self, system: ControlAffineSystem, goal_radius: float, gain: float) -> None:
-        for name, value in (("goal_radius", goal_radius), ("gain", gain)):
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{type(self).__name__}: {name} must be positive and finite, got {value!r}")
         self.system = system
-        self.goal_radius = float(goal_radius)
-        self.gain = float(gain)
+        self.goal_radius = positive_finite(f"{type(self).__name__}: goal_radius", goal_radius)
+        self.gain = positive_finite(f"{type(self).__name__}: gain", gain)
         self.half = np.array(system.control_bounds.half_width)
         self.reached = np.zeros(0, dtype=bool)
         self.reach_time = np.zeros(0)

@@ -24,7 +24,7 @@ from reach.locking import LockedError, exclusive_lock, run_lock
 from reach.systems import Air3D, MultiVehicle9D, RelativePair
 from reach.validation import csv_floats
 from reach_cli import main
-from reach_envs.common import EpisodeOverError
+from reach_envs.spaces import EpisodeOverError
 from safety import SafetyFilter
 from training import NeuralValueFunction, TrainConfig, Trainer, ValueNetwork, load_network, save_checkpoint
 

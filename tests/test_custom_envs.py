@@ -16,11 +16,11 @@ from gymnasium.utils.env_checker import check_env
 import reach_envs
 from reach.systems import FLOAT, NUMPY, Air3D
 from reach_envs import make_env, make_vector_env
-from reach_envs.common import make_renderer
 from reach_envs.policies import MarginPursuit, RandomDisturbance
 from reach_envs.projection import FAILURE_RGB, ProjectionRenderer
 from reach_envs.rendering import SceneRenderer
 from reach_envs.scenes import Scene, system_scene
+from reach_envs.views import make_renderer
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
 import my_systems
@@ -217,7 +217,7 @@ def test_default_view_dims_skip_periodic_dimensions():
         def failure_margin_columns(self, x, xp):
             return super().failure_margin_columns([x[1], x[2], x[0]], xp)
 
-    from reach_envs.common import projected_view
+    from reach_envs.views import projected_view
 
     assert projected_view(system_scene(HeadingFirst())) == (1, 2)
     assert projected_view(system_scene(DubinsAccel())) == (0, 1)

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import pytest
 
-from reach.deprecation import MOVED
+from reach.deprecation import MOVED, SPLIT
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("reach", "reach_envs", "groundtruth", "training", "safety", "studies", "reach_cli", "sweeps")
@@ -58,7 +58,7 @@ def _modules() -> dict[str, Path]:
 
 
 MODULES = _modules()
-ALIASES = {name for name in MODULES if name in MOVED}
+ALIASES = {name for name in MODULES if name in MOVED or name in SPLIT}
 
 
 def _floor(module: str) -> int:
@@ -127,7 +127,8 @@ def test_imports_run_down_the_floors(module):
     for target, line, text in GRAPH[module]:
         if ALIAS_MARK in text:
             continue
-        assert target not in ALIASES, f"{module}:{line} imports the deprecated alias {target}; use {MOVED[target]}"
+        new = MOVED.get(target) or " or ".join(SPLIT.get(target, ()))
+        assert target not in ALIASES, f"{module}:{line} imports the deprecated alias {target}; use {new}"
         assert _floor(target) <= floor, f"{module}:{line} (floor {floor}) imports {target} (floor {_floor(target)})"
 
 
@@ -196,6 +197,19 @@ def test_each_moved_path_is_an_alias_that_warns(old):
     warned_for = parent if parent in ALIASES else old  # a moved package's submodule warns for the package
     assert f"warned: {warned_for} moved to {MOVED[warned_for]}" in out, out
     assert out.strip().endswith("True"), out
+
+
+@pytest.mark.parametrize("old", sorted(SPLIT))
+def test_each_split_module_is_an_alias_that_warns_and_holds_every_part(old):
+    import importlib
+
+    sys.modules.pop(old, None)
+    with pytest.warns(DeprecationWarning, match=f"{old} was split into"):
+        alias = importlib.import_module(old)
+    for part in SPLIT[old]:
+        new = importlib.import_module(part)
+        for name in new.__all__ if hasattr(new, "__all__") else [n for n in vars(new) if not n.startswith("_")]:
+            assert getattr(alias, name) is getattr(new, name), (old, part, name)
 
 
 def test_moved_names_of_safety_warn_and_resolve():

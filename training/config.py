@@ -11,7 +11,7 @@ from typing import Any
 
 from reach.systems import ControlAffineSystem
 from reach.systems.registry import SystemSpecified
-from reach.validation import check_device, check_float, check_int, check_seed
+from reach.validation import check_device, check_float, check_int, check_known_fields, check_seed
 from training.network import parse_layout
 
 
@@ -226,8 +226,5 @@ class TrainConfig(SystemSpecified):
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown config keys {sorted(unknown)}")
+        check_known_fields(cls, d, "training config")
         return cls(**d).validate()

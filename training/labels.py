@@ -33,6 +33,7 @@ import torch
 from reach.integrators import make_stepper
 from reach.systems.backend import TORCH
 from reach.systems.base import ControlAffineSystem
+from reach.validation import check_float, positive_finite
 from training.network import NeuralValueFunction, ValueNetwork
 
 
@@ -52,8 +53,7 @@ def check_lower_bound_system(system: ControlAffineSystem) -> None:
 
 
 def _check_dt(dt: float) -> None:
-    if not (math.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be positive and finite, got {dt!r}")
+    positive_finite("dt", dt)
 
 
 def _closed_loop(
@@ -127,8 +127,8 @@ def mpc_lower_bound(
     _check_dt(dt)  # before the step count below divides by it
     if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
         raise ValueError(f"samples must be a positive integer, got {samples!r}")
-    if not (math.isfinite(horizon) and horizon > 0) or not (math.isfinite(noise) and noise >= 0):
-        raise ValueError(f"horizon must be positive and noise non-negative, got {horizon!r}, {noise!r}")
+    positive_finite("horizon", horizon)
+    check_float("noise", noise, 0)
     n, m = x.shape[0], network.system.control_dim
     xs, ts = x.repeat(samples, 1), t.repeat(samples)
     duration = ts.clamp(max=horizon)

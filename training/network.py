@@ -31,6 +31,7 @@ import torch
 from torch import nn
 
 from reach.systems import ControlAffineSystem
+from reach.validation import positive_finite
 from reach.value_function import check_time
 
 #: Activation letters and their names.
@@ -186,8 +187,7 @@ class ValueNetwork(nn.Module):
             raise ValueError(f"width must be a positive integer, got {width!r}")
         if parameterisation not in ("exact", "vanilla"):
             raise ValueError(f"parameterisation must be 'exact' or 'vanilla', got {parameterisation!r}")
-        if not (math.isfinite(w0) and w0 > 0):
-            raise ValueError(f"w0 must be positive and finite, got {w0!r}")
+        w0 = positive_finite("w0", w0)
         self.system = system
         self.layout = layout
         self.width = width

@@ -16,7 +16,9 @@ from pathlib import Path
 from typing import Any
 
 from reach.atomic import atomic_path
+from reach.json_files import read_json
 from reach.systems.registry import SystemSpecified
+from reach.validation import check_known_fields
 from training.config import TrainConfig
 from training.network import parse_layout
 
@@ -158,10 +160,7 @@ class SweepSpec(SystemSpecified):
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> SweepSpec:
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(data) - known
-        if unknown:
-            raise ValueError(f"unknown sweep keys {sorted(unknown)}")
+        check_known_fields(cls, data, "sweep spec")
         return cls(**data)
 
     def differences(self, other: SweepSpec) -> list[str]:
@@ -187,10 +186,5 @@ def store_spec(spec: SweepSpec, out: str | os.PathLike) -> None:
 def load_spec(out: str | os.PathLike) -> SweepSpec:
     """The spec stored in a sweep directory."""
     path = Path(out) / "sweep.json"
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise ValueError(f"{path} is corrupt or unreadable ({err}); move it away to start the sweep over") from err
-    if data.get("format") != FORMAT:
-        raise ValueError(f"{path} is not a reach sweep (format {FORMAT!r} expected)")
+    data = read_json(path, "a reach sweep", expect_format=FORMAT, hint="; move it away to start the sweep over")
     return SweepSpec.from_dict(data["spec"])

@@ -1,0 +1,58 @@
+"""Reading the project's JSON files: one reader that refuses what it cannot trust, naming the file.
+
+Results tables, sweep specs, model cards and run metadata are JSON objects, most with a ``format``
+tag that says which kind of file they are. :func:`read_json` reads one as a regular file only (a
+FIFO would block, a device would never end), parses it, checks it is an object and, where asked,
+its tag, and turns every failure into one ``ValueError`` that names the file and says what to do.
+Writes go through :func:`reach.atomic.atomic_path`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+from pathlib import Path
+from typing import Any
+
+
+def read_json(path: str | os.PathLike, what: str, expect_format: str | None = None, hint: str = "") -> dict[str, Any]:
+    """The JSON object in ``path``, a ``what`` (e.g. ``"evaluation results"``).
+
+    Raises ``ValueError`` naming ``path`` when it is missing, not a regular file, unreadable, not
+    JSON, not an object, or (given ``expect_format``) tagged with another ``"format"``. ``hint`` is
+    appended to the message (for example "; move the file away to start over").
+    """
+    p = Path(path)
+    try:
+        mode = p.stat().st_mode
+    except OSError as err:
+        raise ValueError(f"{p}: {what} unreadable ({err.strerror or err}){hint}") from err
+    if not stat.S_ISREG(mode):
+        raise ValueError(f"{p}: {what} must be a regular file, not a {_kind(mode)}{hint}")
+    try:
+        data = json.loads(p.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{p}: {what} unreadable ({err}){hint}") from err
+    if not isinstance(data, dict):
+        raise ValueError(f"{p}: not {what} (a JSON object expected, got {type(data).__name__}){hint}")
+    if expect_format is not None and data.get("format") != expect_format:
+        raise ValueError(f"{p}: not {what} (format {expect_format!r} expected, got {data.get('format')!r}){hint}")
+    return data
+
+
+def _kind(mode: int) -> str:
+    """What a non-regular file is, in words."""
+    for test, name in (
+        (stat.S_ISDIR, "directory"),
+        (stat.S_ISFIFO, "FIFO"),
+        (stat.S_ISCHR, "character device"),
+        (stat.S_ISBLK, "block device"),
+        (stat.S_ISSOCK, "socket"),
+    ):
+        if test(mode):
+            return name
+    return "special file"
+
+
+__all__ = ["read_json"]
