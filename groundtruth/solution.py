@@ -23,6 +23,7 @@ from groundtruth.grid import Grid
 from reach.atomic import atomic_path
 from reach.provenance import package_versions
 from reach.systems import ControlAffineSystem, system_from_config
+from reach.validation import check_input_file
 from reach.value_function import check_time
 
 FORMAT = "reach.groundtruth.v1"
@@ -194,6 +195,7 @@ class GridSolution:
     @classmethod
     def load(cls, path: str | os.PathLike, outside: Literal["error", "clamp"] = "error") -> GridSolution:
         """Read a file written by :meth:`save`; corrupt or foreign files raise ``ValueError``."""
+        check_input_file(path, "ground-truth file")
         try:
             with np.load(path, allow_pickle=False) as data:
                 meta = json.loads(str(data["metadata"]))

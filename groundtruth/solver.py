@@ -19,7 +19,6 @@ from __future__ import annotations
 import contextlib
 import itertools
 import math
-import os
 import time
 from collections.abc import Callable, Sequence
 from typing import Literal
@@ -33,6 +32,7 @@ from groundtruth.weno import SCALE as WENO_SCALE
 from groundtruth.weno import mean_and_half_jump
 from reach.compiling import maybe_compile
 from reach.heap import retained_heap
+from reach.memory import available_memory
 from reach.systems.backend import TORCH
 from reach.systems.base import ControlAffineSystem
 from reach.systems.registry import make_system
@@ -105,21 +105,6 @@ def estimate_solve_bytes(shape: Sequence[int], num_times: int, dtype: torch.dtyp
     nodes = math.prod(shape)
     itemsize = torch.empty(0, dtype=dtype).element_size()
     return int(nodes * (BYTES_PER_NODE_AND_DIM * len(shape) * itemsize / 4 + 2 * num_times * itemsize))
-
-
-def available_memory() -> int | None:
-    """Bytes this machine can still give (MemAvailable on Linux, physical memory elsewhere), or None."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (ValueError, OSError, AttributeError):
-        return None
 
 
 def check_memory(shape: Sequence[int], num_times: int, dtype: torch.dtype = torch.float32) -> int:

@@ -15,6 +15,8 @@ import stat
 from pathlib import Path
 from typing import Any
 
+from reach.validation import file_kind
+
 
 def read_json(path: str | os.PathLike, what: str, expect_format: str | None = None, hint: str = "") -> dict[str, Any]:
     """The JSON object in ``path``, a ``what`` (e.g. ``"evaluation results"``).
@@ -29,7 +31,7 @@ def read_json(path: str | os.PathLike, what: str, expect_format: str | None = No
     except OSError as err:
         raise ValueError(f"{p}: {what} unreadable ({err.strerror or err}){hint}") from err
     if not stat.S_ISREG(mode):
-        raise ValueError(f"{p}: {what} must be a regular file, not a {_kind(mode)}{hint}")
+        raise ValueError(f"{p}: {what} must be a regular file, not a {file_kind(mode)}{hint}")
     try:
         data = json.loads(p.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
@@ -39,20 +41,6 @@ def read_json(path: str | os.PathLike, what: str, expect_format: str | None = No
     if expect_format is not None and data.get("format") != expect_format:
         raise ValueError(f"{p}: not {what} (format {expect_format!r} expected, got {data.get('format')!r}){hint}")
     return data
-
-
-def _kind(mode: int) -> str:
-    """What a non-regular file is, in words."""
-    for test, name in (
-        (stat.S_ISDIR, "directory"),
-        (stat.S_ISFIFO, "FIFO"),
-        (stat.S_ISCHR, "character device"),
-        (stat.S_ISBLK, "block device"),
-        (stat.S_ISSOCK, "socket"),
-    ):
-        if test(mode):
-            return name
-    return "special file"
 
 
 __all__ = ["read_json"]

@@ -12,6 +12,7 @@ import dataclasses
 import math
 import numbers
 import os
+import stat
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -148,8 +149,50 @@ def check_output_path(path: str | os.PathLike, what: str = "output") -> Path:
         raise ValueError(f"{what} path {str(path)!r} is not a file name")
     if p.is_dir():
         raise ValueError(f"{what} path {str(p)!r} is a directory, not a file")
+    check_not_special(p, f"{what} path")
     _check_creatable(p.parent, f"{what} path {str(p)!r}")
     return p
+
+
+def check_not_special(path: str | os.PathLike, what: str = "file") -> None:
+    """Refuse a path that exists as something other than a regular file or a directory: a FIFO
+    (reading it blocks), a device (replacing ``/dev/null`` with a file would break the system) or a
+    socket. Nothing is opened; a missing path passes (it may be created)."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        raise ValueError(f"{what} {str(path)!r} is a {file_kind(mode)}, not a regular file")
+
+
+def check_input_file(path: str | os.PathLike, what: str = "input") -> Path:
+    """An existing regular file to read: a missing path, a directory, a FIFO, a device or a socket
+    is refused naming it, before anything opens it (opening a FIFO would block forever)."""
+    p = Path(path)
+    try:
+        mode = p.stat().st_mode
+    except OSError as err:
+        reason = "a broken symbolic link or a link loop" if p.is_symlink() else (err.strerror or str(err)).lower()
+        raise ValueError(f"{what} {str(p)!r}: {reason}") from None
+    if not stat.S_ISREG(mode):
+        raise ValueError(f"{what} {str(p)!r} is a {file_kind(mode)}, not a regular file")
+    return p
+
+
+def file_kind(mode: int) -> str:
+    """What a file of this ``st_mode`` is, in words (``"FIFO"``, ``"character device"``, ...)."""
+    for test, name in (
+        (stat.S_ISREG, "regular file"),
+        (stat.S_ISDIR, "directory"),
+        (stat.S_ISFIFO, "FIFO"),
+        (stat.S_ISCHR, "character device"),
+        (stat.S_ISBLK, "block device"),
+        (stat.S_ISSOCK, "socket"),
+    ):
+        if test(mode):
+            return name
+    return "special file"
 
 
 def check_output_dir(path: str | os.PathLike, what: str = "output") -> Path:

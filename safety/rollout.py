@@ -35,7 +35,7 @@ from tqdm.auto import tqdm
 
 from reach.integrators import check_integrator, make_stepper
 from reach.systems.backend import TORCH
-from reach.validation import is_positive_finite
+from reach.validation import check_int, positive_finite
 from reach.value_function import ValueFunction, check_time_coverage
 from safety.value_policies import GreedyPolicy, check_policy, check_states
 
@@ -82,16 +82,21 @@ def num_steps(horizon: float, dt: float) -> int:
     return max(1, math.ceil(horizon / dt - 1e-9))
 
 
-def check_rollout_settings(*, horizon: float | None, dt: float, integrator: str, chunk_size: int) -> None:
-    """Refuse, by name, a rollout's horizon (None: the system's) or step ``dt`` that is not positive
-    and finite, an unknown integrator or a batch size below 1. :func:`rollout` calls it, and so does
+def check_rollout_settings(
+    *, horizon: float | None, dt: float, integrator: str, chunk_size: int
+) -> tuple[float | None, float]:
+    """Refuse, by name, a rollout's horizon (None: the system's) or step ``dt`` that is not a
+    positive finite real, a step longer than the horizon (one step would jump past the failure set
+    and report fewer collisions), an unknown integrator or a batch size below 1; return the horizon
+    and step as floats (NumPy and 0-d tensor reals are taken). :func:`rollout` calls it, and so does
     ``VerifySettings``, so that a verification refuses them before any source is loaded."""
-    for name, value in (("horizon", horizon), ("dt", dt)):
-        if value is not None and not is_positive_finite(value):
-            raise ValueError(f"{name} must be positive and finite, got {value!r}")
+    horizon = None if horizon is None else positive_finite("horizon", horizon)
+    dt = positive_finite("dt", dt)
+    if horizon is not None and dt > horizon:
+        raise ValueError(f"dt must not exceed the horizon: dt {dt:g} s is longer than the horizon {horizon:g} s")
     check_integrator(integrator)
-    if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
-        raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
+    check_int("chunk_size", chunk_size, 1)
+    return horizon, dt
 
 
 def rollout(
@@ -133,8 +138,10 @@ def rollout(
     check_states(states, system.state_dim)
     if states.ndim != 2:
         raise ValueError(f"states must have shape (N, {system.state_dim}), got {tuple(states.shape)}")
-    horizon = system.horizon if horizon is None else float(horizon)
-    check_rollout_settings(horizon=horizon, dt=dt, integrator=integrator, chunk_size=chunk_size)
+    horizon, dt = check_rollout_settings(
+        horizon=system.horizon if horizon is None else horizon, dt=dt, integrator=integrator, chunk_size=chunk_size
+    )
+    chunk_size = int(chunk_size)
     check_policy(policy)
     if not (disturbance in ("optimal", "none") or callable(disturbance)):
         raise ValueError(f"disturbance must be 'optimal', 'none' or a callable, got {disturbance!r}")

@@ -9,16 +9,28 @@ store per source beside its results (``<out>.rollouts/``) and removes it once th
 written, so ``reach evaluate`` killed at any point (SIGKILL, Ctrl-C, the end of a session) loses
 at most the block it was simulating.
 
-Trust is checked, not assumed: the store's ``key`` (what was rolled out: the value function's
-fingerprint and the verification settings) is written once as ``manifest.json``, and a store
-written under another key is emptied before use. Each block file records the SHA-256 of its
-states and its shapes; a block whose digest, shapes or dtypes do not match, or that cannot be
-read, is simulated again. Files are read with ``torch.load(weights_only=True)`` and written
-atomically.
+Trust is checked, not assumed:
+
+- one process owns a store at a time: it holds an exclusive lock on ``<store>/.lock`` from
+  construction to :meth:`RolloutStore.close` (stores of one directory opened in the same process
+  share it), so a second verification of the same source into the
+  same ``--out`` is refused (:class:`~reach.locking.LockedError`) before it simulates or empties
+  anything;
+- the store's ``key`` (what was rolled out: the value function's fingerprint and the verification
+  settings) is written as ``manifest.json``, and a store written under another key is emptied
+  before use;
+- every block records the digest of that key, the SHA-256 of its states, and a SHA-256 over the
+  whole block (key, states, every outcome tensor and count). A block whose key, states, digest,
+  shapes or dtypes do not match, or that cannot be read, is simulated again: a flipped bit in an
+  outcome is caught. (The digests catch corruption and edits; someone able to rewrite the files
+  and recompute the digests could equally rewrite the results table.)
+
+Files are read with ``torch.load(weights_only=True)`` and written atomically.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
@@ -30,6 +42,7 @@ from typing import Any
 import torch
 
 from reach.atomic import atomic_path
+from reach.locking import exclusive_lock
 from reach.value_function import ValueFunction
 from safety.rollout import RolloutResult, rollout
 
@@ -45,13 +58,60 @@ def states_digest(states: torch.Tensor) -> str:
     return hashlib.sha256(head + x.numpy().tobytes()).hexdigest()
 
 
+def key_digest(key: dict[str, Any]) -> str:
+    """SHA-256 of a store key's canonical JSON: which store a block was written for."""
+    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()
+
+
+def block_digest(key: str, states: str, payload: dict[str, Any]) -> str:
+    """SHA-256 over a whole block: its store key's and states' digests, each outcome tensor (dtype,
+    shape, bytes) and its counts, so that any change to what the block says is detected."""
+    h = hashlib.sha256(f"{key}:{states}:".encode())
+    for name in ("initial_value", *OUTCOMES):
+        t = payload[name].detach().cpu().contiguous()
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    h.update(json.dumps([payload["state_steps"], payload["steps"], payload["wall_time"]]).encode())
+    return h.hexdigest()
+
+
+#: the store directories this process holds locked: lock and how many open stores share it. The lock
+#: keeps other processes out; stores opened one after another in this process share it.
+_HELD: dict[Path, tuple[contextlib.ExitStack, int]] = {}
+
+
+def _acquire(directory: Path) -> None:
+    key = directory.resolve()
+    if key in _HELD:
+        stack, count = _HELD[key]
+        _HELD[key] = (stack, count + 1)
+        return
+    stack = contextlib.ExitStack()
+    stack.enter_context(exclusive_lock(directory / ".lock", f"rollout store {directory}"))
+    _HELD[key] = (stack, 1)
+
+
+def _release(directory: Path) -> None:
+    key = directory.resolve()
+    stack, count = _HELD.pop(key, (None, 0))
+    if count > 1:
+        _HELD[key] = (stack, count - 1)
+    elif stack is not None:
+        stack.close()
+
+
 class RolloutStore:
-    """A directory of rolled-out blocks for one value function and one set of settings."""
+    """A directory of rolled-out blocks for one value function and one set of settings, owned by
+    one process from construction to :meth:`close` (also a context manager)."""
 
     def __init__(self, directory: str | os.PathLike, key: dict[str, Any]) -> None:
         self.directory = Path(directory)
         self.key = json.loads(json.dumps(key, sort_keys=True, default=str))
+        self.key_digest = key_digest(self.key)
         self.directory.mkdir(parents=True, exist_ok=True)
+        self._owned = False
+        _acquire(self.directory)  # held until close(): one owning process, refused before any work
+        self._owned = True
         manifest = self.directory / MANIFEST
         try:
             stored = json.loads(manifest.read_text())
@@ -64,6 +124,22 @@ class RolloutStore:
                 json.dump(self.key, fh, sort_keys=True)
         self.loaded_blocks = 0
         self.simulated_blocks = 0
+
+    def close(self) -> None:
+        """Release the store's lock (its blocks stay on disk for a later resume)."""
+        if self._owned:
+            self._owned = False
+            _release(self.directory)
+
+    def __enter__(self) -> RolloutStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        if getattr(self, "_owned", False):
+            self.close()
 
     def rollout(self, name: str, value_function: ValueFunction, states: torch.Tensor, **settings: Any) -> RolloutResult:
         """:func:`~safety.rollout.rollout` of ``states`` in blocks of ``settings["chunk_size"]``,
@@ -99,12 +175,13 @@ class RolloutStore:
         )
 
     def remove(self) -> None:
-        """Delete the store (its results are in the table now)."""
+        """Delete the store (its results are in the table now) and release its lock."""
         shutil.rmtree(self.directory, ignore_errors=True)
+        self.close()
 
-    @staticmethod
-    def _save(path: Path, digest: str, result: RolloutResult) -> None:
+    def _save(self, path: Path, digest: str, result: RolloutResult) -> None:
         payload = {
+            "key": self.key_digest,
             "digest": digest,
             "initial_value": result.initial_value,
             **{k: getattr(result, k) for k in OUTCOMES},
@@ -112,19 +189,20 @@ class RolloutStore:
             "steps": int(result.steps),
             "wall_time": float(result.wall_time),
         }
+        payload["block_digest"] = block_digest(self.key_digest, digest, payload)
         with atomic_path(path) as tmp:
             torch.save(payload, tmp)
 
-    @staticmethod
-    def _load(path: Path, digest: str, count: int) -> RolloutResult | None:
-        """The block at ``path`` if it is these states' and well formed, else None (simulate it)."""
+    def _load(self, path: Path, digest: str, count: int) -> RolloutResult | None:
+        """The block at ``path`` if it is this store's, these states', whole and well formed, else
+        None (simulate it)."""
         if not path.is_file():
             return None
         try:
             data = torch.load(path, map_location="cpu", weights_only=True)
         except Exception:  # an unreadable block is not trusted: it is simulated again
             return None
-        if not isinstance(data, dict) or data.get("digest") != digest:
+        if not isinstance(data, dict) or data.get("key") != self.key_digest or data.get("digest") != digest:
             return None
         tensors = {"initial_value": None, **OUTCOMES}
         for name, dtype in tensors.items():
@@ -134,6 +212,8 @@ class RolloutStore:
         numbers = [data.get(k) for k in ("state_steps", "steps", "wall_time")]
         if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in numbers):
             return None
+        if data.get("block_digest") != block_digest(self.key_digest, digest, data):
+            return None  # a changed outcome (a flipped bit, an edit) is simulated again, not trusted
         return RolloutResult(
             initial_value=data["initial_value"],
             collided=data["collided"],
@@ -145,4 +225,4 @@ class RolloutStore:
         )
 
 
-__all__ = ["RolloutStore", "states_digest"]
+__all__ = ["RolloutStore", "block_digest", "key_digest", "states_digest"]

@@ -18,6 +18,7 @@ import torch
 from groundtruth.pairwise import PairwiseUnion
 from groundtruth.solution import GridSolution
 from reach.systems import ControlAffineSystem, MultiVehicle, RelativePair, make_system
+from reach.validation import check_input_file
 from reach.value_function import MinimumOf, ValueFunction
 from training import pretrained
 from training.checkpoint import load_network
@@ -55,10 +56,10 @@ def resolve_checkpoint(path: str | os.PathLike) -> Path:
         ckpt = p / "checkpoint.pt"
         if not ckpt.exists():
             raise ValueError(f"{p}: a directory without checkpoint.pt is not a training run")
-        return ckpt
+        return check_input_file(ckpt, "value-function source")
     if not p.exists():
         raise ValueError(f"{p}: no such file or directory")
-    return p
+    return check_input_file(p, "value-function source")
 
 
 def detect_format(path: Path) -> str:

@@ -15,6 +15,7 @@ from typing import Any
 
 import torch
 
+from reach.memory import available_memory
 from reach.systems import ControlAffineSystem
 from reach.threads import thread_policy
 from reach.value_function import ValueFunction
@@ -93,6 +94,41 @@ def values_at(
     return torch.cat([vf.value(c.to(device), t).detach().float().cpu() for c in x.split(chunk)])
 
 
+#: bytes a verification holds per sampled state and state dimension: the float32 states, the
+#: rollout's working copies (the integrator's stages, the chunk's gradient) and the outcomes
+BYTES_PER_STATE_AND_DIM = 4 * 6
+#: bytes per sampled state besides: value, collided, collision and decision times (float64)
+BYTES_PER_STATE = 4 + 1 + 8 + 8 + 16
+
+
+def estimate_rollout_bytes(state_dim: int, settings: VerifySettings) -> int:
+    """Peak memory of a verification on the host: the sampled states and their outcomes, plus the
+    largest fresh sample (the certification's, or the robust search's and its check)."""
+    fresh = max(settings.fresh_samples, 2 * settings.robust_sample_count)
+    states = settings.samples + fresh
+    return int(states * (BYTES_PER_STATE_AND_DIM * state_dim + BYTES_PER_STATE))
+
+
+def check_for_system(system: ControlAffineSystem, settings: VerifySettings) -> int:
+    """Refuse, before sampling anything, settings that do not fit ``system``: a step longer than the
+    system's horizon (when the settings leave the horizon to it), or a verification that needs more
+    memory than is available; returns the memory estimate in bytes."""
+    check_rollout_settings(
+        horizon=system.horizon if settings.horizon is None else settings.horizon,
+        dt=settings.dt,
+        integrator=settings.integrator,
+        chunk_size=settings.chunk_size,
+    )
+    need = estimate_rollout_bytes(system.state_dim, settings)
+    have = available_memory()
+    if have is not None and need > have:
+        raise ValueError(
+            f"verifying {settings.samples:,} states of {system.name} ({system.state_dim}D) needs about "
+            f"{need / 2**30:.1f} GiB, but {have / 2**30:.1f} GiB is available; use fewer --samples"
+        )
+    return need
+
+
 def sample_superlevel_set(
     vf: ValueFunction,
     level: float,
@@ -141,6 +177,7 @@ def verify(
     block and a repeated call loads what an interrupted one finished: the same row, resumed.
     Unless the caller chose a thread count, torch uses the cores other processes leave free while
     it runs (:func:`reach.threads.thread_policy`)."""
+    check_for_system(vf.system, settings)
     with thread_policy():
         return _verify(vf, states, settings, device, progress, store)
 

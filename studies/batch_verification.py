@@ -20,7 +20,6 @@ from __future__ import annotations
 import contextlib
 import glob
 import hashlib
-import json
 import os
 import shutil
 from collections.abc import Sequence
@@ -30,6 +29,7 @@ from typing import Any
 from tqdm.auto import tqdm
 
 from groundtruth.solution import GridSolution
+from reach.json_files import read_json
 from reach.locking import exclusive_lock
 from reach.systems import ControlAffineSystem, make_system
 from reach.validation import check_output_path
@@ -42,7 +42,7 @@ from safety.sources import (
     min_sources,
     resolve_checkpoint,
 )
-from safety.verify import VerifySettings, sample_states, values_at, verify
+from safety.verify import VerifySettings, check_for_system, sample_states, values_at, verify
 from studies.tables import markdown_table as format_table
 from studies.tables import merge_rows, write_results
 from training.accuracy import ReferenceEvaluator
@@ -120,16 +120,24 @@ def _write_outputs(out: Path, header: dict[str, Any], rows: list[dict[str, Any]]
     return merged
 
 
+def _claim(out: Path, header: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """The rows already in ``out`` (see :func:`_previous`); a new table is written at once, empty,
+    with this run's header, so that a second run with other settings into the same ``out`` is
+    refused before it simulates anything, not after."""
+    with exclusive_lock(out.with_suffix(".lock"), f"results {out}", wait=True):
+        done = _previous(out, header)
+        if not out.with_suffix(".json").exists():
+            write_results(out, header, [], markdown_table([]))
+    return done
+
+
 def _previous(out: Path, header: dict[str, Any], keep_errors: bool = False) -> dict[str, dict[str, Any]]:
     """Rows already in ``out`` by source (error rows only with ``keep_errors``); a table written with
     other settings raises, since its rows would not be comparable."""
     path = out.with_suffix(".json")
     if not path.exists():
         return {}
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise ValueError(f"{path}: existing results are unreadable ({err}); move the file away to start over") from err
+    data = read_json(path, "existing results", hint="; move the file away to start over")
     if isinstance(data.get("settings"), dict):  # files from before these settings existed used these values
         data["settings"] = _resolved({"matmul_precision": "float32", "policy": "gradient", **data["settings"]})
     if any(
@@ -212,7 +220,8 @@ def evaluate_many(
         "ground_truth_time": gt_time,
         "pairwise": str(Path(pairwise).resolve()) if pairwise else None,
     }
-    done = _previous(out, header)
+    done = _claim(out, header)
+    check_for_system(system, settings)
     states = sample_states(system, settings.samples, settings.seed)
     horizon = system.horizon if settings.horizon is None else settings.horizon
     union_values = None if pairwise is None else pairwise_union_values(pairwise, system, states, horizon)
@@ -229,11 +238,11 @@ def evaluate_many(
             if isinstance(loaded.value_function, GridSolution):
                 loaded.value_function.outside = "clamp"  # rollouts may leave the grid; documented
             row.update(label=loaded.label, layout=loaded.layout, kind=loaded.kind)
-            store = RolloutStore(
-                _store_directory(out, path), {"source": path, "fingerprint": fp, "device": device, **header}
-            )
-            row.update(verify(loaded.value_function, states, settings, device=device, progress=progress, store=store))
-            row["rollout_blocks_resumed"] = store.loaded_blocks
+            key = {"source": path, "fingerprint": fp, "device": device, **header}
+            with RolloutStore(_store_directory(out, path), key) as store:
+                vf = loaded.value_function
+                row.update(verify(vf, states, settings, device=device, progress=progress, store=store))
+                row["rollout_blocks_resumed"] = store.loaded_blocks
             if reference is not None:
                 row.update(reference(loaded.value_function))
             if union_values is not None:
@@ -260,13 +269,7 @@ def _store_directory(out: Path, source: str | None) -> Path:
 def load_results(path: str | os.PathLike) -> list[dict[str, Any]]:
     """Rows of a results ``.json`` written by :func:`evaluate_many`."""
     p = Path(path).with_suffix(".json")
-    try:
-        data = json.loads(p.read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise ValueError(f"{p}: not readable evaluation results ({err})") from err
-    if data.get("format") != FORMAT:
-        raise ValueError(f"{p}: not a reach evaluation file (format {FORMAT!r} expected)")
-    return data["results"]
+    return read_json(p, "a reach evaluation file", expect_format=FORMAT)["results"]
 
 
 __all__ = ["evaluate_many", "expand_sources", "load_results", "markdown_table"]

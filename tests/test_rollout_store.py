@@ -104,3 +104,84 @@ def _distrust(tmp_path: Path) -> None:
     assert (store.simulated_blocks, store.loaded_blocks) == (4, 0)
     with pytest.raises(ValueError, match="record=True"):
         store.rollout("samples", vf, x, record=True, **kw)
+
+
+def test_a_changed_outcome_or_a_foreign_key_is_simulated_again(tmp_path: Path) -> None:
+    """The block digest covers every outcome: one flipped bit, or a block written for another key
+    into this store's directory, is not trusted."""
+    with thread_policy():
+        torch.manual_seed(0)
+        vf = NeuralValueFunction(ValueNetwork(Air3D(), "ssssl", width=16))
+        x = sample_states(vf.system, 100, 0)
+        kw = {"chunk_size": 50, "progress": False}
+        with RolloutStore(tmp_path / "s", {"vf": 1}) as store:
+            first = store.rollout("samples", vf, x, **kw)
+        files = sorted((tmp_path / "s").glob("samples-*.pt"))
+        payload = torch.load(files[0], weights_only=True)
+        payload["collided"] = payload["collided"].clone()
+        payload["collided"][3] = ~payload["collided"][3]  # one flipped outcome
+        torch.save(payload, files[0])
+        foreign = torch.load(files[1], weights_only=True)
+        foreign["key"] = rollout_store.key_digest({"vf": 2})  # a block another key's process wrote
+        foreign["block_digest"] = rollout_store.block_digest(foreign["key"], foreign["digest"], foreign)
+        torch.save(foreign, files[1])
+        with RolloutStore(tmp_path / "s", {"vf": 1}) as store:
+            again = store.rollout("samples", vf, x, **kw)
+            assert (store.simulated_blocks, store.loaded_blocks) == (2, 0)
+        torch.testing.assert_close(again.collided, first.collided, rtol=0, atol=0)
+
+
+def test_a_second_process_is_refused_before_it_simulates(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    from reach.locking import LockedError
+
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time\n"
+            "from safety.rollout_store import RolloutStore\n"
+            f"s = RolloutStore({str(tmp_path / 's')!r}, {{'vf': 1}})\n"
+            "print('held', flush=True)\n"
+            "time.sleep(60)\n",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        with pytest.raises(LockedError, match=r"rollout store .* is in use by process"):
+            RolloutStore(tmp_path / "s", {"vf": 2})
+        assert (tmp_path / "s" / "manifest.json").read_text() == '{"vf": 1}'  # not emptied by the refused one
+    finally:
+        holder.kill()
+        holder.wait()
+    RolloutStore(tmp_path / "s", {"vf": 2}).close()  # free once the holder is gone
+
+
+def test_a_table_claimed_with_other_settings_refuses_the_second_run_before_work(tmp_path: Path) -> None:
+    torch.manual_seed(0)
+    run = tmp_path / "a.pt"
+    from training.checkpoint import save_checkpoint
+
+    save_checkpoint(run, ValueNetwork(Air3D(), "ssssl", width=16))
+    out = tmp_path / "t.csv"
+    evaluate_many([str(run)], out, VerifySettings(samples=200, certify_samples=0, robust_samples=0), progress=False)
+    with pytest.raises(ValueError, match="holds results for other settings"):
+        evaluate_many(
+            [str(run)], out, VerifySettings(samples=200, certify_samples=0, robust_samples=0, dt=0.005), progress=False
+        )
+
+
+def test_a_step_longer_than_the_horizon_and_an_oversized_verification_are_refused() -> None:
+    from safety.verify import check_for_system
+
+    system = Air3D()
+    with pytest.raises(ValueError, match="dt must not exceed the horizon"):
+        check_for_system(system, VerifySettings(dt=1.2))
+    with pytest.raises(ValueError, match="dt must not exceed the horizon"):
+        VerifySettings(dt=1.2, horizon=1.0)
+    with pytest.raises(ValueError, match=r"needs about .* GiB, but .* GiB is available; use fewer --samples"):
+        check_for_system(system, VerifySettings(samples=10**12))

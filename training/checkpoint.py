@@ -21,6 +21,7 @@ from torch.torch_version import TorchVersion
 from reach.atomic import atomic_path
 from reach.provenance import package_versions
 from reach.systems import ControlAffineSystem, system_from_config
+from reach.validation import check_input_file
 from training.network import Encoding, ValueNetwork
 
 FORMAT = "reach.checkpoint.v1"
@@ -73,6 +74,7 @@ def _digest(architecture: dict[str, Any], state: dict[str, torch.Tensor]) -> str
 def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     """The raw checkpoint dict, loaded without running code (``weights_only=True``); unreadable,
     foreign or code-carrying files raise ``ValueError``."""
+    check_input_file(path, "checkpoint")
     try:
         # TorchVersion (a str subclass) is in the metadata of checkpoints written before 0.1.1
         with torch.serialization.safe_globals([TorchVersion]):
@@ -99,13 +101,16 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
 
 
 def check_integrity(path: str | os.PathLike, payload: dict[str, Any]) -> None:
-    """Refuse a checkpoint whose stored digest does not match its architecture and weights.
-
-    Checkpoints from before digests existed (no ``integrity`` key) are accepted as they are."""
+    """Refuse a checkpoint whose stored digest is missing or does not match its architecture and
+    weights: a digest deleted along with an edit must not let the edit load."""
     meta = payload["metadata"]
-    stored = (meta.get("integrity") or {}).get("sha256")
-    if stored is None:
-        return
+    integrity = meta.get("integrity")
+    stored = integrity.get("sha256") if isinstance(integrity, dict) else None
+    if not isinstance(stored, str):
+        raise ValueError(
+            f"{path}: checkpoint metadata has no integrity digest (field 'integrity.sha256'), which every "
+            "reach checkpoint carries; its metadata or weights may have been edited, so it was not loaded"
+        )
     architecture = {k: meta[k] for k in ARCHITECTURE_KEYS}
     if _digest(architecture, payload["model"]) != stored:
         raise ValueError(

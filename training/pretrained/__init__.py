@@ -26,6 +26,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from reach.json_files import read_json
+
 #: a source naming a shipped model: ``"pretrained:air3d"``
 PREFIX = "pretrained:"
 #: where the model files live (package data)
@@ -145,12 +147,7 @@ def _check_name(name: str) -> str:
 def card(name: str) -> ModelCard:
     """The model card of a shipped model; an unknown name raises ``ValueError`` listing the known ones."""
     path = DIRECTORY / f"{_check_name(name)}{CARD_SUFFIX}"
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise ValueError(f"{path}: unreadable model card ({err})") from err
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: not a model card (a JSON object expected)")
+    data = read_json(path, "a model card")
     return ModelCard.from_dict(data, str(path))
 
 
