@@ -45,8 +45,32 @@ class GridSolution:
             raise ValueError(f"values shape {tuple(self.values.shape)} != ({len(self.times)}, *{self.grid.shape})")
         if not torch.isfinite(self.values).all():
             raise ValueError("GridSolution: values contain NaN or inf")
+        self._check_against_system()
         self._gradients: torch.Tensor | None = None
         self._cache: dict[tuple[str, torch.dtype, torch.device], torch.Tensor] = {}
+
+    def _check_against_system(self) -> None:
+        """Refuse a grid that contradicts its system, or times that cannot be interpolated: a wrong
+        dimension, a dimension marked periodic that the system says is not (or the reverse: values
+        would wrap around a boundary that is a wall), and times-to-go that are not finite,
+        non-negative and strictly increasing (a duplicated time divides by zero, a descending one
+        inverts every bracket)."""
+        system = self.system
+        if self.grid.ndim != system.state_dim:
+            raise ValueError(f"GridSolution: a {self.grid.ndim}D grid for {system.name}, a {system.state_dim}D system")
+        periodic = tuple(bool(p) for p in system.periodic)
+        if tuple(self.grid.periodic) != periodic:
+            raise ValueError(
+                f"GridSolution: the grid's periodic dimensions {list(self.grid.periodic)} differ from "
+                f"{system.name}'s {list(periodic)} (state names {list(system.state_names)})"
+            )
+        t = self.times
+        if t.ndim != 1 or len(t) == 0:
+            raise ValueError(f"GridSolution: times must be a non-empty 1-D list, got shape {tuple(t.shape)}")
+        if not torch.isfinite(t).all() or bool((t < 0).any()):
+            raise ValueError(f"GridSolution: times-to-go must be finite and >= 0, got {t.tolist()}")
+        if len(t) > 1 and not bool((t[1:] > t[:-1]).all()):
+            raise ValueError(f"GridSolution: times-to-go must be strictly increasing, got {t.tolist()}")
 
     @property
     def time_range(self) -> tuple[float, float]:

@@ -4,12 +4,16 @@ Results tables, sweep specs, model cards and run metadata are JSON objects, most
 tag that says which kind of file they are. :func:`read_json` reads one as a regular file only (a
 FIFO would block, a device would never end), parses it, checks it is an object and, where asked,
 its tag, and turns every failure into one ``ValueError`` that names the file and says what to do.
-Writes go through :func:`reach.atomic.atomic_path`.
+Writes go through :func:`reach.atomic.atomic_path`, and :func:`strict` makes data strict JSON: a
+metric that is not defined (NaN) or infinite is written as ``null``, never as the ``NaN`` literal
+that strict readers (``jq``, JavaScript, most languages' parsers) reject; :func:`restore_nan` reads
+such a ``null`` back as NaN where the column holds numbers.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import stat
 from pathlib import Path
@@ -43,4 +47,23 @@ def read_json(path: str | os.PathLike, what: str, expect_format: str | None = No
     return data
 
 
-__all__ = ["read_json"]
+def strict(data: Any) -> Any:
+    """``data`` with every non-finite float (NaN, inf) replaced by ``None``, recursively through
+    dicts, lists and tuples, so that ``json.dump(..., allow_nan=False)`` accepts it."""
+    if isinstance(data, float):
+        return data if math.isfinite(data) else None
+    if isinstance(data, dict):
+        return {key: strict(value) for key, value in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [strict(value) for value in data]
+    return data
+
+
+def restore_nan(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Rows read back from a strict-JSON table, with ``None`` read as NaN in every column that holds
+    a float in some row (the inverse of :func:`strict` for tables of metrics)."""
+    numeric = {key for row in rows for key, value in row.items() if isinstance(value, float)}
+    return [{k: math.nan if v is None and k in numeric else v for k, v in row.items()} for row in rows]
+
+
+__all__ = ["read_json", "restore_nan", "strict"]

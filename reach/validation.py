@@ -252,6 +252,17 @@ def device_arg(text: str) -> str:
     return text
 
 
+def csv_items(name: str, text: str) -> list[str]:
+    """The comma-separated items of ``text``, stripped; an empty list or an empty item (``"a,,b"``,
+    a trailing comma) is refused naming ``name``, since dropping it would hide a typo."""
+    items = [v.strip() for v in str(text).split(",")]
+    if not any(items):
+        raise ValueError(f"{name} must list at least one item, got {text!r}")
+    if not all(items):
+        raise ValueError(f"{name} has an empty item in {text!r}; separate items by single commas")
+    return items
+
+
 def csv_floats(name: str, text: str, check: Callable[[str, Any], float] = check_float) -> list[float]:
     """Comma-separated finite numbers (``"0,0.03,0.1"``), each checked by ``check``.
 
@@ -260,9 +271,7 @@ def csv_floats(name: str, text: str, check: Callable[[str, Any], float] = check_
     first two terms, which fix the step, and the last; a last term that the step does not reach
     exactly is refused rather than rounded to the nearest term.
     """
-    items = [v.strip() for v in str(text).split(",") if v.strip()]
-    if not items:
-        raise ValueError(f"{name} must list at least one number, got {text!r}")
+    items = csv_items(name, text)
     if "..." in items:
         return [check(name, value) for value in _progression(name, text, items)]
     out = []

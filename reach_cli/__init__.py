@@ -15,7 +15,9 @@ validation before any expensive work starts.
 
 Errors: any expected failure (a bad value, a missing or unreadable file, a locked run directory) is
 printed as one line naming the bad value, with exit status 2; ``--debug`` shows the traceback
-instead. An interrupted command (Ctrl-C, SIGTERM) exits with 130 after saving what it can.
+instead. A command that ran but failed in part (a source of ``reach evaluate`` that did not load, a
+training run that diverged) exits with 3, after writing what succeeded. An interrupted command
+(Ctrl-C, SIGTERM) exits with 130 after saving what it can.
 """
 
 from __future__ import annotations
@@ -28,18 +30,11 @@ from collections.abc import Sequence
 
 from reach.threads import apply_thread_policy
 from reach_cli import demo, envs, evaluate, filter_eval, groundtruth, plot, pretrained, record, sweep, train
+from reach_cli.exit_codes import EXIT_BROKEN_PIPE, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_USAGE
 from reach_cli.options import OneLineParser, common_options, finish_namespace
 
 #: subcommand modules, in the order ``reach --help`` lists them
 COMMANDS = (envs, pretrained, record, groundtruth, train, evaluate, filter_eval, plot, sweep, demo)
-
-#: exit status of an expected failure (bad input, unreadable file), as argparse uses for usage errors
-EXIT_USAGE = 2
-#: exit status after SIGINT/SIGTERM (128 + SIGINT), as shells report it
-EXIT_INTERRUPTED = 130
-#: exit status when the reader of the output went away (128 + SIGPIPE), e.g. ``reach envs | head -1``
-EXIT_BROKEN_PIPE = 141
-
 
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(
@@ -78,7 +73,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"{command}: internal error: {type(err).__name__}: {_one_line(err)} (rerun with --debug for the traceback)",
             file=sys.stderr,
         )
-        return 1
+        return EXIT_INTERNAL
 
 
 def console_main() -> None:

@@ -8,6 +8,7 @@ sources into it later, or from another process at the same time, keeps every row
 from __future__ import annotations
 
 import argparse
+import sys
 from typing import Any
 
 from reach.validation import (
@@ -20,6 +21,7 @@ from reach.validation import (
     probability_arg,
     seed_arg,
 )
+from reach_cli.exit_codes import EXIT_PARTIAL
 from reach_cli.options import add_subparser, default
 
 #: (option, VerifySettings field, argparse keywords, help)
@@ -121,4 +123,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"\nwrote {out.with_suffix('.csv')}, {out.with_suffix('.json')}, {out.with_suffix('.md')}")
     if args.plot and any(not r.get("error") for r in rows):
         print(f"wrote {plot_violation_bars(rows, out.with_name(out.stem + '_violations.png'))}")
-    return 1 if all(r.get("error") for r in rows) else 0
+    failed = [r for r in rows if r.get("error")]
+    for row in failed:
+        print(f"reach evaluate: {row.get('source')}: {row['error']}", file=sys.stderr)
+    if failed:
+        print(f"reach evaluate: {len(failed)} of {len(rows)} sources failed (their rows say why)", file=sys.stderr)
+        return EXIT_PARTIAL
+    return 0

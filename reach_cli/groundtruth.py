@@ -10,6 +10,7 @@ from reach.validation import (
     check_int,
     check_output_path,
     csv_floats,
+    csv_items,
     device_arg,
     positive_float_arg,
 )
@@ -60,7 +61,7 @@ def add_parser(sub: Any) -> None:
 
 def parse_grid(text: str, ndim: int) -> int | list[int]:
     """``"101"`` or ``"101,101,51"``: node counts, each checked (the solver needs at least 5)."""
-    parts = [v.strip() for v in str(text).split(",") if v.strip()]
+    parts = csv_items("--grid", text)
     try:
         counts = [int(v) for v in parts]
     except ValueError:

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from reach.validation import (
+    csv_items,
     device_arg,
     finite_float_arg,
     nonnegative_int_arg,
@@ -90,7 +91,7 @@ def parse_seeds(text: str) -> list[int]:
     """``"3"`` means seeds 0, 1, 2; ``"0,4,7"`` lists them."""
     try:
         if "," in text:
-            return [seed_arg(s) for s in text.split(",") if s.strip()]
+            return [seed_arg(s) for s in csv_items("--seeds", text)]
         count = int(text)
     except (ValueError, argparse.ArgumentTypeError) as err:
         raise ValueError(f"--seeds must be a count (3) or a list of seeds (0,4,7), got {text!r}") from err
@@ -129,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
         fields["budget_s"] = None
     system = fields.get("system", default(SweepSpec, "system"))
     if args.layouts:
-        fields["layouts"] = [s.strip() for s in args.layouts.split(",") if s.strip()]
+        fields["layouts"] = csv_items("--layouts", args.layouts)
     else:
         fields["layouts"] = default_layouts(system)
     if args.seeds is not None:

@@ -22,6 +22,7 @@ from reach.validation import (
     seed_arg,
     unit_interval_arg,
 )
+from reach_cli.exit_codes import EXIT_PARTIAL
 from reach_cli.options import add_subparser, default
 
 
@@ -200,6 +201,6 @@ def run(args: argparse.Namespace) -> int:
         summary = trainer.train()
     except TrainingDivergedError as err:
         print(f"reach train: {err}", file=sys.stderr)
-        return 3
+        return EXIT_PARTIAL
     print(f"{summary['run_dir']}: {summary['steps']} steps in {summary['wall_time_s']:.1f} s ({summary['stopped']})")
     return 0

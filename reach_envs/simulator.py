@@ -54,8 +54,13 @@ class SceneSimulator:
     def advance(
         self, x: Sequence[Column], u: Sequence[Column], d: Sequence[Column], rng: np.random.Generator
     ) -> list[Column]:
-        """One step of length ``dt``: integrate, add process noise if the scene has any, wrap headings."""
+        """One step of length ``dt``: integrate, add process noise if the scene has any, wrap headings.
+
+        A non-finite next state (a user system's drift that returns NaN or overflows) raises
+        ``ValueError`` naming the state it came from, instead of returning a NaN observation."""
+        before = x
         x = self._step(x, u, d)
+        self._require_finite(x, "the next state", before)
         if self._noise is not None:
             self.calls["process_noise"] += 1
             shape = np.shape(x[0])
@@ -65,8 +70,27 @@ class SceneSimulator:
         return x
 
     def margin(self, x: Sequence[Column]) -> Column:
-        """Failure margin ``l(x)``."""
-        return self.system.failure_margin_columns(x, self.xp)
+        """Failure margin ``l(x)``; a NaN or infinite margin raises ``ValueError`` naming the state
+        (it would read as "no collision": NaN <= 0 is False)."""
+        value = self.system.failure_margin_columns(x, self.xp)
+        self._require_finite([value], "the failure margin", x)
+        return value
+
+    def _require_finite(self, columns: Sequence[Column], what: str, state: Sequence[Column]) -> None:
+        """Raise ``ValueError`` if any entry of ``columns`` is NaN or infinite, naming ``state``."""
+        if self.xp is FLOAT:
+            if all(map(math.isfinite, columns)):
+                return
+            bad = [float(v) for v in state]
+        else:
+            finite = np.ones(np.shape(columns[0]), dtype=bool)
+            for column in columns:
+                finite &= np.isfinite(column)
+            if finite.all():
+                return
+            row = int(np.flatnonzero(~finite)[0])
+            bad = [float(np.asarray(v).reshape(-1)[row]) for v in state]
+        raise ValueError(f"{self.system.name}: {what} is NaN or infinite at state {bad}; check the system's physics")
 
     def out_of_arena(self, x: Sequence[Column]) -> Column:
         """Whether any car left the arena (False everywhere when the scene has no arena)."""

@@ -29,7 +29,7 @@ from typing import Any
 from tqdm.auto import tqdm
 
 from groundtruth.solution import GridSolution
-from reach.json_files import read_json
+from reach.json_files import read_json, restore_nan
 from reach.locking import exclusive_lock
 from reach.systems import ControlAffineSystem, make_system
 from reach.validation import check_output_path
@@ -148,7 +148,7 @@ def _previous(out: Path, header: dict[str, Any], keep_errors: bool = False) -> d
             f"{path} holds results for other settings ({data.get('settings')}, system {data.get('system')}); "
             "use another --out or delete it"
         )
-    return {r["source"]: r for r in data.get("results", []) if keep_errors or not r.get("error")}
+    return {r["source"]: r for r in restore_nan(data.get("results", [])) if keep_errors or not r.get("error")}
 
 
 def _resolved(settings: dict[str, Any]) -> dict[str, Any]:
@@ -266,10 +266,20 @@ def _store_directory(out: Path, source: str | None) -> Path:
     return parent if source is None else parent / hashlib.sha256(source.encode()).hexdigest()[:16]
 
 
+#: the suffixes a results path may carry (the empty one: the path without a suffix)
+RESULT_SUFFIXES = ("", ".json", ".csv", ".md")
+
+
 def load_results(path: str | os.PathLike) -> list[dict[str, Any]]:
-    """Rows of a results ``.json`` written by :func:`evaluate_many`."""
-    p = Path(path).with_suffix(".json")
-    return read_json(p, "a reach evaluation file", expect_format=FORMAT)["results"]
+    """Rows of the results :func:`evaluate_many` wrote at ``path`` (its ``.json``, ``.csv`` or
+    ``.md``, or the path without a suffix: the rows are read from the ``.json`` beside it)."""
+    given = Path(path)
+    if given.suffix not in RESULT_SUFFIXES:
+        raise ValueError(
+            f"{given} is not a results file of reach evaluate (expected one of {', '.join(RESULT_SUFFIXES[1:])})"
+        )
+    p = given.with_suffix(".json")
+    return restore_nan(read_json(p, "a reach evaluation file", expect_format=FORMAT)["results"])
 
 
 __all__ = ["evaluate_many", "expand_sources", "load_results", "markdown_table"]

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from reach.atomic import atomic_path
+from reach.json_files import strict
 
 Column = tuple[str, str, "str | Callable[[Any, dict[str, Any]], str]"]
 
@@ -65,7 +66,8 @@ def write_results(
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out.with_suffix(".json")) as tmp, open(tmp, "w") as fh:
-        json.dump({**header, "results": list(rows)}, fh, indent=2, sort_keys=True, default=str)
+        # strict JSON: NaN metrics are written as null (read back as NaN by load_results)
+        json.dump(strict({**header, "results": list(rows)}), fh, indent=2, sort_keys=True, default=str, allow_nan=False)
     keys: list[str] = []
     for r in rows:
         keys.extend(k for k in r if k not in keys and not isinstance(r[k], (dict, list)))

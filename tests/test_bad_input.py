@@ -475,7 +475,8 @@ def test_corrupt_sources_become_error_rows(tmp_path):
     os.symlink(tmp_path / "loop_a", tmp_path / "loop_b")
     sources = [good, *(str(tmp_path / n) for n in ("empty.npz", "truncated.npz", "nosystem.pt", "loop_a"))]
     out = tmp_path / "r.csv"
-    assert main(["evaluate", *sources, "--samples", "20", "--certify-samples", "0", "--out", str(out)]) == 0
+    # the good source's row is written; the command says that 4 of 5 failed, with a non-zero status
+    assert main(["evaluate", *sources, "--samples", "20", "--certify-samples", "0", "--out", str(out)]) == 3
     rows = {Path(r["source"]).name: r for r in json.loads(out.with_suffix(".json").read_text())["results"]}
     assert not rows["good.pt"].get("error")
     for name in ("empty.npz", "truncated.npz", "nosystem.pt", "loop_a"):

@@ -334,3 +334,42 @@ def test_pursue_and_random_disturbances_move_several_states():
 def test_user_system_module_is_the_examples_one():
     assert my_systems.DubinsAvoid is DubinsAvoid  # the import path form resolves to the same class
     assert type(make_env("my_systems:DubinsAvoid").system) is DubinsAvoid
+
+
+class _NaNMargin(DubinsAvoid):
+    """A user system whose margin is NaN right of x = 0.5 (a sqrt of a negative, say)."""
+
+    name = "nan-margin"
+
+    def failure_margin_columns(self, x, xp):
+        base = super().failure_margin_columns(x, xp)
+        if xp is FLOAT:
+            return math.nan if x[0] > 0.5 else base
+        return np.where(x[0] > 0.5, np.nan, base) if xp is NUMPY else base  # torch: the checks at construction
+
+
+class _NaNDrift(DubinsAvoid):
+    """A user system whose drift is NaN right of x = 0.5."""
+
+    name = "nan-drift"
+
+    def drift(self, x, xp):
+        out = super().drift(x, xp)
+        if xp is FLOAT:
+            return [math.nan if x[0] > 0.5 else out[0], *out[1:]]
+        return [np.where(x[0] > 0.5, np.nan, out[0]), *out[1:]] if xp is NUMPY else out
+
+
+@pytest.mark.parametrize(("system", "what"), [(_NaNMargin, "failure margin"), (_NaNDrift, "next state")])
+def test_non_finite_user_physics_raise_naming_the_state(system, what):
+    start = [0.6, 0.0, 0.0]
+    with pytest.raises(ValueError, match=rf"{system.name}: the {what} is NaN or infinite at state \["):
+        env = make_env(system(), disturbance=None)
+        env.reset(seed=0, options={"state": start})
+        for _ in range(3):
+            env.step(np.zeros(1, dtype=np.float32))
+    vec = make_vector_env(system(), num_envs=2, disturbance=None)
+    with pytest.raises(ValueError, match=rf"{system.name}: the {what} is NaN or infinite at state \["):
+        vec.reset(seed=0, options={"state": np.array([start, [-1.0, -1.0, 0.0]])})
+        for _ in range(3):
+            vec.step(np.zeros((2, 1), dtype=np.float32))

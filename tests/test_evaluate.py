@@ -35,8 +35,10 @@ def test_evaluate_two_checkpoints_with_bad_ones_beside(checkpoints: Path, capsys
     out = checkpoints / "res.csv"
     sources = [str(checkpoints / n) for n in ("9d_ssrsl.pt", "9d_rrrsl.pt", "broken.pt", "air3d.pt", "nan.pt")]
     args = ["evaluate", *sources, "--samples", "1500", "--certify-samples", "500", "--out", str(out), "--plot"]
-    assert main(args) == 0
-    table = capsys.readouterr().out
+    assert main(args) == 3  # three sources fail: their rows say why, and so does the exit status
+    captured = capsys.readouterr()
+    table = captured.out
+    assert "3 of 5 sources failed" in captured.err
     assert "| model | layout | violation % |" in table
     rows = {Path(r["source"]).name: r for r in load_results(out)}
     for name in ("9d_ssrsl.pt", "9d_rrrsl.pt"):

@@ -21,7 +21,6 @@ Maintainers add or replace a model with ``benchmarks/make_pretrained.py``.
 from __future__ import annotations
 
 import hashlib
-import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any

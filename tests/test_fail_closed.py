@@ -1,0 +1,111 @@
+"""Fail closed, round three: each family of bad input found by probing the newer entry points is
+refused with one clear line naming the value, or handled in the documented safe way."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from groundtruth import GridSolution, solve
+from reach.atomic import atomic_path
+from reach.validation import check_output_path, csv_floats, csv_items
+from reach_cli import main
+from studies.tables import write_results
+
+
+@pytest.fixture(scope="module")
+def small_grid(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("grid") / "g.npz"
+    solve("air3d", 11, [0.0, 0.5, 1.1], progress=False).save(path)
+    return path
+
+
+def _rewrite(src: Path, dst: Path, **changes) -> Path:
+    with np.load(src, allow_pickle=False) as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays.update(changes)
+    np.savez(dst, **arrays)
+    return dst
+
+
+def test_grid_files_are_checked_against_their_system_at_load(small_grid, tmp_path):
+    assert GridSolution.load(small_grid).time_range == (0.0, pytest.approx(1.1))
+    wrong = _rewrite(small_grid, tmp_path / "periodic.npz", grid_periodic=np.array([True, False, True]))
+    with pytest.raises(ValueError, match=r"periodic dimensions \[True, False, True\] differ from air3d's"):
+        GridSolution.load(wrong)
+    for times, rule in (
+        ([0.0, 0.5, 0.5], "strictly increasing"),
+        ([1.1, 0.5, 0.0], "strictly increasing"),
+        ([-0.1, 0.5, 1.1], "finite and >= 0"),
+    ):
+        bad = _rewrite(small_grid, tmp_path / "t.npz", times=np.array(times, dtype=np.float32))
+        with pytest.raises(ValueError, match=rule):
+            GridSolution.load(bad)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_special_files_are_refused_as_sources_and_outputs(tmp_path, capsys):
+    fifo = tmp_path / "x.npz"
+    os.mkfifo(fifo)
+    assert main(["evaluate", str(fifo), "--samples", "10", "--out", str(tmp_path / "r.csv")]) == 2
+    assert "is a FIFO, not a regular file" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="is a FIFO, not a regular file"):
+        GridSolution.load(fifo)
+    with pytest.raises(ValueError, match="--out path '/dev/null' is a character device"):
+        check_output_path("/dev/null", "--out")
+    with pytest.raises(ValueError, match="exists and is not a regular file"), atomic_path(fifo) as tmp:
+        Path(tmp).write_text("x")
+    assert fifo.exists() and not fifo.is_file()  # still the FIFO, not replaced
+
+
+def test_list_options_refuse_empty_items():
+    assert csv_floats("--thresholds", "0.1,0.2") == [0.1, 0.2]
+    for text in ("0.1,,0.2", "0.1,", ",0.1"):
+        with pytest.raises(ValueError, match=r"--thresholds has an empty item in"):
+            csv_floats("--thresholds", text)
+    with pytest.raises(ValueError, match="--layouts has an empty item"):
+        csv_items("--layouts", "ssssl,,rrrrl")
+
+
+def test_results_are_strict_json_and_read_back_as_nan(tmp_path):
+    from studies import load_results
+
+    out = tmp_path / "r"
+    write_results(out, {"format": "reach.evaluation.v1"}, [{"source": "a", "eps": math.nan, "n": 3}], "table")
+    text = out.with_suffix(".json").read_text()
+    assert "NaN" not in text
+    data = json.loads(text, parse_constant=lambda c: pytest.fail(f"non-strict JSON constant {c}"))
+    assert data["results"][0]["eps"] is None
+    from studies.batch_verification import FORMAT
+
+    write_results(out, {"format": FORMAT}, [{"source": "a", "eps": math.nan}, {"source": "b", "eps": 0.5}], "t")
+    rows = load_results(out.with_suffix(".csv"))
+    assert math.isnan(rows[0]["eps"]) and rows[1]["eps"] == 0.5
+
+
+def test_plot_bars_names_the_file_it_was_given(tmp_path, capsys):
+    assert main(["plot", "bars", str(tmp_path / "x.npz"), "--out", str(tmp_path / "b.png")]) == 2
+    err = capsys.readouterr().err
+    assert "x.npz is not a results file of reach evaluate" in err and "x.json" not in err
+
+
+def test_checkpoints_without_a_digest_are_refused(tmp_path):
+    from reach.systems import Air3D
+    from safety import load_value_function
+    from training import ValueNetwork
+    from training.checkpoint import save_checkpoint
+
+    path = tmp_path / "a.pt"
+    save_checkpoint(path, ValueNetwork(Air3D(), "ssssl", width=8))
+    payload = torch.load(path, weights_only=True)
+    del payload["metadata"]["integrity"]
+    payload["metadata"]["system"]["parameters"]["velocity_a"] = 9.0  # an edit the digest would have caught
+    torch.save(payload, path)
+    with pytest.raises(ValueError, match=r"no integrity digest \(field 'integrity.sha256'\)"):
+        load_value_function(path)
