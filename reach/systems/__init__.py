@@ -9,7 +9,9 @@ from __future__ import annotations
 
 from reach.systems.air3d import Air3D, RelativePair
 from reach.systems.backend import FLOAT, NUMPY, TORCH
-from reach.systems.base import Box, ControlAffineSystem, DeepReachNormalisation
+from reach.systems.base import ControlAffineSystem
+from reach.systems.box import Box
+from reach.systems.deepreach_normalisation import DeepReachNormalisation
 from reach.systems.multivehicle import Car, MultiVehicle, MultiVehicle6D, MultiVehicle9D
 from reach.systems.registry import (
     SYSTEMS,

@@ -21,7 +21,9 @@ from collections.abc import Sequence
 from typing import Any, ClassVar
 
 from reach.systems.backend import Backend, Column
-from reach.systems.base import NO_INPUT, Box, ControlAffineSystem, DeepReachNormalisation, InputMatrix
+from reach.systems.base import ControlAffineSystem, InputMatrix
+from reach.systems.box import NO_INPUT, Box
+from reach.systems.deepreach_normalisation import DeepReachNormalisation
 
 ROLES = ("control", "disturbance")
 

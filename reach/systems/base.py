@@ -31,67 +31,20 @@ import json
 import math
 from abc import ABCMeta, abstractmethod
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
 import numpy as np
 import torch
 
 from reach.systems.backend import FLOAT, TORCH, Backend, Column, is_number
+from reach.systems.box import NO_INPUT, Box  # also importable from here, as before the split
+from reach.systems.deepreach_normalisation import DeepReachNormalisation  # likewise
 from reach.systems.hamiltonian import FixedStateHamiltonian
+from reach.systems.reference import system_reference
 
 Objective = Literal["max", "min"]
 #: Sparse input matrix: {(state index, input index): entry}; absent entries are zero.
 InputMatrix = Mapping[tuple[int, int], Column]
-
-
-@dataclass(frozen=True)
-class Box:
-    """A box ``[low, high]`` of inputs, one interval per input dimension."""
-
-    low: tuple[float, ...]
-    high: tuple[float, ...]
-
-    def __post_init__(self) -> None:
-        if len(self.low) != len(self.high):
-            raise ValueError(f"Box bounds differ in length: low={self.low}, high={self.high}")
-        for lo, hi in zip(self.low, self.high):
-            if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
-                raise ValueError(f"Box bound must be finite with low <= high, got [{lo}, {hi}]")
-
-    @classmethod
-    def symmetric(cls, bounds: Sequence[float]) -> Box:
-        """The box ``[-b, b]`` per dimension."""
-        return cls(tuple(-float(b) for b in bounds), tuple(float(b) for b in bounds))
-
-    @property
-    def dim(self) -> int:
-        return len(self.low)
-
-    @property
-    def center(self) -> tuple[float, ...]:
-        return tuple(0.5 * (lo + hi) for lo, hi in zip(self.low, self.high))
-
-    @property
-    def half_width(self) -> tuple[float, ...]:
-        return tuple(0.5 * (hi - lo) for lo, hi in zip(self.low, self.high))
-
-
-NO_INPUT = Box((), ())
-
-
-@dataclass(frozen=True)
-class DeepReachNormalisation:
-    """How DeepReach maps states and values to network inputs and outputs (checkpoint import only).
-
-    Network input is ``(t, (x - state_offset) / state_scale)``; the value is
-    ``value_scale * output + value_offset``.
-    """
-
-    state_offset: tuple[float, ...]
-    state_scale: tuple[float, ...]
-    value_scale: float = 25.0
-    value_offset: float = 0.25
 
 
 class _CheckedOnConstruction(ABCMeta):
@@ -113,7 +66,7 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
     """
 
     #: short name (default: the class name in lower case); configs store the registered name or the
-    #: import path (:func:`reach.systems.registry.system_reference`)
+    #: import path (:func:`reach.systems.reference.system_reference`)
     name: ClassVar[str]
     state_names: tuple[str, ...]
     #: (low, high) per state dimension; periodic dimensions span one period [-pi, pi)
@@ -259,8 +212,6 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
 
     def reference(self) -> str:
         """The registered name of this system's class, or else its import path ``module:ClassName``."""
-        from reach.systems.registry import system_reference  # the registry imports this module
-
         return system_reference(type(self))
 
     def config(self) -> dict[str, Any]:

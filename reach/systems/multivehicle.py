@@ -23,7 +23,9 @@ from typing import Any
 import torch
 
 from reach.systems.backend import Backend, Column
-from reach.systems.base import Box, ControlAffineSystem, DeepReachNormalisation, InputMatrix
+from reach.systems.base import ControlAffineSystem, InputMatrix
+from reach.systems.box import Box
+from reach.systems.deepreach_normalisation import DeepReachNormalisation
 
 ROLES = ("control", "disturbance")
 

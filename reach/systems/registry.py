@@ -29,8 +29,24 @@ from typing import Any, TypeVar
 
 from reach.systems.base import ControlAffineSystem
 
-#: Systems by registry key (see :func:`registry_key`).
-SYSTEMS: dict[str, type[ControlAffineSystem]] = {}
+# the names table and the naming rule live in reach.systems.reference (the base class needs them
+# without importing this module); they are part of the registry's interface, re-exported here
+from reach.systems.reference import SYSTEMS, import_path, system_reference
+
+__all__ = [
+    "SYSTEMS",
+    "SystemSpecified",
+    "import_object",
+    "import_path",
+    "make_system",
+    "register_system",
+    "registry_key",
+    "system_class",
+    "system_from_config",
+    "system_reference",
+    "trust_module",
+]
+
 #: Module prefixes whose import paths may be imported when a file names them.
 _TRUSTED: set[str] = set()
 
@@ -65,21 +81,6 @@ def register_system(cls: S | None = None, *, name: str | None = None) -> Any:
         return klass
 
     return add if cls is None else add(cls)
-
-
-def import_path(cls: type) -> str:
-    """``module:QualName`` of a class."""
-    return f"{cls.__module__}:{cls.__qualname__}"
-
-
-def system_reference(cls: type[ControlAffineSystem]) -> str:
-    """What configs store for ``cls``: the registered name of a built-in system, else the import path.
-
-    A user's registered name is known only in processes that imported its module, while the import
-    path lets a fresh process find the class (see the module docstring for when it is imported)."""
-    key = cls.__dict__.get("_registered_as")
-    builtin = cls.__module__.split(".")[0] == "reach"
-    return key if builtin and key is not None and SYSTEMS.get(key) is cls else import_path(cls)
 
 
 def trust_module(*prefixes: str) -> None:

@@ -1,0 +1,82 @@
+"""The loss a run trains on, with what its terms need built up front so that a bad configuration fails at once.
+
+Built with the run, before any step: the HJI residual function (compiled or not), the gradient
+bound in the network's coordinates, the pairwise union that bounds ``V`` from above (loaded and
+checked), and the check that the system suits the lower-bound labels (which :mod:`training.sampling`
+draws).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from reach.systems import ControlAffineSystem, MultiVehicle
+from training.config import TrainConfig
+from training.labels import check_lower_bound_system
+from training.loss import residual_function, training_loss
+from training.network import ValueNetwork
+from training.sampling import Labels
+
+
+def load_upper_bound(config: TrainConfig, system: ControlAffineSystem) -> Any:
+    """The union of pairwise BRTs that ``config.upper_bound`` names, loaded (and refused) before training."""
+    if config.upper_bound is None:
+        return None
+    from groundtruth.pairwise import PairwiseUnion  # lazy: the grid solver loads only for runs that use it
+
+    if not isinstance(system, MultiVehicle):
+        raise ValueError(f"upper_bound: a pairwise union bounds multi-vehicle systems only, not {system.name}")
+    if not Path(config.upper_bound).is_file():
+        raise ValueError(f"upper_bound: no such file {config.upper_bound!r}")
+    union = PairwiseUnion.load(system, config.upper_bound)
+    if union.system.horizon < system.horizon:
+        raise ValueError(
+            f"upper_bound {config.upper_bound}: its pair solution reaches t = {union.system.horizon:g}, "
+            f"the system's horizon is {system.horizon:g}"
+        )
+    return union
+
+
+class Objective:
+    """The training loss of ``network`` under ``config``, at whatever points a step draws."""
+
+    def __init__(self, config: TrainConfig, network: ValueNetwork) -> None:
+        self.config = config
+        self.network = network
+        self.residual_fn = residual_function(network, config.gradients, config.compile_resolved())
+        #: the gradient bound in the network's normalised coordinates (``gradient_bound`` x l's steepest slope)
+        self.gradient_bound = None if config.gradient_bound is None else config.gradient_bound * network.margin_slope()
+        self.upper_bound = load_upper_bound(config, network.system)
+        if config.lower_bound is not None:
+            check_lower_bound_system(network.system)
+
+    def __call__(
+        self, x: torch.Tensor, t: torch.Tensor, mask: torch.Tensor | None, pde: bool, labels: Labels | None
+    ) -> tuple[torch.Tensor, dict[str, float]]:
+        """The loss and its terms at states ``x`` and times ``t`` (``mask``: the vanilla boundary points;
+        ``pde``: whether the residual counts yet; ``labels``: the lower-bound term's points, if any)."""
+        c = self.config
+        return training_loss(
+            self.network,
+            x,
+            t,
+            norm=c.loss,
+            boundary_mask=mask,
+            boundary_weight=c.boundary_weight,
+            pde=pde,
+            residual_fn=self.residual_fn,
+            gradient_bound=self.gradient_bound,
+            gradient_weight=c.gradient_weight,
+            upper_bound=None if self.upper_bound is None else self.upper_bound_at(x, t),
+            upper_bound_weight=c.upper_bound_weight,
+            lower_bound=labels,
+            lower_bound_weight=c.lower_bound_weight,
+        )
+
+    def upper_bound_at(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """The union's value at the sampled points (``+inf`` where no pair grid covers them)."""
+        with torch.no_grad():  # the pair grids interpolate on the points' own device
+            return self.upper_bound.value_where_known(x.detach(), t.detach()).to(x.dtype)
