@@ -173,20 +173,22 @@ def _evaluator(args: argparse.Namespace) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     from training import TrainConfig, Trainer, TrainingDivergedError
-    from training.trainer import RESUME_OVERRIDABLE
+    from training.run_directory import RESUME_OVERRIDABLE, RunDirectory
 
     fields = _config_fields(args)
     if args.resume:
         if args.out:
             raise ValueError(f"give --out for a new run or --resume for an old one, not both (--out {args.out})")
-        # any other option given is refused, even one equal to the stored value: it was meant to change
-        fixed = sorted(set(fields) - RESUME_OVERRIDABLE)
+        # an option the run cannot change is refused, naming its flag, unless it restates the stored
+        # value (``--compile off`` on a run trained with it); checked before the ground truth loads
+        stored, _ = RunDirectory(args.resume).resumed_config({})
+        fixed = sorted(k for k in set(fields) - RESUME_OVERRIDABLE if getattr(stored, k) != fields[k])
         if fixed:
             option = {field: flag for flag, field, _, _ in TRAIN_OPTIONS} | {
                 "budget_s": "--budget",
                 "compile": "--compile",
             }
-            names = ", ".join(option.get(name, name) for name in fixed)
+            names = ", ".join(f"{option.get(name, name)} (stored: {getattr(stored, name)!r})" for name in fixed)
             raise ValueError(
                 f"--resume continues {args.resume} with its stored configuration; {names} cannot change "
                 "(start a new run with --out to train with other settings)"

@@ -226,6 +226,8 @@ def test_new_run_over_an_old_one_and_resume_changes_are_refused(tmp_path):
     code, err = run_cli("train", "--resume", str(run), "--out", str(tmp_path / "other"))
     one_line_error(code, err, "not both")
     assert main(["train", "--resume", str(run), "--steps", "4"]) == 0  # stop rules may change
+    # restating a stored value is not a change: the run resumes
+    assert main(["train", "--resume", str(run), "--steps", "5", "--width", "8", "--layout", "ssssl"]) == 0
 
 
 def test_sigint_saves_and_the_run_resumes(tmp_path):

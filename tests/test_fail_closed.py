@@ -109,3 +109,16 @@ def test_checkpoints_without_a_digest_are_refused(tmp_path):
     torch.save(payload, path)
     with pytest.raises(ValueError, match=r"no integrity digest \(field 'integrity.sha256'\)"):
         load_value_function(path)
+
+
+def test_a_diverged_run_says_truthfully_what_it_kept(tmp_path):
+    from training import TrainConfig, Trainer
+
+    run = tmp_path / "run"
+    trainer = Trainer(TrainConfig(system="air3d", width=8, steps=2), run, progress=False)
+    message = trainer._diverged_message(math.nan)
+    assert "before the run saved its first checkpoint" in message and "checkpoint.pt" not in message
+    trainer.train()
+    message = Trainer.resume(run, progress=False)._diverged_message(math.nan)
+    assert "last good checkpoint (step 2)" in message and (run / "checkpoint.pt").exists()
+    assert f"reach train --resume {run}" in message

@@ -29,6 +29,7 @@ from typing import Any, TextIO
 import torch
 
 from reach.atomic import atomic_path
+from reach.json_files import read_json
 from reach.locking import run_lock
 from reach.validation import check_output_dir
 from training.checkpoint import network_from_payload, read_checkpoint, save_checkpoint
@@ -184,10 +185,7 @@ class RunDirectory:
         from the stored ones."""
         if not self.config_path.exists():
             raise ValueError(f"{self.path}: no config.json; not a training run directory")
-        try:
-            data = {**LEGACY_DEFAULTS, **json.loads(self.config_path.read_text())}
-        except (OSError, json.JSONDecodeError) as err:
-            raise ValueError(f"{self.config_path}: unreadable run configuration ({err})") from err
+        data = {**LEGACY_DEFAULTS, **read_json(self.config_path, "a run configuration")}
         given = {k: v for k, v in overrides.items() if v is not None}
         fixed = {k: v for k, v in given.items() if k not in RESUME_OVERRIDABLE and data.get(k) != v}
         if fixed:
@@ -221,7 +219,7 @@ class RunDirectory:
         """The step of the checkpoint on disk (``None`` without one)."""
         if not self.checkpoint_path.exists():
             return None
-        return json.loads(self.checkpoint_path.with_suffix(".json").read_text()).get("steps")
+        return read_json(self.checkpoint_path.with_suffix(".json"), "checkpoint metadata").get("steps")
 
     def save_snapshot(self, index: int, network: ValueNetwork, meta: dict[str, Any]) -> None:
         """Save the network alone as snapshot ``index``."""

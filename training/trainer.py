@@ -55,7 +55,8 @@ _upper_bound = load_upper_bound
 
 
 class TrainingDivergedError(RuntimeError):
-    """The loss became NaN or inf; the last good checkpoint is kept."""
+    """The loss became NaN or inf; the last good checkpoint, if the run had saved one, is kept (the
+    message says which, and ``reach train`` exits with status 3)."""
 
 
 class TrainingInterrupted(KeyboardInterrupt):
@@ -245,10 +246,7 @@ class Trainer:
         x, t, mask = self._sample(tmax)
         loss, terms = self.objective(x, t, mask, self.schedule.trains_pde(frac), self.labels)
         if not math.isfinite(terms["loss"]):
-            raise TrainingDivergedError(
-                f"loss became {terms['loss']} at step {self.step + 1}; the last good checkpoint "
-                f"(step {self.run.checkpoint_step()}) is kept in {self.checkpoint_path}"
-            )
+            raise TrainingDivergedError(self._diverged_message(terms["loss"]))
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
@@ -256,6 +254,22 @@ class Trainer:
         self.wall += time.perf_counter() - t0
         self.loss_ema = terms["loss"] if self.loss_ema is None else 0.95 * self.loss_ema + 0.05 * terms["loss"]
         return StepRecord(lr, tmax, terms)
+
+    def _diverged_message(self, loss: float) -> str:
+        """What a diverged run kept on disk, and what to do next: resume from the last checkpoint
+        when there is one, start over (with a lower learning rate) when there is none."""
+        saved = self.run.checkpoint_step()
+        head = f"loss became {loss} at step {self.step + 1}"
+        if saved is None:
+            return (
+                f"{head}, before the run saved its first checkpoint, so nothing was kept in {self.run_dir}; "
+                "start over (for example with a lower --lr)"
+            )
+        return (
+            f"{head}; the last good checkpoint (step {saved}) is kept in {self.checkpoint_path}; "
+            f"`reach train --resume {self.run_dir}` continues from it (the same points follow, so "
+            "lower the learning rate in a new run if it diverges again)"
+        )
 
     # ------------------------------------------------------------------ the loop
     def train(self) -> dict[str, Any]:

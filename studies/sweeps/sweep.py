@@ -158,8 +158,8 @@ def _write_rows(out: Path, spec: SweepSpec, rows_by_task: dict, failed: list) ->
 def _slice_plot(spec: SweepSpec, out: Path, rows: list[dict[str, Any]], groundtruth: str | None) -> Path | None:
     """BRT slices of the best and the worst layout (by the first headline metric), the seed nearest
     its layout's mean, final snapshot; the ground truth filled where there is one."""
-    from studies.plots import plot_brt_slices
     from safety.sources import load_value_function
+    from studies.plots import plot_brt_slices
 
     metric, higher = headline_of(spec.evaluation)[0]
     ranked = rank_layouts(rows, metric, higher)

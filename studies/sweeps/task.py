@@ -80,8 +80,8 @@ def run_task(
     (training seconds, evaluation excluded), ``steps_per_s`` and the scorer's metrics.
     """
     from reach.threads import apply_thread_policy
-    from studies.batch_verification import fingerprint
     from safety.sources import load_value_function
+    from studies.batch_verification import fingerprint
     from studies.sweeps.spec import SweepSpec
 
     if threads:
