@@ -33,13 +33,13 @@ def read_json(path: str | os.PathLike, what: str, expect_format: str | None = No
     try:
         mode = p.stat().st_mode
     except OSError as err:
-        raise ValueError(f"{p}: {what} unreadable ({err.strerror or err}){hint}") from err
+        raise ValueError(f"{p}: {what} is unreadable ({err.strerror or err}){hint}") from err
     if not stat.S_ISREG(mode):
         raise ValueError(f"{p}: {what} must be a regular file, not a {file_kind(mode)}{hint}")
     try:
         data = json.loads(p.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"{p}: {what} unreadable ({err}){hint}") from err
+        raise ValueError(f"{p}: {what} is corrupt or unreadable ({err}){hint}") from err
     if not isinstance(data, dict):
         raise ValueError(f"{p}: not {what} (a JSON object expected, got {type(data).__name__}){hint}")
     if expect_format is not None and data.get("format") != expect_format:

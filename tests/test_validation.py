@@ -103,7 +103,7 @@ def test_read_json_refuses_what_it_cannot_trust(tmp_path):
     with pytest.raises(ValueError, match="a JSON object expected, got list"):
         read_json(tmp_path / "list.json", "a file")
     (tmp_path / "bad.json").write_text("{")
-    with pytest.raises(ValueError, match=r"bad.json: a file unreadable .*; start over"):
+    with pytest.raises(ValueError, match=r"bad.json: a file is corrupt or unreadable .*; start over"):
         read_json(tmp_path / "bad.json", "a file", hint="; start over")
     with pytest.raises(ValueError, match="must be a regular file, not a directory"):
         read_json(tmp_path, "a file")
