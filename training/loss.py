@@ -18,10 +18,12 @@ The input derivatives ``dV/dx``, ``dV/dt`` come one of two ways (``gradients``):
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 
 from reach.compiling import maybe_compile
+from reach.validation import check_float
 from training.network import ValueNetwork
 
 GRADIENTS = ("fused", "autograd")
@@ -90,28 +92,45 @@ def residual_function(
     return residual_fn
 
 
+@dataclass(frozen=True)
+class LossWeights:
+    """How the loss's terms are measured and weighed against the residual: the norm of the residual
+    and of the vanilla boundary gap (``"l1"`` or ``"l2"``) and each optional term's weight. A run's
+    :class:`~training.config.TrainConfig` holds these (``loss`` and the ``*_weight`` fields), and the
+    trainer's objective passes them whole."""
+
+    norm: str = "l1"
+    boundary: float = 1.0
+    gradient: float = 1.0
+    upper_bound: float = 1.0
+    lower_bound: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.norm not in ("l1", "l2"):
+            raise ValueError(f"loss norm must be 'l1' or 'l2', got {self.norm!r}")
+        for name in ("boundary", "gradient", "upper_bound", "lower_bound"):
+            check_float(f"{name} weight", getattr(self, name), 0)
+
+
 def training_loss(
     network: ValueNetwork,
     x: torch.Tensor,
     t: torch.Tensor,
     *,
-    norm: str = "l1",
-    boundary_mask: torch.Tensor | None = None,
-    boundary_weight: float = 1.0,
     pde: bool = True,
     residual_fn: ResidualFunction | None = None,
+    boundary_mask: torch.Tensor | None = None,
     gradient_bound: float | None = None,
-    gradient_weight: float = 1.0,
     upper_bound: torch.Tensor | None = None,
-    upper_bound_weight: float = 1.0,
     lower_bound: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
-    lower_bound_weight: float = 1.0,
+    weights: LossWeights = LossWeights(),
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Scalar loss and its terms (``pde``, ``boundary``, ``gradient``) as floats for logging.
 
     ``residual_fn`` (from :func:`residual_function`) computes the residual; default: autograd's.
+    ``weights`` (:class:`LossWeights`) holds the norm and each optional term's weight.
 
-    ``gradient_bound`` adds ``gradient_weight * mean(relu(|dV/dx * s| - bound))``, ``s`` the
+    ``gradient_bound`` adds ``weights.gradient * mean(relu(|dV/dx * s| - bound))``, ``s`` the
     encoding's state scales (the gradient in the network's normalised coordinates, 2-norm). Value
     functions are Lipschitz, but the residual alone admits networks with a cliff: a thin wall where
     ``V`` drops by a finite amount and continues on a wrong branch. The wall violates the PDE only on a
@@ -123,36 +142,36 @@ def training_loss(
     BRTs for a multi-vehicle system), which the residual alone does not enforce.
 
     ``lower_bound`` = ``(x, t, J)``: labelled points with a known lower bound ``J`` of the true value
-    (:func:`training.labels.policy_lower_bound`) add ``lower_bound_weight * mean(relu(J - V(x, t)))``.
+    (:func:`training.labels.policy_lower_bound`) add ``weights.lower_bound * mean(relu(J - V(x, t)))``.
     """
     terms: dict[str, float] = {}
     total = x.new_zeros(())
     if pde:
         residual, v, dv_dx = (residual_fn or (lambda a, b: hji_residual(network, a, b)))(x, t)
-        pde_loss = residual.abs().mean() if norm == "l1" else residual.square().mean()
+        pde_loss = residual.abs().mean() if weights.norm == "l1" else residual.square().mean()
         total = total + pde_loss
         terms["pde"] = float(pde_loss.detach())
         if gradient_bound is not None:
             scale = network._scale.to(dv_dx.dtype)
             excess = torch.relu(torch.linalg.vector_norm(dv_dx * scale, dim=-1) - gradient_bound).mean()
-            total = total + gradient_weight * excess
+            total = total + weights.gradient * excess
             terms["gradient"] = float(excess.detach())
     else:
         v = network(x, t)
     if upper_bound is not None:
         known = torch.isfinite(upper_bound)
         excess = torch.where(known, torch.relu(v - torch.where(known, upper_bound, v.detach())), 0.0).mean()
-        total = total + upper_bound_weight * excess
+        total = total + weights.upper_bound * excess
         terms["upper_bound"] = float(excess.detach())
     if lower_bound is not None:
         x_label, t_label, floor = lower_bound
         shortfall = torch.relu(floor - network(x_label, t_label)).mean()
-        total = total + lower_bound_weight * shortfall
+        total = total + weights.lower_bound * shortfall
         terms["lower_bound"] = float(shortfall.detach())
     if network.parameterisation == "vanilla" and boundary_mask is not None and boundary_mask.any():
         gap = v[boundary_mask] - network.system.failure_margin(x[boundary_mask])
-        boundary = gap.abs().mean() if norm == "l1" else gap.square().mean()
-        total = total + boundary_weight * boundary
+        boundary = gap.abs().mean() if weights.norm == "l1" else gap.square().mean()
+        total = total + weights.boundary * boundary
         terms["boundary"] = float(boundary.detach())
     terms["loss"] = float(total.detach())
     return total, terms

@@ -16,7 +16,7 @@ import torch
 from reach.systems import ControlAffineSystem, MultiVehicle
 from training.config import TrainConfig
 from training.labels import check_lower_bound_system
-from training.loss import residual_function, training_loss
+from training.loss import LossWeights, residual_function, training_loss
 from training.network import ValueNetwork
 from training.sampling import Labels
 
@@ -50,6 +50,13 @@ class Objective:
         #: the gradient bound in the network's normalised coordinates (``gradient_bound`` x l's steepest slope)
         self.gradient_bound = None if config.gradient_bound is None else config.gradient_bound * network.margin_slope()
         self.upper_bound = load_upper_bound(config, network.system)
+        self.weights = LossWeights(
+            norm=config.loss,
+            boundary=config.boundary_weight,
+            gradient=config.gradient_weight,
+            upper_bound=config.upper_bound_weight,
+            lower_bound=config.lower_bound_weight,
+        )
         if config.lower_bound is not None:
             check_lower_bound_system(network.system)
 
@@ -58,22 +65,17 @@ class Objective:
     ) -> tuple[torch.Tensor, dict[str, float]]:
         """The loss and its terms at states ``x`` and times ``t`` (``mask``: the vanilla boundary points;
         ``pde``: whether the residual counts yet; ``labels``: the lower-bound term's points, if any)."""
-        c = self.config
         return training_loss(
             self.network,
             x,
             t,
-            norm=c.loss,
-            boundary_mask=mask,
-            boundary_weight=c.boundary_weight,
             pde=pde,
             residual_fn=self.residual_fn,
+            boundary_mask=mask,
             gradient_bound=self.gradient_bound,
-            gradient_weight=c.gradient_weight,
             upper_bound=None if self.upper_bound is None else self.upper_bound_at(x, t),
-            upper_bound_weight=c.upper_bound_weight,
             lower_bound=labels,
-            lower_bound_weight=c.lower_bound_weight,
+            weights=self.weights,
         )
 
     def upper_bound_at(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
