@@ -9,7 +9,8 @@ network, a DeepReach import or a grid solution; :func:`load_value_function` load
 * :class:`OptimalPolicy` - ``u*``, ``d*`` from the gradient through the system's derived functions;
 * :class:`GreedyPolicy` - the candidate input held for a short step that leaves the most value (the
   switch filter's default backup input; ``rollout(..., policy="greedy")``);
-* :class:`SafetyFilter` and its environment adapters (:mod:`safety.wrappers`);
+* :class:`SafetyFilter` and its environment adapters (:mod:`safety.wrappers`), which take one
+  :class:`FilterSettings` (kind, threshold, time-to-go, gamma, backup horizon and disturbance, policy);
 * :func:`rollout` - batched closed-loop simulation that skips decided trajectories;
 * :func:`verify` - violation statistics, delta-level and the scenario guarantee of one value
   function (:func:`studies.evaluate_many` runs it across many checkpoints on the same states);
@@ -24,8 +25,9 @@ from typing import TYPE_CHECKING, Any
 
 from reach.value_function import MinimumOf, value_and_gradient
 from safety.filter import FilterInfo, SafetyFilter
+from safety.filter_settings import FilterSettings
 from safety.metrics import scenario_epsilon, violation_statistics, wilson_interval
-from safety.rollout import RolloutResult, rollout
+from safety.rollout import RolloutResult, RolloutSettings, rollout
 from safety.rollout_store import RolloutStore
 from safety.sources import LoadedValueFunction, as_value_function, load_value_function
 from safety.value_policies import GreedyPolicy, OptimalPolicy, worst_case_disturbance
@@ -70,11 +72,13 @@ def __dir__() -> list[str]:
 
 __all__ = [
     "FilterInfo",
+    "FilterSettings",
     "GreedyPolicy",
     "LoadedValueFunction",
     "MinimumOf",
     "OptimalPolicy",
     "RolloutResult",
+    "RolloutSettings",
     "RolloutStore",
     "SafetyFilter",
     "SafetyFilterParallelWrapper",

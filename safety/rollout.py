@@ -27,13 +27,14 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Literal
+from dataclasses import dataclass, field, fields, replace
+from typing import Any, Literal
 
 import torch
 from tqdm.auto import tqdm
 
 from reach.integrators import check_integrator, make_stepper
+from reach.systems import ControlAffineSystem
 from reach.systems.backend import TORCH
 from reach.validation import check_int, positive_finite
 from reach.value_function import ValueFunction, check_time_coverage
@@ -82,67 +83,98 @@ def num_steps(horizon: float, dt: float) -> int:
     return max(1, math.ceil(horizon / dt - 1e-9))
 
 
-def check_rollout_settings(
-    *, horizon: float | None, dt: float, integrator: str, chunk_size: int
-) -> tuple[float | None, float]:
-    """Refuse, by name, a rollout's horizon (None: the system's) or step ``dt`` that is not a
-    positive finite real, a step longer than the horizon (one step would jump past the failure set
-    and report fewer collisions), an unknown integrator or a batch size below 1; return the horizon
-    and step as floats (NumPy and 0-d tensor reals are taken). :func:`rollout` calls it, and so does
-    ``VerifySettings``, so that a verification refuses them before any source is loaded."""
-    horizon = None if horizon is None else positive_finite("horizon", horizon)
-    dt = positive_finite("dt", dt)
-    if horizon is not None and dt > horizon:
-        raise ValueError(f"dt must not exceed the horizon: dt {dt:g} s is longer than the horizon {horizon:g} s")
-    check_integrator(integrator)
-    check_int("chunk_size", chunk_size, 1)
-    return horizon, dt
+@dataclass(frozen=True)
+class RolloutSettings:
+    """How a rollout simulates: validated once here, passed whole (``rollout(vf, x, settings)``).
+
+    Attributes:
+        horizon: time-to-go at the start (None: the system's horizon).
+        dt: step length in seconds; a positive finite real no longer than the horizon.
+        integrator: ``"euler"`` (DeepReach's) or ``"rk4"`` (inputs held over the step).
+        policy: ``"gradient"`` (the bang-bang ``u*`` of ``grad V``) or ``"greedy"``
+            (:class:`~safety.value_policies.GreedyPolicy`: the candidate input held for
+            :data:`~safety.value_policies.GREEDY_STEP` that leaves the most value; about ``2^m_u + 1``
+            times the network work per step). The disturbance is the gradient's ``d*`` either way.
+        chunk_size: states simulated together (memory is about ``chunk_size x width x layers``).
+        matmul_precision: ``"bfloat16"`` runs a network's hidden products in bfloat16 (neural value
+            functions only): faster on CPUs and GPUs with bf16 units, and not exact: outcomes can
+            differ from float32 near the BRT boundary (measured in ``benchmarks/bench_rollouts.py``).
+        early_exit: stop trajectories whose outcome is decided (see the module docstring).
+
+    Every field is checked at construction and a bad one raises ``ValueError`` naming it; NumPy and
+    0-d tensor reals are taken (and stored as Python numbers).
+    """
+
+    horizon: float | None = None
+    dt: float = 0.0025
+    integrator: str = "euler"
+    policy: str = "gradient"
+    chunk_size: int = 16384
+    matmul_precision: str = "float32"
+    early_exit: bool = True
+
+    def __post_init__(self) -> None:
+        horizon = None if self.horizon is None else positive_finite("horizon", self.horizon)
+        dt = positive_finite("dt", self.dt)
+        if horizon is not None and dt > horizon:
+            raise ValueError(f"dt must not exceed the horizon: dt {dt:g} s is longer than the horizon {horizon:g} s")
+        check_integrator(self.integrator)
+        check_policy(self.policy)
+        if self.matmul_precision not in ("float32", "bfloat16"):
+            raise ValueError(f"matmul_precision must be 'float32' or 'bfloat16', got {self.matmul_precision!r}")
+        if not isinstance(self.early_exit, bool):
+            raise ValueError(f"early_exit must be True or False, got {self.early_exit!r}")
+        object.__setattr__(self, "horizon", horizon)
+        object.__setattr__(self, "dt", dt)
+        object.__setattr__(self, "chunk_size", check_int("chunk_size", self.chunk_size, 1))
+
+    @classmethod
+    def of(cls, settings: RolloutSettings | None, keywords: dict[str, Any]) -> RolloutSettings:
+        """``settings`` with ``keywords`` (field names) replaced, or the defaults with them: the one
+        place where keyword arguments become settings. An unknown keyword raises ``ValueError``."""
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(keywords) - names)
+        if unknown:
+            raise ValueError(f"unknown rollout setting(s) {unknown}; settings are {sorted(names)}")
+        return cls(**keywords) if settings is None else replace(settings, **keywords)
+
+    def for_system(self, system: ControlAffineSystem) -> RolloutSettings:
+        """These settings with the horizon resolved to the system's where it is None (checked again:
+        a step longer than the system's horizon is refused)."""
+        return self if self.horizon is not None else replace(self, horizon=system.horizon)
 
 
 def rollout(
     value_function: ValueFunction,
     states: torch.Tensor,
-    horizon: float | None = None,
-    dt: float = 0.0025,
-    integrator: Literal["euler", "rk4"] = "euler",
+    settings: RolloutSettings | None = None,
+    *,
     disturbance: DisturbanceSpec = "optimal",
-    chunk_size: int = 16384,
-    early_exit: bool = True,
     record: bool = False,
     device: str | torch.device | None = None,
     dtype: torch.dtype = torch.float32,
     progress: bool = True,
-    matmul_precision: Literal["float32", "bfloat16"] = "float32",
-    policy: Literal["gradient", "greedy"] = "gradient",
+    **keywords: Any,
 ) -> RolloutResult:
-    """Roll out every state in ``states`` ``(N, n)`` under the value function's optimal policy.
+    """Roll out every state in ``states`` ``(N, n)`` under the value function's induced policy.
 
     Args:
-        horizon: time-to-go at the start (default: the system's horizon).
-        dt: step length; ``integrator``: ``"euler"`` (DeepReach) or ``"rk4"``.
+        settings: how to simulate (:class:`RolloutSettings`: horizon, step, integrator, policy,
+            batch size, precision, early exit); its fields may also be given as keywords
+            (``rollout(vf, x, dt=0.01, policy="greedy")``), alone or over ``settings``.
         disturbance: ``"optimal"`` (worst case ``d*``), ``"none"`` (box centre) or ``fn(x, t) -> d``.
-        chunk_size: states simulated together (memory is about ``chunk_size x width x layers``).
-        early_exit: stop trajectories whose outcome is decided (see the module docstring).
         record: keep every state (small ``N`` only; turns the margin-bound exit off).
         device: where to simulate (default: the states' device).
         dtype: precision of the simulation (default float32).
-        matmul_precision: ``"bfloat16"`` runs a network's hidden products in bfloat16 (neural value
-            functions only): faster on CPUs and GPUs with bf16 units, and not exact: outcomes can
-            differ from float32 near the BRT boundary (measured in ``benchmarks/bench_rollouts.py``).
-        policy: ``"gradient"`` (the bang-bang ``u*`` of ``grad V``) or ``"greedy"``
-            (:class:`~safety.value_policies.GreedyPolicy`: the candidate input held for
-            :data:`~safety.value_policies.GREEDY_STEP` that leaves the most value; about ``2^m_u + 1`` times the
-            network work per step). The disturbance is the gradient's ``d*`` either way.
+        progress: show a progress bar over chunk-steps.
     """
+    settings = RolloutSettings.of(settings, keywords).for_system(value_function.system)
+    horizon, dt, integrator, policy = settings.horizon, settings.dt, settings.integrator, settings.policy
+    chunk_size, matmul_precision, early_exit = settings.chunk_size, settings.matmul_precision, settings.early_exit
     system = value_function.system
     check_states(states, system.state_dim)
     if states.ndim != 2:
         raise ValueError(f"states must have shape (N, {system.state_dim}), got {tuple(states.shape)}")
-    horizon, dt = check_rollout_settings(
-        horizon=system.horizon if horizon is None else horizon, dt=dt, integrator=integrator, chunk_size=chunk_size
-    )
-    chunk_size = int(chunk_size)
-    check_policy(policy)
     if not (disturbance in ("optimal", "none") or callable(disturbance)):
         raise ValueError(f"disturbance must be 'optimal', 'none' or a callable, got {disturbance!r}")
     check_time_coverage(value_function, 0.0, horizon, f"a rollout from time-to-go {horizon:g}")
@@ -151,8 +183,6 @@ def rollout(
             kind = type(value_function).__name__
             raise ValueError(f"matmul_precision='bfloat16' needs a neural value function, not {kind}")
         value_function = value_function.with_matmul_dtype(torch.bfloat16)
-    elif matmul_precision != "float32":
-        raise ValueError(f"matmul_precision must be 'float32' or 'bfloat16', got {matmul_precision!r}")
     device = torch.device(device) if device is not None else states.device
     n_steps = num_steps(horizon, dt)
     if record and states.shape[0] > 100_000:

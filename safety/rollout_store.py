@@ -44,7 +44,7 @@ import torch
 from reach.atomic import atomic_path
 from reach.locking import exclusive_lock
 from reach.value_function import ValueFunction
-from safety.rollout import RolloutResult, rollout
+from safety.rollout import RolloutResult, RolloutSettings, rollout
 
 MANIFEST = "manifest.json"
 #: per-state outcome tensors a block keeps, with their dtypes
@@ -141,14 +141,23 @@ class RolloutStore:
         if getattr(self, "_owned", False):
             self.close()
 
-    def rollout(self, name: str, value_function: ValueFunction, states: torch.Tensor, **settings: Any) -> RolloutResult:
-        """:func:`~safety.rollout.rollout` of ``states`` in blocks of ``settings["chunk_size"]``,
+    def rollout(
+        self,
+        name: str,
+        value_function: ValueFunction,
+        states: torch.Tensor,
+        settings: RolloutSettings | None = None,
+        **run: Any,
+    ) -> RolloutResult:
+        """:func:`~safety.rollout.rollout` of ``states`` in blocks of ``settings.chunk_size``,
         each loaded from the store if it holds that block of these states, else simulated and saved.
         The same outcomes as one call (the engine chunks the same way); ``wall_time`` and the work
         sum the blocks' own simulation, whenever it ran."""
-        if settings.get("record"):
+        if run.get("record"):
             raise ValueError("a RolloutStore keeps outcomes, not trajectories (record=True)")
-        block = int(settings.get("chunk_size", 16384))
+        keywords = {k: run.pop(k) for k in list(run) if k in RolloutSettings.__dataclass_fields__}
+        settings = RolloutSettings.of(settings, keywords)
+        block = settings.chunk_size
         parts: list[RolloutResult] = []
         for index, lo in enumerate(range(0, states.shape[0], block)):
             part = states[lo : lo + block]
@@ -156,14 +165,14 @@ class RolloutStore:
             digest = states_digest(part)
             result = self._load(path, digest, part.shape[0])
             if result is None:
-                result = rollout(value_function, part, **settings)
+                result = rollout(value_function, part, settings, **run)
                 self._save(path, digest, result)
                 self.simulated_blocks += 1
             else:
                 self.loaded_blocks += 1
             parts.append(result)
         if not parts:
-            return rollout(value_function, states, **settings)
+            return rollout(value_function, states, settings, **run)
         return RolloutResult(
             initial_value=torch.cat([p.initial_value for p in parts]),
             collided=torch.cat([p.collided for p in parts]),

@@ -20,9 +20,8 @@ from reach.systems import ControlAffineSystem
 from reach.threads import thread_policy
 from reach.value_function import ValueFunction
 from safety.metrics import robust_level_search, scenario_epsilon, violation_statistics, wilson_interval
-from safety.rollout import RolloutResult, check_rollout_settings, rollout
+from safety.rollout import RolloutResult, RolloutSettings, rollout
 from safety.rollout_store import RolloutStore
-from safety.value_policies import check_policy
 
 
 @dataclass(frozen=True)
@@ -65,10 +64,18 @@ class VerifySettings:
             isinstance(self.robust_samples, bool) or not isinstance(self.robust_samples, int) or self.robust_samples < 0
         ):
             raise ValueError(f"robust_samples must be an integer >= 0, got {self.robust_samples!r}")
-        if self.matmul_precision not in ("float32", "bfloat16"):
-            raise ValueError(f"matmul_precision must be 'float32' or 'bfloat16', got {self.matmul_precision!r}")
-        check_policy(self.policy)
-        check_rollout_settings(horizon=self.horizon, dt=self.dt, integrator=self.integrator, chunk_size=self.chunk_size)
+        self.rollout_settings(self.horizon)  # the rollout fields, checked where every rollout's are
+
+    def rollout_settings(self, horizon: float | None, matmul_precision: str | None = None) -> RolloutSettings:
+        """How each of this verification's rollouts simulates, from ``horizon`` (the resolved one)."""
+        return RolloutSettings(
+            horizon=horizon,
+            dt=self.dt,
+            integrator=self.integrator,
+            policy=self.policy,
+            chunk_size=self.chunk_size,
+            matmul_precision=self.matmul_precision if matmul_precision is None else matmul_precision,
+        )
 
     @property
     def fresh_samples(self) -> int:
@@ -113,12 +120,7 @@ def check_for_system(system: ControlAffineSystem, settings: VerifySettings) -> i
     """Refuse, before sampling anything, settings that do not fit ``system``: a step longer than the
     system's horizon (when the settings leave the horizon to it), or a verification that needs more
     memory than is available; returns the memory estimate in bytes."""
-    check_rollout_settings(
-        horizon=system.horizon if settings.horizon is None else settings.horizon,
-        dt=settings.dt,
-        integrator=settings.integrator,
-        chunk_size=settings.chunk_size,
-    )
+    settings.rollout_settings(settings.horizon).for_system(system)
     need = estimate_rollout_bytes(system.state_dim, settings)
     have = available_memory()
     if have is not None and need > have:
@@ -200,16 +202,7 @@ def _verify(
     start = time.perf_counter()
     horizon = vf.system.horizon if settings.horizon is None else settings.horizon
     precision = settings.matmul_precision if hasattr(vf, "with_matmul_dtype") else "float32"
-    common = {
-        "matmul_precision": precision,
-        "horizon": horizon,
-        "dt": settings.dt,
-        "integrator": settings.integrator,
-        "chunk_size": settings.chunk_size,
-        "policy": settings.policy,
-        "device": device,
-        "progress": progress,
-    }
+    common = {"settings": settings.rollout_settings(horizon, precision), "device": device, "progress": progress}
     result = _rollout(store, "samples", vf, states, common)
     row: dict[str, Any] = violation_statistics(result.initial_value, result.collided)
     row["matmul_precision"] = precision

@@ -122,3 +122,31 @@ def test_a_diverged_run_says_truthfully_what_it_kept(tmp_path):
     message = Trainer.resume(run, progress=False)._diverged_message(math.nan)
     assert "last good checkpoint (step 2)" in message and (run / "checkpoint.pt").exists()
     assert f"reach train --resume {run}" in message
+
+
+def test_rollout_settings_validate_once_and_travel_whole():
+    from reach.systems import Air3D
+    from safety import RolloutSettings, rollout
+    from training import NeuralValueFunction, ValueNetwork
+
+    torch.manual_seed(0)
+    vf = NeuralValueFunction(ValueNetwork(Air3D(), "ssssl", width=8))
+    x = vf.system.sample_states(16, generator=torch.Generator().manual_seed(0))
+    settings = RolloutSettings(dt=np.float32(0.01), chunk_size=np.int64(8), horizon=torch.tensor(0.5))
+    assert (settings.dt, settings.chunk_size, settings.horizon) == (pytest.approx(0.01), 8, 0.5)
+    whole = rollout(vf, x, settings, progress=False)
+    loose = rollout(vf, x, dt=float(np.float32(0.01)), chunk_size=8, horizon=0.5, progress=False)
+    assert torch.equal(whole.collided, loose.collided) and torch.equal(whole.decided_time, loose.decided_time)
+    over = rollout(vf, x, settings, dt=0.05, progress=False)  # a keyword over a settings object
+    assert over.steps == 10
+    with pytest.raises(ValueError, match=r"unknown rollout setting\(s\) \['dtt'\]"):
+        rollout(vf, x, dtt=0.01, progress=False)
+    for bad, rule in (
+        ({"dt": 2.0, "horizon": 1.0}, "dt must not exceed the horizon"),
+        ({"dt": "0.01"}, "real number"),
+        ({"policy": "greed"}, "policy"),
+        ({"chunk_size": 0}, "chunk_size must be >= 1"),
+        ({"early_exit": 1}, "early_exit must be True or False"),
+    ):
+        with pytest.raises(ValueError, match=rule):
+            RolloutSettings(**bad)
