@@ -40,11 +40,12 @@ from reach.systems.backend import TORCH
 from reach.validation import positive_int_arg
 from reach_envs.scenes import make_scene
 from reach_envs.vector import ReachVectorEnv
+from safety.filter_settings import FilterSettings
 from safety.rollout import rollout
 from safety.sources import load_value_function
 from safety.verify import sample_states, values_at
 from safety.wrappers import SafetyFilterVectorWrapper
-from studies.filter_eval import outside_states
+from studies.filter_episodes import outside_states
 from studies.tasks import make_task
 
 DT = 0.0025  # the verification protocol's step
@@ -92,7 +93,7 @@ def merge(args: argparse.Namespace) -> None:
     starts = outside_states(vf, args.episodes, 0.1, 0, scene)
     task = make_task(system)
     base = ReachVectorEnv(args.episodes, scene)
-    env = SafetyFilterVectorWrapper(base, vf, policy="gradient")
+    env = SafetyFilterVectorWrapper(base, vf, settings=FilterSettings(policy="gradient"))
     env.reset(seed=0, options={"state": starts})
     task.reset(base.state, np.random.default_rng(0))
     active = np.ones(args.episodes, dtype=bool)
@@ -174,7 +175,7 @@ def cost(args: argparse.Namespace) -> None:
     torch.set_num_threads(1)
     for env_id in ("Air3D-v0", "MultiVehicle9D-v0"):
         for policy in ("gradient", "greedy"):
-            env = SafetyFilterWrapper(gym.make(env_id), policy=policy)
+            env = SafetyFilterWrapper(gym.make(env_id), settings=FilterSettings(policy=policy))
             env.reset(seed=0)
             env.action_space.seed(0)
             steps = interventions = 0

@@ -1,4 +1,10 @@
-"""``reach filter-eval``: episodes of a goal-seeking task with and without the safety filter."""
+"""``reach filter-eval``: episodes of a goal-seeking task with and without the safety filter.
+
+Wiring only: the options become a :class:`~studies.filter_configs.FilterStudySettings` (its episodes,
+its filter grid with one shared :class:`~safety.filter_settings.FilterSettings`, its outputs) for
+:func:`~studies.filter_study.run_filter_study`. Options that set a ``FilterSettings`` field default
+to ``None`` and fall back to the dataclass; every other default is read from the dataclasses too.
+"""
 
 from __future__ import annotations
 
@@ -13,8 +19,35 @@ from reach.validation import (
     positive_int_arg,
     seed_arg,
 )
-from reach_cli.options import add_subparser
-from safety.filter import DEFAULT_GAMMA, KINDS
+from reach_cli.options import add_subparser, default
+from safety.filter_settings import KINDS, LOOKAHEAD_DISTURBANCES, FilterSettings
+from safety.value_policies import POLICIES
+from studies.filter_configs import START_FROM, EpisodeSettings, FilterGrid, FilterStudySettings, StudyOutput
+
+#: (option, FilterSettings field, argparse keywords, help): options shared by every filter of the run
+FILTER_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
+    (
+        "--backup-horizon",
+        "backup_horizon",
+        {"type": nonnegative_float_arg},
+        "lookahead filter: seconds of the backup policy checked after the nominal step (None: the system's horizon)",
+    ),
+    (
+        "--backup-disturbance",
+        "backup_disturbance",
+        {"choices": list(LOOKAHEAD_DISTURBANCES)},
+        "lookahead filter: check the value function's d* path and a greedy worst case over the "
+        "disturbance box's corners (robust), or the d* path alone (model)",
+    ),
+    (
+        "--policy",
+        "policy",
+        {"choices": list(POLICIES)},
+        "the input a filter applies when it overrides the nominal one: the bang-bang u* of grad V "
+        "(gradient), or the candidate input held for a short step that leaves the most value (greedy); "
+        "None: greedy for switch, gradient for lookahead and smooth",
+    ),
+)
 
 
 def add_parser(sub: Any) -> None:
@@ -41,52 +74,40 @@ def add_parser(sub: Any) -> None:
         help="nominal policy package.module:function, states (N, n) -> actions (N, m) in [-1, 1] "
         "(default: the scene's goal task; for a system without goals, the centre of the control box)",
     )
-    p.add_argument("--episodes", type=positive_int_arg, default=1000)
-    p.add_argument("--seed", type=seed_arg, default=0)
+    p.add_argument("--episodes", type=positive_int_arg, default=default(EpisodeSettings, "episodes"))
+    p.add_argument("--seed", type=seed_arg, default=default(EpisodeSettings, "seed"))
     p.add_argument(
         "--thresholds", default=None, help="comma-separated filter thresholds >= 0 (default: 2 x rate bound x dt)"
     )
     p.add_argument(
         "--filters",
-        default="switch",
-        help="comma-separated filter kinds to compare on the same episodes: switch, lookahead, smooth",
+        default=default(FilterSettings, "kind"),
+        help=f"comma-separated filter kinds to compare on the same episodes: {', '.join(KINDS)} "
+        f"(default: {default(FilterSettings, 'kind')})",
     )
     p.add_argument(
         "--gammas",
         default=None,
-        help=f"smooth filter: comma-separated barrier rates gamma >= 0 (default: {DEFAULT_GAMMA:g})",
+        help=f"smooth filter: comma-separated barrier rates gamma >= 0 (default: {default(FilterSettings, 'gamma'):g})",
     )
+    for option, field, kwargs, text in FILTER_OPTIONS:
+        p.add_argument(
+            option, dest=field, default=None, help=f"{text} (default: {default(FilterSettings, field)})", **kwargs
+        )
     p.add_argument(
-        "--backup-horizon",
-        type=nonnegative_float_arg,
+        "--time-to-go",
         default=None,
-        help="lookahead filter: seconds of the backup policy checked after the nominal step "
-        "(default: the system's horizon)",
+        help="None (value function horizon), a number, or 'remaining' "
+        f"(default: {default(FilterSettings, 'time_to_go')})",
     )
-    p.add_argument(
-        "--backup-disturbance",
-        choices=["robust", "model"],
-        default="robust",
-        help="lookahead filter: check the value function's d* path and a greedy worst case over the "
-        "disturbance box's corners (robust), or the d* path alone (model)",
-    )
-    p.add_argument(
-        "--policy",
-        choices=["gradient", "greedy"],
-        default=None,
-        help="the input a filter applies when it overrides the nominal one: the bang-bang u* of grad V "
-        "(gradient), or the candidate input held for a short step that leaves the most value (greedy); "
-        "default: greedy for switch, gradient for lookahead and smooth",
-    )
-    p.add_argument("--time-to-go", default=None, help="None (value function horizon), a number, or 'remaining'")
     p.add_argument("--pursuer", choices=["scene", "pursue", "random", "worst-case"], default="scene")
     p.add_argument("--adversary", default=None, help="value function whose d* the worst-case pursuer plays")
     p.add_argument("--start-outside", default=None, help="value function: start only from {V > margin}")
-    p.add_argument("--start-margin", type=nonnegative_float_arg, default=0.1)
+    p.add_argument("--start-margin", type=nonnegative_float_arg, default=default(EpisodeSettings, "start_margin"))
     p.add_argument(
         "--start-from",
-        choices=["domain", "scene"],
-        default="domain",
+        choices=list(START_FROM),
+        default=default(EpisodeSettings, "start_from"),
         help="--start-outside draws uniformly over the system's domain, or among the scene's own starts",
     )
     p.add_argument("--format", choices=["auto", "reach", "deepreach", "grid"], default="auto")
@@ -114,7 +135,8 @@ def run(args: argparse.Namespace) -> int:
     from reach_envs.scenes import env_scene
     from safety.sources import load_value_function
     from studies.batch_verification import expand_sources
-    from studies.filter_eval import filter_table, run_filter_study
+    from studies.filter_study import run_filter_study
+    from studies.filter_tables import filter_table
 
     # checks first: scene, numbers, output paths, then the value functions (their time ranges too)
     # a named scene or a plain scene of --system (not both); air3d when neither is given
@@ -135,7 +157,14 @@ def run(args: argparse.Namespace) -> int:
     unknown = [k for k in kinds if k not in KINDS]
     if unknown or not kinds:
         raise ValueError(f"--filters must list kinds among {', '.join(KINDS)}, got {args.filters!r}")
-    gammas = csv_floats("--gammas", args.gammas, lambda n, v: check_float(n, v, 0)) if args.gammas else [DEFAULT_GAMMA]
+    gammas = (
+        csv_floats("--gammas", args.gammas, lambda n, v: check_float(n, v, 0))
+        if args.gammas
+        else [default(FilterSettings, "gamma")]
+    )
+    given = {field: getattr(args, field) for _, field, _, _ in FILTER_OPTIONS if getattr(args, field) is not None}
+    shared = FilterSettings(time_to_go=ttg, **given)  # what every filter of the run shares
+    grid = FilterGrid(thresholds, kinds, gammas, shared)
     out = check_output_path(args.out, "--out")
     if args.gif:
         check_output_path(args.gif, "--gif")
@@ -154,45 +183,37 @@ def run(args: argparse.Namespace) -> int:
                 raise ValueError("--pursuer worst-case needs --adversary VF (or a value function to filter with)")
             pursuer = load_value_function(source, system=system).value_function
     start = load_value_function(args.start_outside, system=system).value_function if args.start_outside else None
-    study = run_filter_study(
-        scene,
-        [(lv.label, lv.value_function) for lv in loaded],
-        out,
-        thresholds=thresholds,
+    episodes = EpisodeSettings(
         episodes=args.episodes,
         seed=args.seed,
-        time_to_go=ttg,
         pursuer=pursuer,
         start_outside=start,
         start_margin=args.start_margin,
         start_from=args.start_from,
-        gif=args.gif,
-        pettingzoo=args.pettingzoo,
-        kinds=kinds,
-        gammas=gammas,
         nominal=nominal,
-        backup_horizon=args.backup_horizon,
-        backup_disturbance=args.backup_disturbance,
-        policy=args.policy,
-        merge=True,  # rows join a table of the same episodes already at --out, as reach evaluate's do
-        header={
-            "filters": kinds,
-            "gammas": gammas if "smooth" in kinds else None,
-            "backup_horizon": args.backup_horizon if "lookahead" in kinds else None,
-            "backup_disturbance": args.backup_disturbance if "lookahead" in kinds else None,
-            "policy": args.policy,
-            "format": "reach.filter-eval.v1",
-            "scene": scene.name,
-            "system": system.reference(),
-            "nominal": args.nominal or "task default",
-            "pursuer": args.pursuer,
-            "time_to_go": args.time_to_go or "value function horizon",
-            "start_outside": args.start_outside,
-            "start_margin": args.start_margin if args.start_outside else None,
-            "start_from": args.start_from if args.start_outside else None,
-            "path": "pettingzoo" if args.pettingzoo else "vector",
-        },
+        pettingzoo=args.pettingzoo,
     )
+    header = {
+        "filters": kinds,
+        "gammas": gammas if "smooth" in kinds else None,
+        "backup_horizon": shared.backup_horizon if "lookahead" in kinds else None,
+        "backup_disturbance": shared.backup_disturbance if "lookahead" in kinds else None,
+        "policy": shared.policy,
+        "format": "reach.filter-eval.v1",
+        "scene": scene.name,
+        "system": system.reference(),
+        "nominal": args.nominal or "task default",
+        "pursuer": args.pursuer,
+        "time_to_go": args.time_to_go or "value function horizon",
+        "start_outside": args.start_outside,
+        "start_margin": args.start_margin if args.start_outside else None,
+        "start_from": args.start_from if args.start_outside else None,
+        "path": "pettingzoo" if args.pettingzoo else "vector",
+    }
+    # rows join a table of the same episodes already at --out, as reach evaluate's do
+    output = StudyOutput(gif=args.gif, header=header, merge=True)
+    sources = [(lv.label, lv.value_function) for lv in loaded]
+    study = run_filter_study(scene, sources, out, FilterStudySettings(episodes, grid, output))
     print(filter_table(study.rows))
     print()
     for path in study.paths:

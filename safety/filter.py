@@ -1,6 +1,8 @@
 """Safety filters around a value function: keep the nominal input unless the value says danger.
 
-``SafetyFilter(vf, threshold, kind=...)(x, t, u_nominal) -> (u, info)``, batched over states. Three
+``SafetyFilter(vf, threshold, kind=...)(x, t, u_nominal) -> (u, info)``, batched over states; the
+options are one :class:`~safety.filter_settings.FilterSettings`, given whole
+(``SafetyFilter(vf, settings=FilterSettings(kind="smooth"))``) or field by field as keywords. Three
 kinds, one interface (every env adapter in :mod:`safety.wrappers` takes each):
 
 - ``"switch"`` (least-restrictive): keep ``u_nominal`` where ``V(x, t) > threshold``, else apply
@@ -50,56 +52,50 @@ non-finite value, gradient or optimal input raises instead of passing the nomina
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
 from reach.integrators import check_integrator, make_stepper
 from reach.systems.backend import TORCH
 from reach.value_function import ValueFunction
-from safety.value_policies import GreedyPolicy, OptimalPolicy, check_policy, check_states
+from safety.filter_settings import (
+    DEFAULT_GAMMA,
+    DEFAULT_POLICIES,
+    KINDS,
+    LOOKAHEAD_DISTURBANCES,
+    FilterSettings,
+    make_filter_settings,
+    resolve_policy,
+)
+from safety.value_policies import GreedyPolicy, OptimalPolicy, check_states
 
-#: the filter kinds :class:`SafetyFilter` offers
-KINDS = ("switch", "lookahead", "smooth")
-
-#: the disturbance paths the lookahead can check (see the module docstring)
-LOOKAHEAD_DISTURBANCES = ("robust", "model")
-
-#: the backup input each kind uses unless told otherwise (see the module docstring)
-DEFAULT_POLICIES = {"switch": "greedy", "lookahead": "gradient", "smooth": "gradient"}
-
-#: default barrier rate of the smooth filter (1/s): V may fall at most at rate gamma (V - threshold)
-DEFAULT_GAMMA = 5.0
-
-
-def _non_negative(value: object) -> bool:
-    return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value) and value >= 0
-
-
-def check_filter_settings(
-    kind: str,
-    gamma: float = DEFAULT_GAMMA,
-    backup_horizon: float | None = None,
-    backup_disturbance: str = "robust",
-    policy: str | None = None,
-) -> None:
-    """Refuse a filter kind, barrier rate, backup horizon, lookahead disturbance or backup policy that
-    makes no sense, naming it (called before any episode runs, and by :class:`SafetyFilter`)."""
-    if kind not in KINDS:
-        raise ValueError(f"filter kind must be one of {KINDS}, got {kind!r}")
-    if not _non_negative(gamma):
-        raise ValueError(f"gamma must be a finite number >= 0, got {gamma!r}")
-    if backup_horizon is not None and not _non_negative(backup_horizon):
-        raise ValueError(f"backup_horizon must be a finite number of seconds >= 0, got {backup_horizon!r}")
-    if backup_disturbance not in LOOKAHEAD_DISTURBANCES:
-        raise ValueError(f"backup_disturbance must be one of {LOOKAHEAD_DISTURBANCES}, got {backup_disturbance!r}")
-    if policy is not None:
-        check_policy(policy)
+__all__ = [
+    "DEFAULT_GAMMA",
+    "DEFAULT_POLICIES",
+    "KINDS",
+    "LOOKAHEAD_DISTURBANCES",
+    "FilterInfo",
+    "FilterSettings",
+    "SafetyFilter",
+    "check_filter_settings",
+    "make_filter_settings",
+    "resolve_policy",
+]
 
 
-def resolve_policy(kind: str, policy: str | None) -> str:
-    """The backup input a filter of ``kind`` uses: ``policy``, or the kind's default when None."""
-    return DEFAULT_POLICIES[kind] if policy is None else check_policy(policy)
+def check_filter_settings(kind: str, *args: Any, **kwargs: Any) -> None:
+    """Deprecated (removed in reach 0.3): ``FilterSettings(kind, gamma=..., ...)`` checks its fields
+    when it is made. Kept as a thin wrapper: refuses what :class:`FilterSettings` refuses."""
+    warnings.warn(
+        "check_filter_settings is deprecated; FilterSettings(...) checks its fields when it is made "
+        "(removed in reach 0.3)",
+        DeprecationWarning,
+        stacklevel=2,
+    )
+    FilterSettings(kind, **dict(zip(("gamma", "backup_horizon", "backup_disturbance", "policy"), args)), **kwargs)
 
 
 @dataclass
@@ -123,57 +119,65 @@ class SafetyFilter:
 
     Args:
         value_function: any :class:`ValueFunction` (network, DeepReach import, grid solution).
-        threshold: the level treated as the boundary (a small positive margin buys robustness).
-        kind: ``"switch"``, ``"lookahead"`` or ``"smooth"``.
+        threshold: the level treated as the boundary (a small positive margin buys robustness);
+            ``None`` or not given: ``settings.threshold``, whose ``None`` here means 0 (the default
+            rule for a filter acting every env step is the adapters', :meth:`FilterSettings.threshold_for`).
+        settings: the :class:`~safety.filter_settings.FilterSettings` (kind, gamma, backup horizon,
+            backup disturbance, backup policy); default ``FilterSettings()``.
         dt: the step the lookahead predicts over (required for ``"lookahead"``; the env adapters
             pass the env's ``dt``).
         integrator: how the lookahead predicts (``"rk4"``, the envs' default, or ``"euler"``).
-        backup_horizon: how long (s) the lookahead rolls the backup policy ``u*`` after the nominal
-            step (``None``: the system's horizon; 0: the nominal step alone).
-        backup_disturbance: the lookahead's predicted disturbance paths, ``"robust"`` or ``"model"``.
-        gamma: the smooth filter's barrier rate (1/s, finite, >= 0; 0 forbids any decrease of ``V``).
-        policy: the backup input: ``"gradient"`` (``u*`` of ``grad V``), ``"greedy"``
-            (:class:`~safety.value_policies.GreedyPolicy`, predicted with ``integrator`` in steps of ``dt``)
-            or ``None``: the kind's default (:data:`DEFAULT_POLICIES`).
+        **options: any :class:`FilterSettings` field by name (``kind="smooth", gamma=2.0``), a
+            convenience that replaces that field of ``settings``
+            (:func:`~safety.filter_settings.make_filter_settings`).
+
+    ``policy="greedy"`` backs up with :class:`~safety.value_policies.GreedyPolicy`, predicted with
+    ``integrator`` in steps of ``dt``. ``settings`` (the threshold as now set) reads back the
+    settings in force.
     """
 
     def __init__(
         self,
         value_function: ValueFunction,
-        threshold: float = 0.0,
-        kind: str = "switch",
+        threshold: float | None = None,
+        *,
+        settings: FilterSettings | None = None,
         dt: float | None = None,
         integrator: str = "rk4",
-        gamma: float = DEFAULT_GAMMA,
-        backup_horizon: float | None = None,
-        backup_disturbance: str = "robust",
-        policy: str | None = None,
+        **options: Any,
     ) -> None:
-        if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not math.isfinite(threshold):
-            raise ValueError(f"threshold must be a finite number, got {threshold!r}")
-        check_filter_settings(kind, gamma, backup_horizon, backup_disturbance, policy)
+        settings = make_filter_settings(settings, threshold=threshold, **options)
+        kind = settings.kind
         if kind == "lookahead":
             if dt is None or isinstance(dt, bool) or not (math.isfinite(dt) and dt > 0):
                 raise ValueError(f"the lookahead filter needs a step dt > 0, got {dt!r}")
             self._stepper = make_stepper(value_function.system, float(dt), check_integrator(integrator), TORCH)
-        horizon = value_function.system.horizon if backup_horizon is None else backup_horizon
+        horizon = value_function.system.horizon if settings.backup_horizon is None else settings.backup_horizon
         # steps of the backup rollout (the lookahead only): enough held steps to cover the horizon
         self.backup_steps = math.ceil(horizon / dt - 1e-9) if kind == "lookahead" else 0
         self.backup_horizon = float(horizon)
-        self.backup_disturbance = backup_disturbance
+        self.backup_disturbance = settings.backup_disturbance
         self.value_function = value_function
         self.system = value_function.system
         self.policy = OptimalPolicy(value_function)
-        self.policy_name = resolve_policy(kind, policy)
+        self.policy_name = settings.backup_policy
         self.greedy = (
             GreedyPolicy(value_function, **({} if dt is None else {"dt": float(dt)}), integrator=integrator)
             if self.policy_name == "greedy"
             else None
         )
-        self.threshold = float(threshold)
+        self.threshold = settings.threshold_for(self.system)
         self.kind = kind
         self.dt = dt
-        self.gamma = float(gamma)
+        self.gamma = float(settings.gamma)
+        self._settings = make_filter_settings(settings, threshold=self.threshold)  # the rule resolved
+
+    @property
+    def settings(self) -> FilterSettings:
+        """The :class:`FilterSettings` in force, with the threshold as now set (it may change between calls)."""
+        if self._settings.threshold == self.threshold:
+            return self._settings
+        return make_filter_settings(self._settings, threshold=self.threshold)
 
     def __call__(
         self, x: torch.Tensor, t: float | torch.Tensor, u_nominal: torch.Tensor

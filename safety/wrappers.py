@@ -9,6 +9,10 @@ Time-to-go: ``time_to_go=None`` (default) evaluates ``V`` at the system's horizo
 value function was trained for; a number fixes another horizon; ``"remaining"`` uses the time left
 in the episode (``horizon - elapsed``, floored at 0).
 
+Settings: the filter's options are one :class:`~safety.filter_settings.FilterSettings`, given whole
+(``SafetyFilterWrapper(env, vf, settings=FilterSettings(kind="lookahead"))``) or field by field as
+keywords (``SafetyFilterWrapper(env, vf, kind="lookahead")``); its defaults are the ones below.
+
 Filters: ``kind="switch"`` (default), ``"lookahead"`` (predicts one env step with the env's ``dt``
 and integrator, then ``backup_horizon`` seconds of the backup policy, default the system's horizon,
 along the ``backup_disturbance`` paths, default ``"robust"``)
@@ -35,7 +39,6 @@ threshold is 0 (on Air3D, 1,000 attacked episodes: no collision with the grid tr
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import gymnasium as gym
@@ -45,76 +48,46 @@ from gymnasium.vector import VectorWrapper
 from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from reach.value_function import ValueFunction, check_time_coverage
-from safety.filter import DEFAULT_GAMMA, FilterInfo, SafetyFilter
+from safety.filter import FilterInfo, SafetyFilter
+from safety.filter_settings import DEFAULT_GAMMA, REMAINING, FilterSettings, default_threshold, make_filter_settings
 from safety.sources import as_value_function
 from training import pretrained
 
-
-def _check_time_to_go(time_to_go: float | str | None) -> None:
-    if time_to_go is None or time_to_go == "remaining":
-        return
-    if (
-        isinstance(time_to_go, (str, bool))
-        or not isinstance(time_to_go, (int, float))
-        or not (math.isfinite(time_to_go) and time_to_go >= 0)
-    ):
-        raise ValueError(f"time_to_go must be None, 'remaining' or a number >= 0, got {time_to_go!r}")
-
-
-def default_threshold(system: Any, dt: float, kind: str = "switch") -> float:
-    """The default threshold of a filter kind in an env stepping ``dt``: the switch and the smooth
-    filter decide on the current state, so theirs is ``2 * rate * dt``, twice what ``V`` can lose in
-    one held step, with ``rate`` the system's :meth:`margin_rate_bound` or, for a system that declares
-    none, :meth:`margin_rate_estimate` (sampled over the domain); the lookahead checks the next
-    state, so 0."""
-    if kind == "lookahead":
-        return 0.0
-    bound = system.margin_rate_bound()
-    return 2.0 * (system.margin_rate_estimate() if bound is None else bound) * dt
+__all__ = [
+    "DEFAULT_GAMMA",
+    "SafetyFilterParallelWrapper",
+    "SafetyFilterVectorWrapper",
+    "SafetyFilterWrapper",
+    "default_threshold",
+]
 
 
 class _Adapter:
     """Shared unit conversion and time-to-go logic of the three wrappers."""
 
     def __init__(
-        self,
-        system: Any,
-        value_function: ValueFunction | str,
-        threshold: float | None,
-        time_to_go: float | str | None,
-        scene: Any,
-        device: str,
-        kind: str = "switch",
-        gamma: float = DEFAULT_GAMMA,
-        backup_horizon: float | None = None,
-        backup_disturbance: str = "robust",
-        policy: str | None = None,
+        self, system: Any, value_function: ValueFunction | str, scene: Any, device: str, settings: FilterSettings
     ) -> None:
-        _check_time_to_go(time_to_go)
         episode_horizon = scene.episode_horizon
-        if threshold is None:
-            threshold = default_threshold(system, scene.dt, kind)
+        threshold = settings.threshold_for(system, scene.dt)  # None: the rule for a filter acting every dt
         vf = as_value_function(
             value_function, system, device, "value function (the environment simulates another system)"
         )
         self.filter = SafetyFilter(
             vf,
-            threshold,
-            kind=kind,
+            settings=make_filter_settings(settings, threshold=threshold),
             dt=scene.dt,
             integrator=scene.integrator,
-            gamma=gamma,
-            backup_horizon=backup_horizon,
-            backup_disturbance=backup_disturbance,
-            policy=policy,
         )
         # the times the filter will ask for, checked now rather than mid-episode
+        time_to_go = settings.time_to_go
         if time_to_go is None:
             check_time_coverage(vf, vf.system.horizon, vf.system.horizon, "the filter (time_to_go=None)")
-        elif time_to_go == "remaining":
+        elif time_to_go == REMAINING:
             check_time_coverage(vf, 0.0, episode_horizon, "the filter (time_to_go='remaining')")
         else:
             check_time_coverage(vf, float(time_to_go), float(time_to_go), f"the filter (time_to_go={time_to_go})")
+        self.settings = settings
         self.time_to_go = time_to_go
         self.episode_horizon = episode_horizon
         self.centre = np.array(system.control_bounds.center)
@@ -123,7 +96,7 @@ class _Adapter:
     def times(self, elapsed: np.ndarray | float) -> float | torch.Tensor:
         if self.time_to_go is None:
             return self.filter.system.horizon
-        if self.time_to_go == "remaining":
+        if self.time_to_go == REMAINING:
             return torch.as_tensor(np.maximum(self.episode_horizon - np.asarray(elapsed, dtype=np.float64), 0.0))
         return float(self.time_to_go)
 
@@ -157,7 +130,13 @@ def _env_id(env: Any) -> str | None:
 
 
 class _FilterAdapterMixin:
-    """The one set-up every wrapper shares: an :class:`_Adapter` for the wrapped env's system."""
+    """The one set-up every wrapper shares: its settings, and an :class:`_Adapter` for the wrapped
+    env's system.
+
+    ``threshold``, ``time_to_go`` and any other :class:`FilterSettings` field given by keyword
+    (``kind="lookahead"``) replace that field of ``settings``
+    (:func:`~safety.filter_settings.make_filter_settings`); ``None`` leaves it as ``settings`` has it.
+    """
 
     _adapter: _Adapter
 
@@ -168,91 +147,55 @@ class _FilterAdapterMixin:
         threshold: float | None = None,
         time_to_go: float | str | None = None,
         device: str = "cpu",
-        kind: str = "switch",
-        gamma: float = DEFAULT_GAMMA,
-        backup_horizon: float | None = None,
-        backup_disturbance: str = "robust",
-        policy: str | None = None,
+        *,
+        settings: FilterSettings | None = None,
+        **options: Any,
     ) -> None:
+        settings = make_filter_settings(settings, threshold=threshold, time_to_go=time_to_go, **options)
+        self._record(value_function, device, settings)
         super().__init__(env)  # the wrapper base class of the env kind
-        self._attach_filter(
-            env, value_function, threshold, time_to_go, device, kind, gamma, backup_horizon, backup_disturbance, policy
-        )
+        self._attach_filter(env, value_function, device, settings)
+
+    def _record(self, value_function: ValueFunction | str | None, device: str, settings: FilterSettings) -> None:
+        """Where a wrapper that records its constructor's arguments does so (Gymnasium's)."""
 
     def _attach_filter(
-        self,
-        env: Any,
-        value_function: ValueFunction | str | None,
-        threshold: float | None,
-        time_to_go: Any,
-        device: str,
-        kind: str = "switch",
-        gamma: float = DEFAULT_GAMMA,
-        backup_horizon: float | None = None,
-        backup_disturbance: str = "robust",
-        policy: str | None = None,
+        self, env: Any, value_function: ValueFunction | str | None, device: str, settings: FilterSettings
     ) -> None:
         base = env.unwrapped
         if value_function is None:
             value_function = pretrained.for_env(_env_id(env), base.system)
-        self._adapter = _Adapter(
-            base.system,
-            value_function,
-            threshold,
-            time_to_go,
-            base.scene,
-            device,
-            kind,
-            gamma,
-            backup_horizon,
-            backup_disturbance,
-            policy,
-        )
+        self._adapter = _Adapter(base.system, value_function, base.scene, device, settings)
 
     @property
     def safety_filter(self) -> SafetyFilter:
         """The :class:`SafetyFilter` in use (its ``threshold`` may be changed between steps)."""
         return self._adapter.filter
 
+    @property
+    def filter_settings(self) -> FilterSettings:
+        """The :class:`FilterSettings` this wrapper was made with (``threshold=None``: the default
+        rule, resolved in ``safety_filter.threshold``)."""
+        return self._adapter.settings
+
 
 class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordConstructorArgs):
     """A Gymnasium env whose actions pass through a safety filter (``kind``: switch, lookahead, smooth).
 
+    ``SafetyFilterWrapper(env, value_function=None, threshold=None, time_to_go=None, device="cpu",
+    *, settings=None, **options)``: the filter's options are one
+    :class:`~safety.filter_settings.FilterSettings` (``settings``), or its fields by keyword.
     Without ``value_function`` the filter uses the model shipped for the env
     (:func:`training.pretrained.for_env`: ``SafetyFilterWrapper(gym.make("Air3D-v0"))`` filters with
     ``"pretrained:air3d"``); an env no shipped model fits raises ``ValueError``.
     ``value_function`` may be a path (run directory, checkpoint, ``.npz``), which keeps
-    ``env.spec`` serialisable, so ``gym.make(env.spec)`` rebuilds the wrapped env.
+    ``env.spec`` serialisable, so ``gym.make(env.spec)`` rebuilds the wrapped env: the spec records
+    the settings field by field, as keywords.
     """
 
-    def __init__(
-        self,
-        env: gym.Env,
-        value_function: ValueFunction | str | None = None,
-        threshold: float | None = None,
-        time_to_go: float | str | None = None,
-        device: str = "cpu",
-        kind: str = "switch",
-        gamma: float = DEFAULT_GAMMA,
-        backup_horizon: float | None = None,
-        backup_disturbance: str = "robust",
-        policy: str | None = None,
-    ) -> None:
+    def _record(self, value_function: ValueFunction | str | None, device: str, settings: FilterSettings) -> None:
         gym.utils.RecordConstructorArgs.__init__(
-            self,
-            value_function=value_function,
-            threshold=threshold,
-            time_to_go=time_to_go,
-            device=device,
-            kind=kind,
-            gamma=gamma,
-            backup_horizon=backup_horizon,
-            backup_disturbance=backup_disturbance,
-            policy=policy,
-        )
-        gym.Wrapper.__init__(self, env)
-        self._attach_filter(
-            env, value_function, threshold, time_to_go, device, kind, gamma, backup_horizon, backup_disturbance, policy
+            self, value_function=value_function, device=device, **settings.keywords()
         )
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:

@@ -32,11 +32,12 @@ def run_demo(
     from groundtruth.solution import GridSolution
     from groundtruth.solver import solve
     from reach.systems import Air3D
-    from studies.batch_verification import evaluate_many, markdown_table
-    from studies.filter_eval import filter_table, run_filter_study
-    from studies.plots import plot_brt_slices
     from safety.sources import load_value_function
     from safety.verify import VerifySettings
+    from studies.batch_verification import evaluate_many, markdown_table
+    from studies.filter_study import run_filter_study
+    from studies.filter_tables import filter_table
+    from studies.plots import plot_brt_slices
     from training import TrainConfig, Trainer
 
     out = Path(out)

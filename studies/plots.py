@@ -153,8 +153,9 @@ def record_filtered_episode(
     from reach_envs.env import ReachEnv
     from reach_envs.recording import record_episode
     from reach_envs.scenes import system_scene
-    from safety.value_policies import worst_case_disturbance
+    from safety.filter_settings import FilterSettings
     from safety.sources import as_value_function
+    from safety.value_policies import worst_case_disturbance
     from safety.wrappers import SafetyFilterWrapper
 
     vf = as_value_function(value_function)
@@ -163,7 +164,8 @@ def record_filtered_episode(
     overrides: dict[str, Any] = {"trails": True}
     if adversary and vf.system.disturbance_dim:
         overrides["disturbance"] = worst_case_disturbance(vf)
-    env: gym.Env = SafetyFilterWrapper(ReachEnv(scene, render_mode="rgb_array", **overrides), vf, threshold=threshold)
+    settings = FilterSettings(threshold=threshold)  # the other filter options at their defaults
+    env: gym.Env = SafetyFilterWrapper(ReachEnv(scene, render_mode="rgb_array", **overrides), vf, settings=settings)
     summary = record_episode(env, path, seed=seed, every=every)
     env.close()
     return summary

@@ -76,7 +76,7 @@ def test_malicious_pickle_is_refused_not_run(tmp_path):
     with pytest.raises(ValueError, match=r"posix\.system|Python object"):
         load_network(evil)
     code, err = run_cli("evaluate", str(evil), "--system", "air3d", "--samples", "10", "--out", str(tmp_path / "r.csv"))
-    assert code == 1 and not marker.exists()  # every source failed: one error row, nothing ran
+    assert code == 3 and not marker.exists()  # every source failed: one error row, nothing ran (exit 3: failed in part)
     table = json.loads((tmp_path / "r.json").read_text())["results"]
     assert "not loaded" in table[0]["error"]
     # a run directory whose checkpoint is the malicious file
@@ -166,7 +166,7 @@ def test_filter_wrapper_checks_the_time_to_go_before_the_episode(tmp_path):
 def test_rollouts_and_plots_refuse_horizons_beyond_the_value_function(tmp_path):
     ckpt = str(tiny_checkpoint(tmp_path / "a.pt"))
     code, err = run_cli("evaluate", ckpt, "--horizon", "50", "--samples", "10", "--out", str(tmp_path / "r.csv"))
-    assert code == 1  # the one source is an error row naming the horizon
+    assert code == 3  # the one source is an error row naming the horizon (exit 3: failed in part)
     assert "covers only" in json.loads((tmp_path / "r.json").read_text())["results"][0]["error"]
     code, err = run_cli("plot", "slices", ckpt, "--t", "99", "--out", str(tmp_path / "s.png"))
     one_line_error(code, err, "--t 99")

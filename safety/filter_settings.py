@@ -1,0 +1,161 @@
+"""One frozen group of filter options, validated once, passed whole from the CLI to the filter.
+
+Which safety filter runs, and how, is a handful of options that always travel together: the kind,
+the threshold, the time-to-go the env adapters evaluate ``V`` at, the smooth filter's barrier rate,
+the lookahead's backup horizon and disturbance paths, and the backup input. :class:`FilterSettings`
+holds them, checks them when it is made, and is the one source of their defaults, so a new option
+is one new field, not an edit in every layer it passes through.
+
+:func:`make_filter_settings` is the one place keyword options become settings:
+``SafetyFilter(vf, threshold=0.1, kind="lookahead")``, ``SafetyFilterWrapper(env, vf, kind=...)``
+and ``FilterConfig(label, vf, 0.2, kind=...)`` all go through it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from safety.value_policies import check_policy
+
+#: the filter kinds :class:`~safety.filter.SafetyFilter` offers
+KINDS = ("switch", "lookahead", "smooth")
+
+#: the disturbance paths the lookahead can check (see :mod:`safety.filter`)
+LOOKAHEAD_DISTURBANCES = ("robust", "model")
+
+#: the backup input each kind uses unless told otherwise (see :mod:`safety.filter`)
+DEFAULT_POLICIES = {"switch": "greedy", "lookahead": "gradient", "smooth": "gradient"}
+
+#: the time-to-go that counts down with the episode (``horizon - elapsed``, floored at 0)
+REMAINING = "remaining"
+
+
+def _non_negative(value: object) -> bool:
+    return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value) and value >= 0
+
+
+@dataclass(frozen=True)
+class FilterSettings:
+    """Which filter to run and how (see :mod:`safety.filter` and :mod:`safety.wrappers`).
+
+    Attributes:
+        kind: ``"switch"``, ``"lookahead"`` or ``"smooth"``.
+        threshold: the level treated as the boundary (finite); ``None``: the default rule
+            (:meth:`threshold_for`: ``2 * rate * dt`` for a switch or smooth filter acting every
+            ``dt``, 0 for the lookahead or where no control period is known).
+        time_to_go: where the env adapters evaluate ``V``: ``None`` at the system's horizon, a
+            number >= 0, or ``"remaining"`` (the time left in the episode). A bare
+            :class:`~safety.filter.SafetyFilter` is given ``t`` by its caller and ignores it.
+        gamma: the smooth filter's barrier rate (1/s, finite, >= 0; 0 forbids any decrease of ``V``).
+        backup_horizon: how long (s) the lookahead rolls the backup policy after the nominal step
+            (finite, >= 0; ``None``: the system's horizon; 0: the nominal step alone).
+        backup_disturbance: the lookahead's predicted disturbance paths, ``"robust"`` or ``"model"``.
+        policy: the backup input, ``"gradient"`` or ``"greedy"``; ``None``: the kind's default
+            (:data:`DEFAULT_POLICIES`, :attr:`backup_policy`).
+    """
+
+    kind: str = "switch"
+    threshold: float | None = None
+    time_to_go: float | str | None = None
+    gamma: float = 5.0
+    backup_horizon: float | None = None
+    backup_disturbance: str = "robust"
+    policy: str | None = None
+
+    def __post_init__(self) -> None:
+        """Refuse a setting that makes no sense, naming it and its value (the one check of each)."""
+        if self.kind not in KINDS:
+            raise ValueError(f"filter kind must be one of {KINDS}, got {self.kind!r}")
+        t = self.threshold
+        if t is not None and (isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t)):
+            raise ValueError(f"threshold must be a finite number, got {t!r}")
+        ttg = self.time_to_go
+        if ttg is not None and ttg != REMAINING and (isinstance(ttg, str) or not _non_negative(ttg)):
+            raise ValueError(f"time_to_go must be None, {REMAINING!r} or a number >= 0, got {ttg!r}")
+        if not _non_negative(self.gamma):
+            raise ValueError(f"gamma must be a finite number >= 0, got {self.gamma!r}")
+        if self.backup_horizon is not None and not _non_negative(self.backup_horizon):
+            raise ValueError(f"backup_horizon must be a finite number of seconds >= 0, got {self.backup_horizon!r}")
+        if self.backup_disturbance not in LOOKAHEAD_DISTURBANCES:
+            raise ValueError(
+                f"backup_disturbance must be one of {LOOKAHEAD_DISTURBANCES}, got {self.backup_disturbance!r}"
+            )
+        if self.policy is not None:
+            check_policy(self.policy)
+
+    @property
+    def backup_policy(self) -> str:
+        """The backup input in force: :attr:`policy`, or the kind's default when it is None."""
+        return resolve_policy(self.kind, self.policy)
+
+    def threshold_for(self, system: Any, dt: float | None = None) -> float:
+        """The threshold to filter at: :attr:`threshold`, else the default rule for a filter that
+        acts every ``dt`` seconds (:func:`default_threshold`), else 0 (no control period given: a
+        bare :class:`~safety.filter.SafetyFilter` takes the boundary itself)."""
+        if self.threshold is not None:
+            return float(self.threshold)
+        return 0.0 if dt is None else default_threshold(system, dt, self.kind)
+
+    def keywords(self) -> dict[str, Any]:
+        """Every field by name (what Gymnasium records of a wrapper, and what rebuilds these settings)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+
+#: every option :class:`FilterSettings` holds, in field order
+FIELDS = tuple(f.name for f in dataclasses.fields(FilterSettings))
+
+#: the smooth filter's default barrier rate (1/s), read from :class:`FilterSettings`
+DEFAULT_GAMMA: float = FilterSettings.gamma
+
+
+def make_filter_settings(settings: FilterSettings | None = None, /, **options: Any) -> FilterSettings:
+    """The one place keyword options become :class:`FilterSettings`.
+
+    Without ``settings``: ``FilterSettings(**options)``. With ``settings``: those settings, the
+    given options replacing their fields; an option of ``None`` counts as not given there (``None``
+    is the default of every optional field), so an adapter's ``threshold=None`` leaves the settings'
+    own threshold. Unknown option names raise ``TypeError`` naming them; bad values ``ValueError``.
+    """
+    unknown = sorted(set(options) - set(FIELDS))
+    if unknown:
+        raise TypeError(f"unknown filter option(s) {', '.join(map(repr, unknown))}; FilterSettings has {FIELDS}")
+    if settings is None:
+        return FilterSettings(**options)
+    if not isinstance(settings, FilterSettings):
+        raise TypeError(f"settings must be a FilterSettings, got {type(settings).__name__}")
+    given = {name: value for name, value in options.items() if value is not None}
+    return dataclasses.replace(settings, **given) if given else settings
+
+
+def resolve_policy(kind: str, policy: str | None) -> str:
+    """The backup input a filter of ``kind`` uses: ``policy``, or the kind's default when None."""
+    return DEFAULT_POLICIES[kind] if policy is None else check_policy(policy)
+
+
+def default_threshold(system: Any, dt: float, kind: str = "switch") -> float:
+    """The default threshold of a filter kind in an env stepping ``dt``: the switch and the smooth
+    filter decide on the current state, so theirs is ``2 * rate * dt``, twice what ``V`` can lose in
+    one held step, with ``rate`` the system's :meth:`margin_rate_bound` or, for a system that declares
+    none, :meth:`margin_rate_estimate` (sampled over the domain); the lookahead checks the next
+    state, so 0."""
+    if kind == "lookahead":
+        return 0.0
+    bound = system.margin_rate_bound()
+    return 2.0 * (system.margin_rate_estimate() if bound is None else bound) * dt
+
+
+__all__ = [
+    "DEFAULT_GAMMA",
+    "DEFAULT_POLICIES",
+    "FIELDS",
+    "KINDS",
+    "LOOKAHEAD_DISTURBANCES",
+    "REMAINING",
+    "FilterSettings",
+    "default_threshold",
+    "make_filter_settings",
+    "resolve_policy",
+]
