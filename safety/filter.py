@@ -60,12 +60,15 @@ import torch
 
 from reach.integrators import check_integrator, make_stepper
 from reach.systems.backend import TORCH
+from reach.validation import positive_finite
 from reach.value_function import ValueFunction
 from safety.filter_settings import (
     DEFAULT_GAMMA,
     DEFAULT_POLICIES,
     KINDS,
     LOOKAHEAD_DISTURBANCES,
+    MAX_BACKUP_STEPS,
+    REMAINING,
     FilterSettings,
     make_filter_settings,
     resolve_policy,
@@ -148,13 +151,20 @@ class SafetyFilter:
     ) -> None:
         settings = make_filter_settings(settings, threshold=threshold, **options)
         kind = settings.kind
+        if dt is not None:
+            dt = positive_finite("the filter's step dt", dt)
         if kind == "lookahead":
-            if dt is None or isinstance(dt, bool) or not (math.isfinite(dt) and dt > 0):
-                raise ValueError(f"the lookahead filter needs a step dt > 0, got {dt!r}")
-            self._stepper = make_stepper(value_function.system, float(dt), check_integrator(integrator), TORCH)
+            if dt is None:
+                raise ValueError("the lookahead filter needs a step dt > 0, got None")
+            self._stepper = make_stepper(value_function.system, dt, check_integrator(integrator), TORCH)
         horizon = value_function.system.horizon if settings.backup_horizon is None else settings.backup_horizon
         # steps of the backup rollout (the lookahead only): enough held steps to cover the horizon
         self.backup_steps = math.ceil(horizon / dt - 1e-9) if kind == "lookahead" else 0
+        if self.backup_steps > MAX_BACKUP_STEPS:
+            raise ValueError(
+                f"backup_horizon {horizon:g} s at dt {dt:g} s is {self.backup_steps} backup steps per decision; "
+                f"at most {MAX_BACKUP_STEPS} (lower backup_horizon or raise dt)"
+            )
         self.backup_horizon = float(horizon)
         self.backup_disturbance = settings.backup_disturbance
         self.value_function = value_function
@@ -184,20 +194,32 @@ class SafetyFilter:
     ) -> tuple[torch.Tensor, FilterInfo]:
         """Filtered inputs ``(..., m_u)`` for states ``(..., n)`` and nominal inputs ``(..., m_u)``.
 
-        Nominal inputs are physical units; where kept they are returned bit for bit. NaN/inf in
-        states or nominal inputs, a time-to-go the value function does not cover, and a non-finite
-        value, gradient or ``u*`` raise ``ValueError``: no kind passes the nominal input on a value
-        it cannot trust.
+        Nominal inputs are physical units, in any floating dtype. One outside the control box is
+        clipped to it first (it cannot be applied, so it is neither judged nor kept as given;
+        ``FilterInfo.nominal`` holds the clipped input); where kept, inputs come back bit for bit in
+        their own dtype. NaN/inf in states or nominal inputs, integer or meta-device tensors, a
+        time-to-go that is not a number (or one per state), one the value function does not cover,
+        and a non-finite value, gradient or ``u*`` raise ``ValueError``: no kind passes the nominal
+        input on a value it cannot trust.
         """
         system = self.system
         check_states(x, system.state_dim)
+        self._check_time(t, x.shape[:-1])
         if not isinstance(u_nominal, torch.Tensor) or u_nominal.shape != (*x.shape[:-1], system.control_dim):
             shape = tuple(u_nominal.shape) if isinstance(u_nominal, torch.Tensor) else type(u_nominal).__name__
             raise ValueError(f"u_nominal must have shape {(*x.shape[:-1], system.control_dim)}, got {shape}")
+        if not u_nominal.dtype.is_floating_point:
+            raise ValueError(f"u_nominal must be a floating-point tensor, got {u_nominal.dtype}")
         if not bool(torch.isfinite(u_nominal).all()):
             raise ValueError(f"u_nominal contains NaN or inf: {u_nominal[~torch.isfinite(u_nominal)][:4].tolist()}")
+        # an input outside the control box cannot be applied: every kind decides on (and keeps) the
+        # input the system would get, the nominal one clipped to the box (unchanged where inside)
+        box = system.control_bounds
+        given = torch.minimum(
+            torch.maximum(u_nominal, u_nominal.new_tensor(box.low)), u_nominal.new_tensor(box.high)
+        )
         value, p, u_star, d_star = self._evaluate(x, t)
-        u_nominal = u_nominal.to(u_star.dtype)
+        u_nominal = given.to(u_star.dtype)
         infeasible = None
         if self.kind == "switch":
             # a NaN value compares False with everything: "not above" (never "at or below") decides
@@ -212,9 +234,22 @@ class SafetyFilter:
             applied = torch.where(
                 infeasible.unsqueeze(-1), self._backup_input(x, t, applied, d_star, infeasible), applied
             )
+        # kept inputs come back as given (bit for bit, in their own dtype); the others in that dtype too
+        applied = torch.where(keep.unsqueeze(-1), given, applied.to(given.dtype))
         # intervened = the filter overrode the nominal input (its decision; the applied input can
         # still equal the nominal one, e.g. where u* is the box centre and the nominal input is 0)
-        return applied, FilterInfo(value, u_nominal, applied, ~keep, infeasible)
+        return applied, FilterInfo(value, given, applied, ~keep, infeasible)
+
+    def _check_time(self, t: object, batch: torch.Size) -> None:
+        """Refuse a time-to-go that is not a number or a tensor of one per state, naming it."""
+        if isinstance(t, str):
+            hint = " (a wrapper option: time_to_go='remaining')" if t == REMAINING else ""
+            raise ValueError(f"t must be a time-to-go in seconds or a tensor of them, got {t!r}{hint}")
+        if isinstance(t, torch.Tensor) and t.ndim:
+            if t.shape != batch and t.numel() != 1:
+                raise ValueError(f"a per-state t must have shape {tuple(batch)} (one per state), got {tuple(t.shape)}")
+            if not t.dtype.is_floating_point or t.is_meta:
+                raise ValueError(f"t must be a floating-point tensor of times-to-go, got {t.dtype}")
 
     # ------------------------------------------------------------------ the kinds
     def _evaluate(

@@ -14,10 +14,10 @@ and ``FilterConfig(label, vf, 0.2, kind=...)`` all go through it.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from typing import Any
 
+from reach.validation import check_float
 from safety.value_policies import check_policy
 
 #: the filter kinds :class:`~safety.filter.SafetyFilter` offers
@@ -33,8 +33,9 @@ DEFAULT_POLICIES = {"switch": "greedy", "lookahead": "gradient", "smooth": "grad
 REMAINING = "remaining"
 
 
-def _non_negative(value: object) -> bool:
-    return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value) and value >= 0
+#: the most held steps a lookahead's backup rollout may take per decision (``backup_horizon / dt``):
+#: each is a batched value-and-gradient evaluation, so 1e6 s at dt 0.05 would never return
+MAX_BACKUP_STEPS = 10_000
 
 
 @dataclass(frozen=True)
@@ -43,7 +44,8 @@ class FilterSettings:
 
     Attributes:
         kind: ``"switch"``, ``"lookahead"`` or ``"smooth"``.
-        threshold: the level treated as the boundary (finite); ``None``: the default rule
+        threshold: the level treated as the boundary (finite, >= 0: below 0 the filter would keep
+            the nominal input inside the unsafe set); ``None``: the default rule
             (:meth:`threshold_for`: ``2 * rate * dt`` for a switch or smooth filter acting every
             ``dt``, 0 for the lookahead or where no control period is known).
         time_to_go: where the env adapters evaluate ``V``: ``None`` at the system's horizon, a
@@ -51,7 +53,8 @@ class FilterSettings:
             :class:`~safety.filter.SafetyFilter` is given ``t`` by its caller and ignores it.
         gamma: the smooth filter's barrier rate (1/s, finite, >= 0; 0 forbids any decrease of ``V``).
         backup_horizon: how long (s) the lookahead rolls the backup policy after the nominal step
-            (finite, >= 0; ``None``: the system's horizon; 0: the nominal step alone).
+            (finite, >= 0; ``None``: the system's horizon; 0: the nominal step alone); at most
+            :data:`MAX_BACKUP_STEPS` steps of the filter's ``dt``.
         backup_disturbance: the lookahead's predicted disturbance paths, ``"robust"`` or ``"model"``.
         policy: the backup input, ``"gradient"`` or ``"greedy"``; ``None``: the kind's default
             (:data:`DEFAULT_POLICIES`, :attr:`backup_policy`).
@@ -66,25 +69,29 @@ class FilterSettings:
     policy: str | None = None
 
     def __post_init__(self) -> None:
-        """Refuse a setting that makes no sense, naming it and its value (the one check of each)."""
+        """Refuse a setting that makes no sense, naming it and its value (the one check of each).
+        Numbers may arrive as Python, NumPy or 0-d tensor reals; they are kept as Python floats."""
         if self.kind not in KINDS:
             raise ValueError(f"filter kind must be one of {KINDS}, got {self.kind!r}")
-        t = self.threshold
-        if t is not None and (isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t)):
-            raise ValueError(f"threshold must be a finite number, got {t!r}")
+        if self.threshold is not None:  # below 0 the filter would keep u_nom inside the unsafe set
+            self._set("threshold", check_float("threshold", self.threshold, 0))
         ttg = self.time_to_go
-        if ttg is not None and ttg != REMAINING and (isinstance(ttg, str) or not _non_negative(ttg)):
-            raise ValueError(f"time_to_go must be None, {REMAINING!r} or a number >= 0, got {ttg!r}")
-        if not _non_negative(self.gamma):
-            raise ValueError(f"gamma must be a finite number >= 0, got {self.gamma!r}")
-        if self.backup_horizon is not None and not _non_negative(self.backup_horizon):
-            raise ValueError(f"backup_horizon must be a finite number of seconds >= 0, got {self.backup_horizon!r}")
+        if ttg is not None and ttg != REMAINING:
+            if isinstance(ttg, str):
+                raise ValueError(f"time_to_go must be None, {REMAINING!r} or a number >= 0, got {ttg!r}")
+            self._set("time_to_go", check_float("time_to_go", ttg, 0))
+        self._set("gamma", check_float("gamma", self.gamma, 0))
+        if self.backup_horizon is not None:
+            self._set("backup_horizon", check_float("backup_horizon (seconds)", self.backup_horizon, 0))
         if self.backup_disturbance not in LOOKAHEAD_DISTURBANCES:
             raise ValueError(
                 f"backup_disturbance must be one of {LOOKAHEAD_DISTURBANCES}, got {self.backup_disturbance!r}"
             )
         if self.policy is not None:
             check_policy(self.policy)
+
+    def _set(self, name: str, value: Any) -> None:
+        object.__setattr__(self, name, value)  # a frozen dataclass stores its checked value once
 
     @property
     def backup_policy(self) -> str:
@@ -153,6 +160,7 @@ __all__ = [
     "FIELDS",
     "KINDS",
     "LOOKAHEAD_DISTURBANCES",
+    "MAX_BACKUP_STEPS",
     "REMAINING",
     "FilterSettings",
     "default_threshold",

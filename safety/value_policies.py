@@ -24,9 +24,14 @@ from reach.value_function import ValueFunction, value_and_gradient
 
 
 def check_states(x: torch.Tensor, state_dim: int, what: str = "states") -> None:
-    """Raise ``ValueError`` for a wrong shape or a NaN/inf entry, naming the first bad state."""
+    """Raise ``ValueError`` for a wrong shape, a tensor that holds no real values (an integer or bool
+    dtype, the meta device) or a NaN/inf entry, naming the first bad state."""
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{what} must be a torch.Tensor, got {type(x).__name__}")
+    if not x.dtype.is_floating_point:
+        raise ValueError(f"{what} must be a floating-point tensor (float32 or float64), got {x.dtype}")
+    if x.is_meta:
+        raise ValueError(f"{what} are on the meta device, which holds no values")
     if x.ndim == 0 or x.shape[-1] != state_dim:
         raise ValueError(f"{what} must have shape (..., {state_dim}), got {tuple(x.shape)}")
     finite = torch.isfinite(x).all(-1)

@@ -150,3 +150,74 @@ def test_rollout_settings_validate_once_and_travel_whole():
     ):
         with pytest.raises(ValueError, match=rule):
             RolloutSettings(**bad)
+
+
+@pytest.fixture(scope="module")
+def air3d_vf():
+    from reach.systems import Air3D
+    from training import NeuralValueFunction, ValueNetwork
+
+    torch.manual_seed(0)
+    return NeuralValueFunction(ValueNetwork(Air3D(), "ssssl", width=16))
+
+
+def test_filter_settings_take_numpy_and_tensor_reals_and_refuse_a_negative_threshold(air3d_vf):
+    from safety import SafetyFilter
+    from safety.filter_settings import FilterSettings
+
+    s = FilterSettings(threshold=np.float32(0.05), gamma=np.int64(2), backup_horizon=torch.tensor(0.5))
+    assert (s.threshold, s.gamma, s.backup_horizon) == (pytest.approx(0.05), 2.0, 0.5)
+    assert type(s.threshold) is float
+    for bad, rule in (
+        ({"threshold": -0.5}, "threshold must be >= 0"),
+        ({"threshold": "0.1"}, "threshold must be a"),
+        ({"gamma": True}, "gamma must be a number"),
+        ({"time_to_go": -1.0}, "time_to_go must be >= 0"),
+    ):
+        with pytest.raises(ValueError, match=rule):
+            FilterSettings(**bad)
+    with pytest.raises(ValueError, match="threshold must be >= 0"):
+        SafetyFilter(air3d_vf, threshold=-0.5)
+
+
+def test_a_lookahead_backup_horizon_is_bounded(air3d_vf):
+    from safety import SafetyFilter
+
+    with pytest.raises(ValueError, match=r"backup_horizon 1e\+06 s at dt 0.05 s is .* backup steps per decision"):
+        SafetyFilter(air3d_vf, kind="lookahead", backup_horizon=1e6, dt=0.05)
+
+
+@pytest.mark.parametrize("kind", ["switch", "lookahead", "smooth"])
+def test_every_kind_clips_a_nominal_input_outside_the_box_and_keeps_the_callers_dtype(air3d_vf, kind):
+    from safety import SafetyFilter
+
+    f = SafetyFilter(air3d_vf, threshold=0.0, kind=kind, dt=0.05)
+    x = torch.tensor([[2.0, 2.0, 0.0], [0.0, 0.0, 0.0]], dtype=torch.float64)  # far away and in collision
+    u, info = f(x, 1.1, torch.tensor([[100.0], [0.5]], dtype=torch.float64))
+    high = air3d_vf.system.control_bounds.high[0]
+    assert u.dtype == torch.float64
+    assert float(info.nominal[0, 0]) == high  # judged as the input the system can take
+    assert bool((u.abs() <= high).all())
+    if not bool(info.intervened[0]):
+        assert float(u[0, 0]) == high
+    kept, info = f(x[:1], 1.1, torch.tensor([[0.123456789012345]], dtype=torch.float64))
+    if not bool(info.intervened[0]):
+        assert kept.dtype == torch.float64 and float(kept[0, 0]) == 0.123456789012345  # bit for bit
+
+
+def test_the_filter_refuses_states_and_times_it_cannot_read(air3d_vf):
+    from safety import SafetyFilter
+
+    f = SafetyFilter(air3d_vf, threshold=0.0)
+    u = torch.zeros(2, 1)
+    x = torch.zeros(2, 3)
+    cases = [
+        ((x.long(), 1.1, u), "floating-point tensor"),
+        ((torch.empty(2, 3, device="meta"), 1.1, u), "meta device"),
+        ((x, torch.tensor([1.0, 1.0, 1.0]), u), r"per-state t must have shape \(2,\)"),
+        ((x, "remaining", u), "time_to_go='remaining'"),
+        ((x, 1.1, u.long()), "u_nominal must be a floating-point tensor"),
+    ]
+    for args, rule in cases:
+        with pytest.raises(ValueError, match=rule):
+            f(*args)

@@ -58,7 +58,7 @@ def test_a_bad_setting_is_refused_naming_the_field_and_the_value(field, bad):
 
 
 def test_good_settings_are_accepted_and_frozen():
-    s = FilterSettings(kind="lookahead", threshold=-0.1, time_to_go="remaining", gamma=0, backup_horizon=0)
+    s = FilterSettings(kind="lookahead", threshold=0.0, time_to_go="remaining", gamma=0, backup_horizon=0)
     assert FilterSettings(time_to_go=0.5).time_to_go == 0.5
     with pytest.raises(dataclasses.FrozenInstanceError):
         s.kind = "switch"  # type: ignore[misc]
