@@ -13,6 +13,7 @@ import math
 import numbers
 import os
 import stat
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -213,6 +214,11 @@ def _check_creatable(folder: Path, label: str) -> None:
         raise ValueError(f"{label}: {str(existing)!r} is a file, not a folder")
     if not os.access(existing, os.W_OK | os.X_OK):
         raise ValueError(f"{label}: folder {str(existing)!r} is not writable")
+    try:  # permissions do not tell everything (root, read-only mounts, /proc): try it
+        probe = tempfile.mkdtemp(prefix=".reach-write-check-", dir=existing)
+    except OSError as err:
+        raise ValueError(f"{label}: folder {str(existing)!r} is not writable ({err.strerror or err})") from None
+    os.rmdir(probe)
 
 
 # ---------------------------------------------------------------------- argparse types

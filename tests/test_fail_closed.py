@@ -221,3 +221,11 @@ def test_the_filter_refuses_states_and_times_it_cannot_read(air3d_vf):
     for args, rule in cases:
         with pytest.raises(ValueError, match=rule):
             f(*args)
+
+
+def test_an_output_folder_that_refuses_files_is_refused_before_work(capsys):
+    if not Path("/proc").is_dir():
+        pytest.skip("needs /proc")
+    # /proc passes a permission check for root, yet takes no new files: the check tries one
+    with pytest.raises(ValueError, match="folder '/proc' is not writable"):
+        check_output_path("/proc/x.gif", "--gif")
