@@ -23,7 +23,7 @@ from groundtruth.grid import Grid
 from groundtruth.solver import _rhs_factory
 from reach.heap import retained_heap
 from reach.systems import make_system
-from reach.systems.backend import TORCH
+from reach.systems.arrays import TORCH
 
 
 def time_rhs(system_name: str, n: int, compiled: bool, calls: int, repeats: int) -> tuple[float, float]:

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from reach.integrators import make_stepper
-from reach.systems.backend import TORCH
+from reach.systems.arrays import TORCH
 from reach.validation import positive_int_arg
 from reach_envs.scenes import make_scene
 from reach_envs.vector import ReachVectorEnv

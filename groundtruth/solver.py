@@ -33,7 +33,7 @@ from groundtruth.weno import mean_and_half_jump
 from reach.compiling import maybe_compile
 from reach.heap import retained_heap
 from reach.memory import available_memory
-from reach.systems.backend import TORCH
+from reach.systems.arrays import TORCH
 from reach.systems.base import ControlAffineSystem
 from reach.systems.registry import make_system
 

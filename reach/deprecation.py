@@ -33,6 +33,7 @@ MOVED: dict[str, str] = {
     "safety.value_functions": "safety.sources",
     "sweeps": "studies.sweeps",
     "training.evaluate": "training.accuracy",
+    "reach.systems.backend": "reach.systems.arrays",
 }
 
 

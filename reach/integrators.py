@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-from reach.systems.backend import Backend, Column
+from reach.systems.arrays import Backend, Column
 from reach.systems.base import ControlAffineSystem
 
 INTEGRATORS = ("rk4", "euler")

@@ -17,7 +17,7 @@ Stepping before ``reset`` or after the episode ended raises
 ``info`` holds ``margin`` (``l(x)``), ``collision``, ``out_of_arena``, ``control`` and
 ``disturbance`` (inputs actually applied, physical units, after clipping) and ``time`` (seconds).
 
-A single step runs on Python floats (see :mod:`reach.systems.backend`): at one state, array
+A single step runs on Python floats (see :mod:`reach.systems.arrays`): at one state, array
 libraries' per-call overhead would cost more than the arithmetic.
 """
 
@@ -28,7 +28,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from reach.systems.backend import FLOAT
+from reach.systems.arrays import FLOAT
 from reach_envs.scenes import Scene, env_scene
 from reach_envs.simulator import SceneSimulator
 from reach_envs.spaces import (

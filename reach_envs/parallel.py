@@ -18,7 +18,7 @@ from gymnasium import spaces
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
-from reach.systems.backend import FLOAT
+from reach.systems.arrays import FLOAT
 from reach.systems.multivehicle import MultiVehicle
 from reach_envs.scenes import Scene, make_scene
 from reach_envs.simulator import SceneSimulator

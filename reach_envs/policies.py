@@ -16,7 +16,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from reach.systems.backend import FLOAT, Backend, Column
+from reach.systems.arrays import FLOAT, Backend, Column
 from reach.systems.base import ControlAffineSystem
 from reach.validation import positive_finite
 

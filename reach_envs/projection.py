@@ -17,7 +17,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from reach.systems.backend import NUMPY
+from reach.systems.arrays import NUMPY
 from reach.systems.base import ControlAffineSystem
 from reach_envs.rendering import CRASHED_COLOUR, ROLE_COLOURS
 

@@ -15,7 +15,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from reach.integrators import make_stepper
-from reach.systems.backend import FLOAT, Backend, Column
+from reach.systems.arrays import FLOAT, Backend, Column
 from reach_envs.policies import make_disturbance_policy
 from reach_envs.scenes import Scene
 

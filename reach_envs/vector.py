@@ -21,7 +21,7 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from reach.systems.backend import NUMPY
+from reach.systems.arrays import NUMPY
 from reach_envs.scenes import Scene, env_scene
 from reach_envs.simulator import SceneSimulator
 from reach_envs.spaces import action_space, check_action, check_reset_options, check_state, observation_space

@@ -12,7 +12,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from reach.systems.backend import FLOAT
+from reach.systems.arrays import FLOAT
 from reach.systems.base import ControlAffineSystem
 from reach_envs.projection import ProjectionRenderer, default_view_dims
 from reach_envs.rendering import SceneRenderer

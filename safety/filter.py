@@ -59,7 +59,7 @@ from typing import Any
 import torch
 
 from reach.integrators import check_integrator, make_stepper
-from reach.systems.backend import TORCH
+from reach.systems.arrays import TORCH
 from reach.validation import positive_finite
 from reach.value_function import ValueFunction
 from safety.filter_settings import (

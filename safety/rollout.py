@@ -35,7 +35,7 @@ from tqdm.auto import tqdm
 
 from reach.integrators import check_integrator, make_stepper
 from reach.systems import ControlAffineSystem
-from reach.systems.backend import TORCH
+from reach.systems.arrays import TORCH
 from reach.validation import check_int, positive_finite
 from reach.value_function import ValueFunction, check_time_coverage
 from safety.value_policies import GreedyPolicy, check_policy, check_states

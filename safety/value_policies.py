@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from reach.integrators import check_integrator, make_stepper
-from reach.systems.backend import TORCH
+from reach.systems.arrays import TORCH
 from reach.validation import is_positive_finite
 from reach.value_function import ValueFunction, value_and_gradient
 

@@ -43,8 +43,7 @@ from safety.sources import (
     resolve_checkpoint,
 )
 from safety.verify import VerifySettings, check_for_system, sample_states, values_at, verify
-from studies.tables import markdown_table as format_table
-from studies.tables import merge_rows, write_results
+from studies.tables import columns_table, merge_rows, write_results
 from training.accuracy import ReferenceEvaluator
 
 FORMAT = "reach.evaluation.v1"
@@ -104,7 +103,7 @@ def fingerprint(path: str) -> dict[str, Any]:
 
 def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
     """The paper-style table; columns nobody has (e.g. ground truth for 9D) are left out."""
-    return format_table(rows, TABLE_COLUMNS, drop_empty=True)
+    return columns_table(rows, TABLE_COLUMNS, drop_empty=True)
 
 
 def _write_outputs(out: Path, header: dict[str, Any], rows: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -52,7 +52,6 @@ from studies.filter_tables import _stored_filter_table as _stored_filter_table
 from studies.filter_tables import _with_interval as _with_interval
 from studies.filter_tables import filter_table as filter_table
 from studies.filter_tables import write_filter_results as write_filter_results
-from studies.tables import markdown_table as markdown_table
 from studies.tables import merge_rows as merge_rows
 from studies.tables import write_results as write_results
 from studies.tasks import GoalTask as GoalTask

@@ -16,7 +16,7 @@ from typing import Any
 
 from reach.locking import exclusive_lock
 from studies.filter_configs import FilterConfig
-from studies.tables import markdown_table, merge_rows, write_results
+from studies.tables import columns_table, merge_rows, write_results
 
 
 def backup_horizon_of(config: FilterConfig) -> float:
@@ -72,7 +72,7 @@ FILTER_COLUMNS = (
 
 def filter_table(rows: Sequence[dict[str, Any]]) -> str:
     """The markdown table of :func:`~studies.filter_episodes.evaluate_filters` rows."""
-    return markdown_table(rows, FILTER_COLUMNS)
+    return columns_table(rows, FILTER_COLUMNS)
 
 
 def write_filter_results(rows: Sequence[dict[str, Any]], out: str | os.PathLike, header: dict[str, Any]) -> None:

@@ -35,15 +35,21 @@ def format_cell(value: Any, spec: str | Callable[[Any, dict[str, Any]], str], ro
     return spec.format(value)
 
 
+def escape_cell(text: str) -> str:
+    """A cell's text with ``|`` escaped (``mean |u - u_nom|`` would otherwise split the cell, and the
+    whole table renders as raw text)."""
+    return str(text).replace("\\|", "|").replace("|", "\\|")
+
+
 def render_markdown(headers: Sequence[str], cells: Sequence[Sequence[str]], align: str = "") -> str:
     """A markdown table from ready cells; ``align`` is one character a column (``l`` or ``r``, default ``l``)."""
     rule = "|" + "".join("---:|" if align[i : i + 1] == "r" else "---|" for i in range(len(headers)))
-    lines = ["| " + " | ".join(headers) + " |", rule]
-    lines += ["| " + " | ".join(row) + " |" for row in cells]
+    lines = ["| " + " | ".join(map(escape_cell, headers)) + " |", rule]
+    lines += ["| " + " | ".join(map(escape_cell, row)) + " |" for row in cells]
     return "\n".join(lines)
 
 
-def markdown_table(
+def columns_table(
     rows: Sequence[dict[str, Any]], columns: Sequence[Column], label_key: str = "label", drop_empty: bool = False
 ) -> str:
     """Rows as a markdown table of ``columns``; ``drop_empty`` leaves out columns no row has."""
@@ -88,3 +94,14 @@ def merge_rows(stored: Iterable[dict[str, Any]], new: Sequence[dict[str, Any]], 
     under its table's lock."""
     mine = {r[key]: r for r in new}
     return [mine.pop(r[key], r) for r in stored] + list(mine.values())
+
+
+def __getattr__(name: str) -> Any:
+    if name == "markdown_table":  # deprecated alias (renamed: studies.markdown_table is the verification table)
+        import warnings
+
+        warnings.warn(
+            "studies.tables.markdown_table was renamed columns_table (removed in reach 0.3)", DeprecationWarning, 2
+        )
+        return columns_table
+    raise AttributeError(f"module 'studies.tables' has no attribute {name!r}")

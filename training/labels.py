@@ -31,7 +31,7 @@ import math
 import torch
 
 from reach.integrators import make_stepper
-from reach.systems.backend import TORCH
+from reach.systems.arrays import TORCH
 from reach.systems.base import ControlAffineSystem
 from reach.validation import check_float, positive_finite
 from training.network import NeuralValueFunction, ValueNetwork

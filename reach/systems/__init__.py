@@ -8,7 +8,7 @@
 from __future__ import annotations
 
 from reach.systems.air3d import Air3D, RelativePair
-from reach.systems.backend import FLOAT, NUMPY, TORCH
+from reach.systems.arrays import FLOAT, NUMPY, TORCH
 from reach.systems.base import ControlAffineSystem
 from reach.systems.box import Box
 from reach.systems.deepreach_normalisation import DeepReachNormalisation

@@ -20,7 +20,7 @@ import math
 from collections.abc import Sequence
 from typing import Any, ClassVar
 
-from reach.systems.backend import Backend, Column
+from reach.systems.arrays import Backend, Column
 from reach.systems.base import ControlAffineSystem, InputMatrix
 from reach.systems.box import NO_INPUT, Box
 from reach.systems.deepreach_normalisation import DeepReachNormalisation

@@ -10,7 +10,7 @@ library needs is derived here, once, generically:
 * the per-dimension bound on ``|dH/dp_i|`` used as Lax-Friedrichs dissipation by the grid solver,
 * batched dynamics, failure margin and heading wrapping.
 
-Physics methods work on *columns* with a backend (:mod:`reach.systems.backend`), so the same
+Physics methods work on *columns* with a backend (:mod:`reach.systems.arrays`), so the same
 lines run on Python floats (single environment), NumPy (vector environments) and torch (solver,
 training, safety; any dtype and device, differentiable). Public batched methods take torch
 tensors shaped ``(..., n)``.
@@ -36,7 +36,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 import torch
 
-from reach.systems.backend import FLOAT, TORCH, Backend, Column, is_number
+from reach.systems.arrays import FLOAT, TORCH, Backend, Column, is_number
 from reach.systems.box import NO_INPUT, Box  # also importable from here, as before the split
 from reach.systems.deepreach_normalisation import DeepReachNormalisation  # likewise
 from reach.systems.hamiltonian import FixedStateHamiltonian

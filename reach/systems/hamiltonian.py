@@ -31,7 +31,7 @@ from collections.abc import Sequence
 
 import torch
 
-from reach.systems.backend import Backend, Column, is_number
+from reach.systems.arrays import Backend, Column, is_number
 
 #: one side's inputs: (matrix ``{(state i, input j): G_ij}``, centres, half widths, sigma)
 Side = tuple[dict[tuple[int, int], Column], Sequence[float], Sequence[float], float]

@@ -22,7 +22,7 @@ from typing import Any
 
 import torch
 
-from reach.systems.backend import Backend, Column
+from reach.systems.arrays import Backend, Column
 from reach.systems.base import ControlAffineSystem, InputMatrix
 from reach.systems.box import Box
 from reach.systems.deepreach_normalisation import DeepReachNormalisation
