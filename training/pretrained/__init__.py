@@ -78,8 +78,7 @@ class ModelCard:
         if t:
             lines.append(
                 f"  trained: {t.get('steps', '?')} steps, {_minutes(t.get('wall_time_s'))} on {t.get('hardware', '?')}"
-                f" (commit {str(t.get('commit', '?'))[:10]})"
-            )
+            )  # the commit stays in the card (and in --json), not in what users read
             if t.get("command"):
                 lines.append(f"    {t['command']}")
         if m:
