@@ -28,6 +28,7 @@ def plot_zero_level_slices(
 ) -> Path:
     """One panel per slice of dimension 3 (nearest node), axes = dimensions 1 and 2, one zero-level
     contour per stored time; a fourth dimension is held at its middle node."""
+    # lazy: matplotlib only when drawing
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 

@@ -7,11 +7,11 @@ import platform
 import numpy as np
 import torch
 
+import reach
+
 
 def package_versions() -> dict[str, str]:
     """Versions of reach, torch, numpy and Python, for file metadata."""
-    import reach
-
     return {
         "reach": reach.__version__,
         "torch": str(torch.__version__),  # a plain str: TorchVersion would need an unpickling allowance

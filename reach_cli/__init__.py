@@ -28,6 +28,8 @@ import os
 import sys
 from collections.abc import Sequence
 
+import torch
+
 from reach.threads import apply_thread_policy
 from reach_cli import demo, envs, evaluate, filter_eval, groundtruth, plot, pretrained, record, sweep, train
 from reach_cli.exit_codes import EXIT_BROKEN_PIPE, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_USAGE
@@ -93,8 +95,6 @@ def console_main() -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    import torch
-
     before = torch.get_num_threads()
     if args.command != "sweep":  # a sweep sets threads per run itself (--threads there means per run)
         apply_thread_policy(args.threads)

@@ -7,10 +7,11 @@ from typing import Any
 
 from reach.validation import check_int, check_output_dir, positive_int_arg, seed_arg
 from reach_cli.options import add_subparser, signature_default
+from training.config import parse_duration
 
 
 def add_parser(sub: Any) -> None:
-    from studies.demo import run_demo
+    from studies.demo import run_demo  # lazy: keeps `import reach_cli` light
 
     def d(name: str) -> Any:
         return signature_default(run_demo, name)
@@ -34,8 +35,7 @@ def add_parser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from studies.demo import run_demo
-    from training.config import parse_duration
+    from studies.demo import run_demo  # lazy: keeps `import reach_cli` light
 
     options: dict[str, Any] = {
         "out": args.out,

@@ -14,6 +14,7 @@ def add_parser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # lazy: gymnasium and the envs only when this command runs
     import reach_envs
     from reach_envs.scenes import SCENES
 

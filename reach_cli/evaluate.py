@@ -23,6 +23,7 @@ from reach.validation import (
 )
 from reach_cli.exit_codes import EXIT_PARTIAL
 from reach_cli.options import add_subparser, default
+from safety.verify import VerifySettings
 
 #: (option, VerifySettings field, argparse keywords, help)
 VERIFY_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
@@ -63,8 +64,6 @@ VERIFY_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
 
 
 def add_parser(sub: Any) -> None:
-    from safety.verify import VerifySettings
-
     p = add_subparser(
         sub, "evaluate", help="verify value functions by rollouts: violations, delta-level, scenario guarantee"
     )
@@ -99,7 +98,7 @@ def add_parser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from safety.verify import VerifySettings
+    # lazy: this command's stack only when it runs
     from studies.batch_verification import evaluate_many, markdown_table
     from studies.plots import plot_violation_bars
 

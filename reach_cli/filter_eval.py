@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from reach.systems.registry import import_object
 from reach.validation import (
     check_float,
     check_output_path,
@@ -21,6 +22,7 @@ from reach.validation import (
 )
 from reach_cli.options import add_subparser, default
 from safety.filter_settings import KINDS, LOOKAHEAD_DISTURBANCES, FilterSettings
+from safety.sources import load_value_function
 from safety.value_policies import POLICIES
 from studies.filter_configs import START_FROM, EpisodeSettings, FilterGrid, FilterStudySettings, StudyOutput
 
@@ -132,8 +134,8 @@ def parse_time_to_go(text: str | None) -> float | str | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # lazy: this command's stack only when it runs
     from reach_envs.scenes import env_scene
-    from safety.sources import load_value_function
     from studies.batch_verification import expand_sources
     from studies.filter_study import run_filter_study
     from studies.filter_tables import filter_table
@@ -144,8 +146,6 @@ def run(args: argparse.Namespace) -> int:
     system = scene.system
     nominal = None
     if args.nominal is not None:
-        from reach.systems.registry import import_object
-
         nominal = import_object(args.nominal, what="--nominal")
         if not callable(nominal):
             raise ValueError(f"--nominal {args.nominal!r} is not callable")

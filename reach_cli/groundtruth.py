@@ -6,6 +6,11 @@ import argparse
 import itertools
 from typing import Any
 
+import torch
+
+from groundtruth.grid import Grid
+from groundtruth.solver import MAX_DIM, check_memory, default_output_times, solve
+from reach.systems import make_system
 from reach.validation import (
     check_int,
     check_output_path,
@@ -14,13 +19,10 @@ from reach.validation import (
     device_arg,
     positive_float_arg,
 )
-from reach_cli.options import add_subparser
+from reach_cli.options import add_subparser, signature_default
 
 
 def add_parser(sub: Any) -> None:
-    from groundtruth.solver import solve
-    from reach_cli.options import signature_default
-
     p = add_subparser(sub, "groundtruth", help="solve a low-dimensional system's BRT on a grid (level-set method)")
     p.add_argument(
         "system",
@@ -74,13 +76,7 @@ def parse_grid(text: str, ndim: int) -> int | list[int]:
 
 
 def run(args: argparse.Namespace) -> int:
-    import torch
-
-    from groundtruth import solve
-    from groundtruth.grid import Grid
-    from groundtruth.plotting import plot_zero_level_slices
-    from groundtruth.solver import MAX_DIM, check_memory, default_output_times
-    from reach.systems import make_system
+    from groundtruth.plotting import plot_zero_level_slices  # lazy: plotting only when this command runs
 
     # everything is checked before the solve: system, grid, times, memory, output paths
     system = make_system(args.system)

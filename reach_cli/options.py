@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import inspect
 from typing import Any, NoReturn
 
 from reach.validation import positive_int_arg
@@ -60,6 +61,4 @@ def add_subparser(sub: Any, name: str, threads: bool = True, **kwargs: Any) -> a
 
 def signature_default(fn: Any, name: str) -> Any:
     """The default of keyword ``name`` of library function ``fn`` (for options that mirror one)."""
-    import inspect
-
     return inspect.signature(fn).parameters[name].default

@@ -5,8 +5,11 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from reach.systems import make_system
 from reach.validation import check_output_path, finite_float_arg, nonnegative_float_arg, seed_arg
+from reach.value_function import check_time_coverage
 from reach_cli.options import add_subparser
+from safety.sources import load_value_function
 
 
 def add_parser(sub: Any) -> None:
@@ -37,8 +40,7 @@ def add_parser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from reach.value_function import check_time_coverage
-    from safety.sources import load_value_function
+    # lazy: this command's stack only when it runs
     from studies import plots
     from studies.batch_verification import expand_sources, load_results
 
@@ -49,8 +51,6 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.kind == "episode":
         if args.system is not None:
-            from reach.systems import make_system
-
             make_system(args.system)  # names the run's system module, so its import path loads
         summary = plots.record_filtered_episode(
             args.sources[0], args.out, scene=args.scene, threshold=args.threshold, seed=args.seed

@@ -7,6 +7,7 @@ import json
 from typing import Any
 
 from reach_cli.options import add_subparser
+from training import pretrained
 
 
 def add_parser(sub: Any) -> None:
@@ -21,8 +22,6 @@ def add_parser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from training import pretrained
-
     shown = [pretrained.card(name) for name in args.names] if args.names else pretrained.cards()
     if args.json:
         print(json.dumps([c.to_dict() for c in shown], indent=2))

@@ -21,8 +21,9 @@ def add_parser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import gymnasium as gym
+    import gymnasium as gym  # lazy: gymnasium only when this command runs
 
+    # lazy: the envs only when this command runs
     import reach_envs
     from reach_envs.recording import record_episode
 

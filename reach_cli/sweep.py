@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from collections.abc import Sequence
 from typing import Any
 
@@ -21,6 +22,7 @@ from reach.validation import (
     seed_arg,
 )
 from reach_cli.options import add_subparser, default
+from training import parse_duration
 
 #: (option, SweepSpec field, argparse keywords, help)
 SPEC_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
@@ -52,7 +54,7 @@ SPEC_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
 
 
 def add_parser(sub: Any) -> None:
-    from studies.sweeps.spec import SweepSpec
+    from studies.sweeps.spec import SweepSpec  # lazy: keeps `import reach_cli` light
 
     p = add_subparser(
         sub,
@@ -115,11 +117,9 @@ def parse_train_options(items: Sequence[str]) -> dict[str, object]:
 
 
 def run(args: argparse.Namespace) -> int:
-    import sys
-
+    # lazy: this command's stack only when it runs
     from studies.sweeps.spec import SweepSpec, default_layouts
     from studies.sweeps.sweep import run_sweep
-    from training import parse_duration
 
     fields: dict[str, Any] = {f: getattr(args, f) for _, f, _, _ in SPEC_OPTIONS if getattr(args, f) is not None}
     if args.budget is not None and args.steps is not None:

@@ -12,6 +12,7 @@ import argparse
 import sys
 from typing import Any
 
+from groundtruth import GridSolution
 from reach.validation import (
     device_arg,
     finite_float_arg,
@@ -24,6 +25,8 @@ from reach.validation import (
 )
 from reach_cli.exit_codes import EXIT_PARTIAL
 from reach_cli.options import add_subparser, default
+from training import TrainConfig, Trainer, TrainingDivergedError, parse_duration
+from training.run_directory import RESUME_OVERRIDABLE, RunDirectory
 
 
 def _optional_float(text: str) -> float | str:
@@ -120,8 +123,6 @@ TRAIN_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
 
 
 def add_parser(sub: Any) -> None:
-    from training import TrainConfig
-
     p = add_subparser(sub, "train", help="train a value network of any activation layout")
     for option, field, kwargs, text in TRAIN_OPTIONS:
         value = default(TrainConfig, field)
@@ -146,8 +147,6 @@ def add_parser(sub: Any) -> None:
 
 def _config_fields(args: argparse.Namespace) -> dict[str, Any]:
     """The TrainConfig fields the user set on the command line."""
-    from training import parse_duration
-
     fields = {field: getattr(args, field) for _, field, _, _ in TRAIN_OPTIONS if getattr(args, field) is not None}
     if fields.get("gradient_bound") == "off":
         fields["gradient_bound"] = None
@@ -163,8 +162,7 @@ def _config_fields(args: argparse.Namespace) -> dict[str, Any]:
 def _evaluator(args: argparse.Namespace) -> Any:
     if not args.groundtruth:
         return None
-    from groundtruth import GridSolution
-    from training.accuracy import ReferenceEvaluator
+    from training.accuracy import ReferenceEvaluator  # lazy: the evaluator only with --groundtruth
 
     reference = GridSolution.load(args.groundtruth, outside="clamp")
     t_eval = args.eval_time if args.eval_time is not None else float(reference.times[-1])
@@ -172,9 +170,6 @@ def _evaluator(args: argparse.Namespace) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
-    from training import TrainConfig, Trainer, TrainingDivergedError
-    from training.run_directory import RESUME_OVERRIDABLE, RunDirectory
-
     fields = _config_fields(args)
     if args.resume:
         if args.out:

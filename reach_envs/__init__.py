@@ -60,7 +60,7 @@ def make_env(system: Any, render_mode: str | None = None, **scene_fields: Any) -
     ``gym.make("Reach-v0", system=system, ...)`` without Gymnasium's wrappers, with the spec
     ``gym.make`` would give it (so ``env.spec.make()`` builds another).
     """
-    from reach_envs.env import ReachEnv
+    from reach_envs.env import ReachEnv  # lazy: importing reach_envs loads no env module
 
     env = ReachEnv(render_mode=render_mode, system=system, **scene_fields)
     kwargs = {"system": system, **scene_fields, **({"render_mode": render_mode} if render_mode is not None else {})}
@@ -70,7 +70,7 @@ def make_env(system: Any, render_mode: str | None = None, **scene_fields: Any) -
 
 def make_vector_env(system: Any, num_envs: int, render_mode: str | None = None, **scene_fields: Any) -> ReachVectorEnv:
     """``num_envs`` copies of :func:`make_env`'s environment stepped as one NumPy batch."""
-    from reach_envs.vector import ReachVectorEnv
+    from reach_envs.vector import ReachVectorEnv  # lazy: importing reach_envs loads no env module
 
     return ReachVectorEnv(num_envs, render_mode=render_mode, system=system, **scene_fields)
 

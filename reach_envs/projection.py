@@ -46,6 +46,7 @@ class ProjectionRenderer:
         size: int = 400,
         grid: int = GRID,
     ) -> None:
+        # lazy: matplotlib only when drawing
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
 

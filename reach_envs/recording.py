@@ -15,7 +15,7 @@ from reach.atomic import atomic_path
 
 def save_gif(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float = 25.0) -> Path:
     """Write RGB uint8 frames ``(H, W, 3)`` to a looping GIF at ``path`` atomically."""
-    import imageio.v2 as imageio
+    import imageio.v2 as imageio  # lazy: imageio only when writing a GIF
 
     if len(frames) == 0:
         raise ValueError("save_gif: no frames to write")
@@ -114,7 +114,7 @@ def _join(
 
 def _captioned(frame: np.ndarray, text: str) -> np.ndarray:
     """``frame`` with a header strip carrying ``text`` (red when it says the filter is active)."""
-    from PIL import Image, ImageDraw
+    from PIL import Image, ImageDraw  # lazy: PIL only when drawing captions
 
     strip = Image.new("RGB", (frame.shape[1], 22), "white")
     ImageDraw.Draw(strip).text((8, 5), text, fill=(200, 0, 0) if "ACTIVE" in text else (0, 0, 0))

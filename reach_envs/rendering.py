@@ -30,6 +30,7 @@ class SceneRenderer:
         size: int = 400,
         car_length: float | None = None,
     ) -> None:
+        # lazy: matplotlib only when drawing
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
         from matplotlib.patches import Circle, Polygon

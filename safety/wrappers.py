@@ -120,7 +120,7 @@ class _Adapter:
 
 def _env_id(env: Any) -> str | None:
     """The Gymnasium id of ``env`` (from its spec, else from its named scene), or None."""
-    from reach_envs import ENV_SCENES
+    from reach_envs import ENV_SCENES  # lazy: registers the envs only when an id is looked up
 
     spec = getattr(env, "spec", None)
     if getattr(spec, "id", None):

@@ -29,6 +29,7 @@ def run_demo(
     compile: bool | None = None,
 ) -> Path:
     """Run the Air3D demo into ``out``; returns the report's path."""
+    # lazy: the demo's stack only when it runs (the CLI's parser imports this module)
     from groundtruth.solution import GridSolution
     from groundtruth.solver import solve
     from reach.systems import Air3D

@@ -22,12 +22,14 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import torch
 
 from reach.value_function import ValueFunction
 from reach_envs.scenes import Scene, make_scene
 from reach_envs.vector import ReachVectorEnv
 from safety.filter_settings import make_filter_settings
 from safety.metrics import wilson_interval
+from safety.verify import sample_superlevel_set, values_at
 from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper
 from studies.filter_configs import FilterConfig
 from studies.filter_tables import labelled, settings_columns
@@ -180,7 +182,7 @@ def evaluate_filter_parallel(
     scene_overrides: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The same metrics through the PettingZoo parallel env (episode ``i`` seeded ``seed + i``)."""
-    from reach_envs.parallel import MultiVehicleParallelEnv
+    from reach_envs.parallel import MultiVehicleParallelEnv  # lazy: the parallel env only for the cross-check
 
     sc = _scene(scene, scene_overrides)
     system = sc.system
@@ -248,10 +250,6 @@ def outside_states(
     """``episodes`` states of ``{V(x, T) > margin}`` (float64), seeded: uniform over the system's
     domain, or, given ``scene``, the scene's own starts (its initial-state sampler) that lie there,
     so a merge stays a merge. Too few such starts raise ``ValueError`` saying how many were found."""
-    import torch
-
-    from safety.verify import sample_superlevel_set, values_at
-
     horizon = value_function.system.horizon
     if scene is None:
         x, _ = sample_superlevel_set(value_function, margin, episodes, seed, horizon)

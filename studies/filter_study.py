@@ -23,6 +23,7 @@ from reach.value_function import ValueFunction
 from reach_envs.scenes import Scene, make_scene
 from safety.filter_settings import FilterSettings, make_filter_settings
 from safety.value_policies import worst_case_disturbance
+from safety.wrappers import SafetyFilterWrapper
 from studies.filter_configs import EpisodeSettings, FilterStudySettings
 from studies.filter_episodes import evaluate_filter_parallel, evaluate_filters, outside_states
 from studies.filter_tables import filter_table_rows, merge_filter_results, write_filter_results
@@ -47,9 +48,9 @@ def record_side_by_side(
     under each filter kind in ``kinds``, side by side. The filters share ``settings``, with
     ``threshold`` and any other :class:`FilterSettings` field given by keyword (``time_to_go=``,
     ``gamma=``, ``backup_horizon=``, ``policy=``, ...) replacing its own; each has its own kind."""
+    # lazy: the env and recording only when a GIF is recorded
     from reach_envs.env import ReachEnv
     from reach_envs.recording import record_panels
-    from safety.wrappers import SafetyFilterWrapper
 
     shared = make_filter_settings(settings, threshold=threshold, **options)
     sc = make_scene(scene, **(scene_overrides or {})).replace(trails=True)
@@ -147,7 +148,7 @@ def run_filter_study(
     of the same episodes already at ``out`` (checked before any episode runs); the study's rows and
     its trade-off plot are then the merged table's.
     """
-    from studies.plots import plot_filter_tradeoff
+    from studies.plots import plot_filter_tradeoff  # lazy: the plotting module only when a study runs
 
     study = FilterStudySettings.from_options(settings, **options)
     episodes, grid, output = study.episodes, study.filters, study.output

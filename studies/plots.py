@@ -64,6 +64,7 @@ def plot_brt_slices(
     level: float = 0.0,
 ) -> Path:
     """Zero-level contours ``{V = level}`` of each value function on each slice, the reference BRT filled."""
+    # lazy: matplotlib only when drawing
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -104,6 +105,7 @@ def plot_brt_slices(
 
 def plot_violation_bars(rows: Sequence[dict[str, Any]], path: str | os.PathLike) -> Path:
     """Stacked bars per value function: false-safe and false-unsafe violation rates, collision rate beside."""
+    # lazy: matplotlib only when drawing
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -148,8 +150,9 @@ def record_filtered_episode(
     With ``adversary=True`` and a system with a disturbance, the pursuer plays the value function's
     worst-case ``d*`` (at the system's horizon), which is what the filter is built to withstand.
     """
-    import gymnasium as gym
+    import gymnasium as gym  # lazy: gymnasium only for episode GIFs
 
+    # lazy: the envs and the filter stack only for episode GIFs
     from reach_envs.env import ReachEnv
     from reach_envs.recording import record_episode
     from reach_envs.scenes import system_scene
@@ -216,6 +219,7 @@ def plot_union_overlay(
 ) -> Path:
     """One panel per (model, slice): the learned BRT, the union of pairwise BRTs, and where the
     union is *not* inside the learned BRT (provably wrong there), in distinct colours."""
+    # lazy: matplotlib only when drawing
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.colors import ListedColormap
     from matplotlib.figure import Figure
@@ -259,6 +263,7 @@ def plot_union_overlay(
 def plot_filter_tradeoff(rows: Sequence[dict[str, Any]], path: str | os.PathLike, title: str = "") -> Path:
     """Collision rate (with its interval) against goal-reaching rate; one curve per value function
     across thresholds, the nominal policy as a single point."""
+    # lazy: matplotlib only when drawing
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 

@@ -14,6 +14,7 @@ import io
 import json
 import math
 import os
+import warnings
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -98,8 +99,6 @@ def merge_rows(stored: Iterable[dict[str, Any]], new: Sequence[dict[str, Any]], 
 
 def __getattr__(name: str) -> Any:
     if name == "markdown_table":  # deprecated alias (renamed: studies.markdown_table is the verification table)
-        import warnings
-
         warnings.warn(
             "studies.tables.markdown_table was renamed columns_table (removed in reach 0.3)", DeprecationWarning, 2
         )

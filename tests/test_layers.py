@@ -18,8 +18,12 @@ deprecation aliases (:data:`reach.deprecation.MOVED`), and no other module may i
 from __future__ import annotations
 
 import ast
+import io
+import json
+import re
 import subprocess
 import sys
+import tokenize
 from pathlib import Path
 
 import pytest
@@ -229,3 +233,78 @@ def test_groundtruth_and_training_load_no_gymnasium():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]", out
+
+
+#: the comment that keeps a function-local import: ``# lazy: <why>`` on the import's first line, or
+#: on its own line directly above a run of consecutive import statements (covering the whole run)
+LAZY_MARK = re.compile(r"#\s*lazy:\s*\S")
+
+
+def _comments(source: str) -> dict[int, tuple[str, bool]]:
+    """``line -> (comment, alone on its line)`` for every comment in ``source``."""
+    found = {}
+    for tok in tokenize.generate_tokens(io.StringIO(source).readline):
+        if tok.type == tokenize.COMMENT:
+            found[tok.start[0]] = (tok.string, not tok.line[: tok.start[1]].strip())
+    return found
+
+
+def _function_local_imports(tree: ast.AST) -> list[tuple[ast.stmt, list[ast.stmt]]]:
+    """``(import statement, the statement list holding it)`` for every import inside a function body."""
+    found = []
+
+    def visit(node: ast.AST, in_function: bool) -> None:
+        for _, value in ast.iter_fields(node):
+            children = value if isinstance(value, list) else [value]
+            for child in children:
+                if not isinstance(child, ast.AST):
+                    continue
+                if in_function and isinstance(child, (ast.Import, ast.ImportFrom)):
+                    found.append((child, value))
+                inner = in_function or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))
+                visit(child, inner)
+
+    visit(tree, False)
+    return found
+
+
+def _unmarked_local_imports(path: Path) -> list[str]:
+    source = path.read_text()
+    comments = _comments(source)
+
+    def marked(line: int, alone: bool) -> bool:
+        text, on_own_line = comments.get(line, ("", False))
+        return bool(LAZY_MARK.match(text)) and on_own_line == alone
+
+    bad = []
+    for node, body in _function_local_imports(ast.parse(source)):
+        if marked(node.lineno, alone=False):
+            continue
+        first = body.index(node)  # back to the first statement of this run of consecutive imports
+        while (
+            first > 0
+            and isinstance(body[first - 1], (ast.Import, ast.ImportFrom))
+            and body[first - 1].end_lineno + 1 == body[first].lineno
+        ):
+            first -= 1
+        if not marked(body[first].lineno - 1, alone=True):
+            bad.append(f"{path.relative_to(ROOT)}:{node.lineno}: {ast.unparse(node)}")
+    return bad
+
+
+def test_function_local_imports_are_marked():
+    """An import inside a function is kept only where it saves start-up or an optional dependency,
+    and then says so (``# lazy: <why>``); any other belongs with the module's top-level imports."""
+    bad = [line for path in MODULES.values() for line in _unmarked_local_imports(path)]
+    listing = "\n".join(bad)
+    assert not bad, f"function-local imports without a '# lazy: <why>' marker (hoist them or say why):\n{listing}"
+
+
+def test_start_up_stays_light():
+    """Building the CLI's parser, which every ``reach`` command does first, loads none of the env,
+    plotting, recording or optional stacks: each command imports its own when it runs."""
+    heavy = {"gymnasium", "pettingzoo", "matplotlib", "PIL", "imageio", "ray", "tensorboard"}
+    code = "import json, sys, reach_cli; reach_cli.build_parser(); print(json.dumps(sorted(sys.modules)))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    loaded = {name.split(".")[0] for name in json.loads(out)}
+    assert not loaded & heavy, f"building the parser loads {sorted(loaded & heavy)}"

@@ -46,7 +46,7 @@ def run_ray(tasks: Sequence[TaskArgs], address: str | None = None, cpus_per_task
     connected to is left running.
     """
     try:
-        import ray
+        import ray  # lazy: optional extra, only for the Ray backend
     except ImportError as err:
         raise ValueError("the ray backend needs Ray: pip install 'reach[ray]'") from err
     started = not ray.is_initialized()

@@ -6,6 +6,7 @@ and computes; nothing trains or evaluates, so a report can be redrawn from ``res
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import statistics
@@ -13,6 +14,8 @@ from collections import defaultdict
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from studies.tables import format_cell, render_markdown
 
@@ -126,6 +129,7 @@ def plot_pareto(
 ) -> Path:
     """One panel per headline metric: each layout's mean over seeds against training time, the seeds'
     min-max band shaded, and the Pareto front over all (layout, snapshot) means as a dashed line."""
+    # lazy: matplotlib only when drawing
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -198,10 +202,6 @@ def spearman_permutation_p(x: Sequence[float], y: Sequence[float], max_exact: in
     """One-sided p-value of Spearman's rho being at least the observed one if ``y`` were unrelated to
     ``x``: exact over all orderings of ``y`` for up to ``max_exact`` points, else from ``draws``
     seeded random orderings. NaN below 3 points."""
-    import itertools
-
-    import numpy as np
-
     n = len(x)
     if n < 3:
         return math.nan
@@ -224,8 +224,6 @@ def spearman_permutation_p(x: Sequence[float], y: Sequence[float], max_exact: in
 def _subset_permutation_p(scores: Sequence[float], chosen: Sequence[bool]) -> float:
     """One-sided p-value of the chosen layouts' mean minus the rest's being at least the observed
     gap if the chosen ones were any layouts of the same count (exact, over all subsets)."""
-    import itertools
-
     n, k = len(scores), sum(chosen)
     if k == 0 or k == n:
         return math.nan

@@ -30,6 +30,7 @@ class GroundTruthScorer:
     def __init__(
         self, system: ControlAffineSystem, path: str | os.PathLike, t: float | None, slice_value: float | None
     ):
+        # lazy: the grid solution and its evaluator only for ground-truth scoring
         from groundtruth.solution import GridSolution
         from training.accuracy import ReferenceEvaluator
 
@@ -82,7 +83,7 @@ class RolloutScorer:
         device: str = "cpu",
         pairwise: str | os.PathLike | None = None,
     ) -> None:
-        from safety.verify import VerifySettings, sample_states
+        from safety.verify import VerifySettings, sample_states  # lazy: the safety stack only for rollout scoring
 
         # sweeps score many snapshots: no robust certification (it needs about a million rollouts)
         self.settings = VerifySettings(samples=samples, certify_samples=certify_samples, seed=seed, robust_samples=0)
@@ -92,12 +93,13 @@ class RolloutScorer:
         self.key = {"kind": "rollout", "system": system.config(), **settings, "pairwise": None}
         self.union_values = None
         if pairwise is not None:  # containment in the union of pairwise BRTs (a sound model misses none)
-            from studies.batch_verification import pairwise_union_values
+            from studies.batch_verification import pairwise_union_values  # lazy: only with a pairwise union
 
             self.union_values = pairwise_union_values(pairwise, system, self.states, system.horizon)
             self.key["pairwise"] = {"file": str(Path(pairwise).resolve()), "size": Path(pairwise).stat().st_size}
 
     def __call__(self, vf: ValueFunction) -> dict[str, float]:
+        # lazy: the safety stack only for rollout scoring
         from safety.metrics import containment_statistics
         from safety.verify import values_at, verify
 

@@ -17,6 +17,7 @@ from typing import Any
 
 from reach.atomic import atomic_path
 from reach.json_files import read_json
+from reach.systems import MultiVehicle, make_system
 from reach.systems.registry import SystemSpecified
 from reach.validation import check_known_fields
 from training.config import TrainConfig
@@ -33,8 +34,6 @@ NINE_D_LAYOUTS = (*AIR3D_LAYOUTS, "sssssl", "ssrrsl", "srsrrl")
 def default_layouts(system: Any) -> list[str]:
     """Layouts a sweep compares when none are given: the 9D study's for the multi-vehicle systems, the
     paper's six (:data:`AIR3D_LAYOUTS`) for Air3D and for any other system, a user's own included."""
-    from reach.systems import MultiVehicle, make_system
-
     return list(NINE_D_LAYOUTS if isinstance(make_system(system), MultiVehicle) else AIR3D_LAYOUTS)
 
 #: keys that may differ between runs into one sweep directory
@@ -109,7 +108,7 @@ class SweepSpec(SystemSpecified):
         if unknown:
             raise ValueError(f"unknown training options {unknown} (known: {sorted(known - _SWEEP_OWNED)})")
         if self.groundtruth is not None:
-            from groundtruth.solution import GridSolution
+            from groundtruth.solution import GridSolution  # lazy: the grid solution only when a ground truth is given
 
             reference = GridSolution.load(self.groundtruth)
             wanted = self.build_system()

@@ -23,6 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import torch
 from tqdm.auto import tqdm
 
 from reach.atomic import atomic_path
@@ -32,6 +33,7 @@ from studies.sweeps.report import claims_table, final_rows, plot_pareto, rank_la
 from studies.sweeps.scoring import headline_of
 from studies.sweeps.spec import SweepSpec, store_spec
 from studies.sweeps.task import run_dir
+from studies.tables import write_results
 
 RESULTS_FORMAT = "reach.sweep-results.v1"
 
@@ -46,7 +48,7 @@ def _ground_truth(spec: SweepSpec, out: Path, progress: bool, log: Callable[[str
         return str(Path(spec.groundtruth).resolve())
     path = out / "groundtruth.npz"
     if not path.exists():
-        from groundtruth.solver import solve
+        from groundtruth.solver import solve  # lazy: the grid solver only when a ground truth must be solved
 
         system = spec.build_system()
         t = system.horizon if spec.eval_time is None else spec.eval_time
@@ -66,8 +68,6 @@ def headline(spec: SweepSpec, rows: list[dict[str, Any]]) -> tuple[tuple[str, bo
 
 def machine() -> str:
     """One line naming the machine a study's driver ran on."""
-    import torch
-
     return (
         f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, torch {torch.__version__}, "
         f"Python {platform.python_version()}"
@@ -108,7 +108,7 @@ def _run_locked(
     progress: bool,
     log: Callable[[str], Any],
 ) -> tuple[Path, list[tuple[str, int, str]]]:
-    from studies.sweeps.backends import run_local, run_ray
+    from studies.sweeps.backends import run_local, run_ray  # lazy: worker pools and Ray only when a sweep runs
 
     store_spec(spec, out)
     groundtruth = _ground_truth(spec, out, progress, log)
@@ -147,8 +147,6 @@ def _in_task_order(spec: SweepSpec, rows_by_task: dict) -> list[dict[str, Any]]:
 
 
 def _write_rows(out: Path, spec: SweepSpec, rows_by_task: dict, failed: list) -> None:
-    from studies.tables import write_results
-
     rows = _in_task_order(spec, rows_by_task)
     header = {"format": RESULTS_FORMAT, "spec": spec.to_dict(), "failed": failed}
     table = summary_table(rows, headline(spec, rows)) if rows else "(no results yet)"
@@ -158,6 +156,7 @@ def _write_rows(out: Path, spec: SweepSpec, rows_by_task: dict, failed: list) ->
 def _slice_plot(spec: SweepSpec, out: Path, rows: list[dict[str, Any]], groundtruth: str | None) -> Path | None:
     """BRT slices of the best and the worst layout (by the first headline metric), the seed nearest
     its layout's mean, final snapshot; the ground truth filled where there is one."""
+    # lazy: loading and plotting only for the report's slices
     from safety.sources import load_value_function
     from studies.plots import plot_brt_slices
 
@@ -176,7 +175,7 @@ def _slice_plot(spec: SweepSpec, out: Path, rows: list[dict[str, Any]], groundtr
     reference = None
     t = None
     if groundtruth is not None:
-        from groundtruth.solution import GridSolution
+        from groundtruth.solution import GridSolution  # lazy: the grid solution only for ground-truth sweeps
 
         reference = GridSolution.load(groundtruth, outside="clamp")
         t = float(reference.times[-1]) if spec.eval_time is None else spec.eval_time
@@ -215,7 +214,7 @@ def write_report(
         "",
     ]
     if spec.evaluation == "groundtruth":
-        from groundtruth.solution import GridSolution
+        from groundtruth.solution import GridSolution  # lazy: the grid solution only for ground-truth sweeps
 
         gt = GridSolution.load(groundtruth)
         t = float(gt.times[-1]) if spec.eval_time is None else spec.eval_time

@@ -20,6 +20,10 @@ from pathlib import Path
 from typing import Any
 
 from reach.atomic import atomic_path
+from reach.threads import apply_thread_policy
+from studies.sweeps.scoring import GroundTruthScorer, RolloutScorer
+from studies.sweeps.spec import SweepSpec
+from training import Trainer
 
 _SCORERS: dict[str, Any] = {}  # one scorer per worker process and settings (ground truths are large)
 
@@ -29,8 +33,6 @@ def run_dir(out: str | os.PathLike, layout: str, seed: int) -> Path:
 
 
 def _scorer(spec: Any, groundtruth: str | None) -> Any:
-    from studies.sweeps.scoring import GroundTruthScorer, RolloutScorer
-
     ident = json.dumps([spec.to_dict(), groundtruth], sort_keys=True, default=str)
     if ident not in _SCORERS:
         system = spec.build_system()
@@ -48,8 +50,6 @@ def _scorer(spec: Any, groundtruth: str | None) -> Any:
 
 
 def _train(spec: Any, layout: str, seed: int, directory: Path) -> None:
-    from training import Trainer
-
     config = spec.train_config(layout, seed)
     trainer = Trainer.open(config, directory, progress=False)
     if trainer.config.to_json() != config.to_json():
@@ -79,10 +79,9 @@ def run_task(
     Rows hold ``layout``, ``seed``, ``snapshot``, ``fraction`` (of the run), ``step``, ``wall``
     (training seconds, evaluation excluded), ``steps_per_s`` and the scorer's metrics.
     """
-    from reach.threads import apply_thread_policy
+    # lazy: the safety stack only when a task scores
     from safety.sources import load_value_function
     from studies.batch_verification import fingerprint
-    from studies.sweeps.spec import SweepSpec
 
     if threads:
         apply_thread_policy(threads)  # the sweep's per-run count, which training then keeps

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from reach.json_files import read_json
+from reach.systems import make_system
 
 #: a source naming a shipped model: ``"pretrained:air3d"``
 PREFIX = "pretrained:"
@@ -177,8 +178,6 @@ def for_env(env_id: str | None, system: Any) -> str:
     A card listing ``env_id`` wins; otherwise a model trained for a system of the same physics as
     ``system`` (:meth:`~reach.systems.base.ControlAffineSystem.same_physics`). None raises
     ``ValueError`` naming the env and the shipped models."""
-    from reach.systems import make_system
-
     all_cards = cards()
     for c in all_cards:
         if env_id is not None and env_id in c.env_ids:
