@@ -32,7 +32,7 @@ from groundtruth.weno import SCALE as WENO_SCALE
 from groundtruth.weno import mean_and_half_jump
 from reach.compiling import maybe_compile
 from reach.heap import retained_heap
-from reach.memory import available_memory
+from reach.memory import require_memory
 from reach.systems.arrays import TORCH
 from reach.systems.base import ControlAffineSystem
 from reach.systems.registry import make_system
@@ -109,14 +109,8 @@ def estimate_solve_bytes(shape: Sequence[int], num_times: int, dtype: torch.dtyp
 
 def check_memory(shape: Sequence[int], num_times: int, dtype: torch.dtype = torch.float32) -> int:
     """Refuse, before allocating anything, a solve that needs more memory than the machine has."""
-    need = estimate_solve_bytes(shape, num_times, dtype)
-    have = available_memory()
-    if have is not None and need > have:
-        raise ValueError(
-            f"a {'x'.join(map(str, shape))} grid with {num_times} stored times needs about {need / 2**30:.1f} GiB, "
-            f"but {have / 2**30:.1f} GiB is available; use a coarser grid or fewer --times"
-        )
-    return need
+    what = f"a {'x'.join(map(str, shape))} grid with {num_times} stored times"
+    return require_memory(estimate_solve_bytes(shape, num_times, dtype), what, "use a coarser grid or fewer --times")
 
 
 def solve(

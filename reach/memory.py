@@ -22,3 +22,14 @@ def available_memory() -> int | None:
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):
         return None
+
+
+def require_memory(need: int, what: str, advice: str) -> int:
+    """Refuse ``what`` (e.g. "a 101x101x101 grid with 12 stored times") when its ``need`` in bytes
+    exceeds what the machine can give, saying both and ``advice``; returns ``need``."""
+    have = available_memory()
+    if have is not None and need > have:
+        raise ValueError(
+            f"{what} needs about {need / 2**30:.1f} GiB, but {have / 2**30:.1f} GiB is available; {advice}"
+        )
+    return need

@@ -116,6 +116,21 @@ def check_known_fields(cls: type, data: Any, what: str) -> None:
         raise ValueError(f"{what}: unknown field(s) {unknown}; fields are {names}")
 
 
+def settings_from(cls: type, settings: Any, keywords: dict[str, Any], what: str) -> Any:
+    """The frozen dataclass ``cls`` from ``settings`` (an instance, or None for the defaults) with
+    ``keywords`` (field names) replacing its fields: the one way a function that takes a settings
+    object also takes its fields as keywords. Unknown keywords raise ``ValueError`` naming them."""
+    names = [f.name for f in dataclasses.fields(cls)]
+    unknown = sorted(set(keywords) - set(names))
+    if unknown:
+        raise ValueError(f"unknown {what} setting(s) {unknown}; settings are {sorted(names)}")
+    if settings is None:
+        return cls(**keywords)
+    if not isinstance(settings, cls):
+        raise ValueError(f"{what} settings must be a {cls.__name__}, got {type(settings).__name__}")
+    return dataclasses.replace(settings, **keywords) if keywords else settings
+
+
 def check_seed(name: str, value: Any) -> int:
     """A seed for NumPy and torch generators: an integer in ``[0, 2**32 - 1]``."""
     return check_int(name, value, 0, MAX_SEED)

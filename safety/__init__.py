@@ -23,6 +23,7 @@ import importlib
 import warnings
 from typing import TYPE_CHECKING, Any
 
+from reach.lazy import lazy_exports
 from reach.value_function import MinimumOf, value_and_gradient
 from safety.filter import FilterInfo, SafetyFilter
 from safety.filter_settings import FilterSettings
@@ -50,6 +51,9 @@ _LAZY = {
 _MOVED_UP = {"evaluate_many", "load_results", "markdown_table"}
 
 
+_lazy_getattr, __dir__ = lazy_exports(__name__, _LAZY)
+
+
 def __getattr__(name: str) -> Any:
     if name in _MOVED_UP:
         warnings.warn(
@@ -58,16 +62,7 @@ def __getattr__(name: str) -> Any:
             stacklevel=2,
         )
         return getattr(importlib.import_module("studies"), name)  # deprecated alias (the one upward name)
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'safety' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value  # later lookups skip this function
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *_LAZY})
+    return _lazy_getattr(name)
 
 
 __all__ = [

@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import torch
@@ -36,7 +36,7 @@ from tqdm.auto import tqdm
 from reach.integrators import check_integrator, make_stepper
 from reach.systems import ControlAffineSystem
 from reach.systems.arrays import TORCH
-from reach.validation import check_int, positive_finite
+from reach.validation import check_int, positive_finite, settings_from
 from reach.value_function import ValueFunction, check_time_coverage
 from safety.value_policies import GreedyPolicy, check_policy, check_states
 
@@ -131,12 +131,8 @@ class RolloutSettings:
     @classmethod
     def of(cls, settings: RolloutSettings | None, keywords: dict[str, Any]) -> RolloutSettings:
         """``settings`` with ``keywords`` (field names) replaced, or the defaults with them: the one
-        place where keyword arguments become settings. An unknown keyword raises ``ValueError``."""
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(keywords) - names)
-        if unknown:
-            raise ValueError(f"unknown rollout setting(s) {unknown}; settings are {sorted(names)}")
-        return cls(**keywords) if settings is None else replace(settings, **keywords)
+        place where a rollout's keyword arguments become settings (:func:`reach.validation.settings_from`)."""
+        return settings_from(cls, settings, keywords, "rollout")
 
     def for_system(self, system: ControlAffineSystem) -> RolloutSettings:
         """These settings with the horizon resolved to the system's where it is None (checked again:

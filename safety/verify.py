@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from reach.memory import available_memory
+from reach.memory import require_memory
 from reach.systems import ControlAffineSystem
 from reach.threads import thread_policy
 from reach.value_function import ValueFunction
@@ -121,14 +121,8 @@ def check_for_system(system: ControlAffineSystem, settings: VerifySettings) -> i
     system's horizon (when the settings leave the horizon to it), or a verification that needs more
     memory than is available; returns the memory estimate in bytes."""
     settings.rollout_settings(settings.horizon).for_system(system)
-    need = estimate_rollout_bytes(system.state_dim, settings)
-    have = available_memory()
-    if have is not None and need > have:
-        raise ValueError(
-            f"verifying {settings.samples:,} states of {system.name} ({system.state_dim}D) needs about "
-            f"{need / 2**30:.1f} GiB, but {have / 2**30:.1f} GiB is available; use fewer --samples"
-        )
-    return need
+    what = f"verifying {settings.samples:,} states of {system.name} ({system.state_dim}D)"
+    return require_memory(estimate_rollout_bytes(system.state_dim, settings), what, "use fewer --samples")
 
 
 def sample_superlevel_set(

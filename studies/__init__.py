@@ -16,11 +16,12 @@ Names are imported on first use, so that ``import studies.tables`` stays light.
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from reach.lazy import lazy_exports
 
 if TYPE_CHECKING:
-    from studies.batch_verification import evaluate_many, load_results, markdown_table
+    from studies.batch_verification import References, evaluate_many, load_results, markdown_table
     from studies.filter_eval import FilterStudy, run_filter_study
 
 _LAZY = {
@@ -29,20 +30,10 @@ _LAZY = {
     "markdown_table": "studies.batch_verification",
     "FilterStudy": "studies.filter_eval",
     "run_filter_study": "studies.filter_eval",
+    "References": "studies.batch_verification",
 }
 
 
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'studies' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value  # later lookups skip this function
-    return value
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)
 
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *_LAZY})
-
-
-__all__ = ["FilterStudy", "evaluate_many", "load_results", "markdown_table", "run_filter_study"]
+__all__ = ["FilterStudy", "References", "evaluate_many", "load_results", "markdown_table", "run_filter_study"]

@@ -23,6 +23,7 @@ import hashlib
 import os
 import shutil
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +33,7 @@ from groundtruth.solution import GridSolution
 from reach.json_files import read_json, restore_nan
 from reach.locking import exclusive_lock
 from reach.systems import ControlAffineSystem, make_system
-from reach.validation import check_output_path
+from reach.validation import check_float, check_output_path, settings_from
 from safety.metrics import containment_statistics
 from safety.rollout_store import RolloutStore
 from safety.sources import (
@@ -170,6 +171,30 @@ def pairwise_union_values(pairwise: str | os.PathLike, system: ControlAffineSyst
     return values_at(union.value_function, states, horizon)
 
 
+@dataclass(frozen=True)
+class References:
+    """What each source is scored against besides its own rollouts.
+
+    Attributes:
+        ground_truth: a grid ``.npz`` of the same system: volume IoU and MSE against it.
+        gt_time: the time-to-go of that comparison (None: the grid's last stored time).
+        gt_slice: score on the slice of the last state dimension at this value instead of the volume.
+        pairwise: a two-car grid ``.npz`` (``reach groundtruth relativepair``): containment in the
+            union of pairwise BRTs, for a multi-vehicle system.
+    """
+
+    ground_truth: str | os.PathLike | None = None
+    gt_time: float | None = None
+    gt_slice: float | None = None
+    pairwise: str | os.PathLike | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("gt_time", "gt_slice"):
+            value = getattr(self, name)
+            if value is not None:
+                object.__setattr__(self, name, check_float(name, value))
+
+
 def evaluate_many(
     sources: Sequence[str],
     out: str | os.PathLike,
@@ -177,14 +202,18 @@ def evaluate_many(
     system: ControlAffineSystem | str | None = None,
     format: str = "auto",
     layout: str | None = None,
-    ground_truth: str | os.PathLike | None = None,
-    gt_time: float | None = None,
-    gt_slice: float | None = None,
-    pairwise: str | os.PathLike | None = None,
+    references: References | None = None,
     device: str = "cpu",
     progress: bool = True,
+    **reference_fields: Any,
 ) -> list[dict[str, Any]]:
-    """Evaluate every source on the same states; returns the rows (also written to ``out``)."""
+    """Evaluate every source on the same states; returns the rows (also written to ``out``).
+
+    ``references`` (:class:`References`; its fields may also be given as keywords, e.g.
+    ``ground_truth="gt.npz"``) adds the comparison columns; ``system``, ``format`` and ``layout``
+    say how to load the sources (:func:`~safety.sources.load_value_function`)."""
+    refs = settings_from(References, references, reference_fields, "reference")
+    ground_truth, gt_time, gt_slice, pairwise = refs.ground_truth, refs.gt_time, refs.gt_slice, refs.pairwise
     paths = expand_sources(sources)
     out = check_output_path(out, "results")
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -281,4 +310,4 @@ def load_results(path: str | os.PathLike) -> list[dict[str, Any]]:
     return restore_nan(read_json(p, "a reach evaluation file", expect_format=FORMAT)["results"])
 
 
-__all__ = ["evaluate_many", "expand_sources", "load_results", "markdown_table"]
+__all__ = ["References", "evaluate_many", "expand_sources", "load_results", "markdown_table"]

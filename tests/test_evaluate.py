@@ -58,14 +58,14 @@ def test_evaluate_two_checkpoints_with_bad_ones_beside(checkpoints: Path, capsys
 
     # resume: finished rows come back untouched, without recomputation
     before = json.loads(out.with_suffix(".json").read_text())
-    assert main(args) == 0
+    assert main(args) == 3  # the bad sources fail again (and say so); the good rows are reused
     after = json.loads(out.with_suffix(".json").read_text())
     done = [r for r in before["results"] if not r.get("error")]
     again = [r for r in after["results"] if not r.get("error")]
     assert [r["wall_time"] for r in again] == [r["wall_time"] for r in done]
 
     # the same settings spelled out (a count given as the value it defaults to) merge, untouched
-    assert main([*args, "--robust-samples", "500"]) == 0
+    assert main([*args, "--robust-samples", "500"]) == 3  # the bad sources still fail
     spelled = json.loads(out.with_suffix(".json").read_text())
     assert [r["wall_time"] for r in spelled["results"] if not r.get("error")] == [r["wall_time"] for r in done]
     # other settings into the same file are refused rather than mixed
