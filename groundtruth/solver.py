@@ -2,8 +2,9 @@
 
 Scheme (as in the MATLAB level-set toolbox and hj_reachability): upwind HJ-WENO5 derivatives,
 Lax-Friedrichs numerical Hamiltonian with the system's derived dissipation bounds, TVD-RK3 in time
-with a CFL-limited step that lands exactly on every requested output time, and the backward
-reachable tube as the variational inequality ``V <- min(V, l)`` after each full step.
+with a CFL-limited step that lands exactly on every requested output time, and the system's kind
+of problem as a variational inequality after each full step: ``V <- min(V, l)`` for the avoid and
+reach tubes, ``V <- max(min(V, l), -g)`` for reach-avoid (:mod:`reach.systems.problem`).
 
 Conventions (docs/concepts.md): ``t`` is time-to-go and ``V(x, 0) = l(x)``. The value solves
 ``max(dV/dt - H(x, grad V), V - l) = 0``, so the semi-discrete right-hand side is::
@@ -113,6 +114,10 @@ def check_memory(shape: Sequence[int], num_times: int, dtype: torch.dtype = torc
     return require_memory(estimate_solve_bytes(shape, num_times, dtype), what, "use a coarser grid or fewer --times")
 
 
+#: how :func:`solve` enforces the problem after each step (see its ``tube`` argument)
+TUBES = ("min_with_target", "min_over_time", "set")
+
+
 def solve(
     system: ControlAffineSystem | str,
     grid: Grid | int | Sequence[int],
@@ -124,9 +129,14 @@ def solve(
     device: torch.device | str = "cpu",
     compile: bool | None = None,
     progress: bool = True,
-    tube: Literal["min_with_target", "min_over_time"] = "min_with_target",
+    tube: Literal["min_with_target", "min_over_time", "set"] = "min_with_target",
 ) -> GridSolution:
-    """Solve the BRT value function of ``system`` on ``grid`` and keep it at the given ``times``.
+    """Solve the value function of ``system``'s problem on ``grid`` and keep it at the given ``times``.
+
+    The system's kind (:mod:`reach.systems.problem`) sets the problem: avoid (the BRT of its failure
+    set), reach (the states that can reach its target within the time-to-go) or reach-avoid (reach
+    the target while the constraint margin ``g`` stays positive); the Hamiltonian's game directions,
+    the boundary value and the variational inequality follow from it.
 
     Args:
         system: any system with at most 4 state dimensions: an instance, a registered name or an
@@ -150,6 +160,9 @@ def solve(
             the MATLAB toolbox's ``minVOverTime``, ``V <- min(V_new, V_old)``: the same exact
             solution, but numerically monotone in time; with ``min_with_target`` numerical
             diffusion at kinks of ``V`` can raise ``V`` by a few 1e-3 between output times.
+            ``"set"`` solves the backward reachable *set* instead of the tube: no minimum with
+            ``l``, so ``V(x, t) <= 0`` means "in the set exactly at time ``t``" (reach at ``t``, or
+            fail at ``t``). For reach-avoid every option then applies ``V <- max(V, -g)``.
     """
     system = make_system(system)
     if system.state_dim > MAX_DIM:
@@ -168,8 +181,8 @@ def solve(
             f"cfl={cfl} is outside (0, {CFL_STABLE}]: TVD-RK3 with WENO5 is only stable "
             "up to a Courant number of about 1"
         )
-    if tube not in ("min_with_target", "min_over_time"):
-        raise ValueError(f"tube must be 'min_with_target' or 'min_over_time', got {tube!r}")
+    if tube not in TUBES:
+        raise ValueError(f"tube must be one of {TUBES}, got {tube!r}")
     if dissipation not in ("global", "local"):
         raise ValueError(f"dissipation must be 'global' or 'local', got {dissipation!r}")
 
@@ -177,7 +190,13 @@ def solve(
 
     start = time.perf_counter()
     cols = grid.columns(dtype, device)
-    target = torch.broadcast_to(system.failure_margin_columns(cols, TORCH), grid.shape).contiguous()
+    problem = system.problem
+    target = torch.broadcast_to(system.terminal_margin_columns(cols, TORCH), grid.shape).contiguous()
+    constraint = (
+        torch.broadcast_to(system.constraint_margin_columns(cols, TORCH), grid.shape).contiguous()
+        if problem.has_constraint
+        else None
+    )
     bounds = [torch.as_tensor(a, dtype=dtype, device=device) for a in system.dissipation_columns(cols, TORCH)]
     rate = sum(torch.broadcast_to(a, grid.shape) / dx for a, dx in zip(bounds, grid.spacing))
     max_rate = float(rate.max())
@@ -190,7 +209,9 @@ def solve(
         v1 = torch.addcmul(v, h, rhs(v))
         v2 = torch.addcmul(v1, h, rhs(v1)).mul_(0.25).add_(v, alpha=0.75)
         v3 = torch.addcmul(v2, h, rhs(v2)).mul_(2.0 / 3.0).add_(v, alpha=1.0 / 3.0)
-        return torch.minimum(v3, floor if floor is not None else v)
+        if tube == "set" and constraint is None:
+            return v3
+        return problem.enforce(v3, v if tube == "min_over_time" else floor, constraint)
 
     floor = target if tube == "min_with_target" else None  # min_over_time: V_old (<= l) is the floor
 
@@ -203,7 +224,7 @@ def solve(
     values = []
     steps = 0
     t = 0.0
-    v = target.clone()
+    v = problem.boundary_value(target, constraint).clone()
     # on CPU, freed temporaries stay in the heap: page faults made eager 4D solves 2-3x slower (reach.heap)
     keep_heap = retained_heap(need) if torch.device(device).type == "cpu" else contextlib.nullcontext()
     with (
@@ -245,6 +266,7 @@ def solve(
                 "dt": dt_max,
                 "steps": steps,
                 "tube": tube,
+                "kind": problem.name,
                 "boundary": "periodic or extrapolate away from zero",
                 "compiled": compile is not False,  # torch.compile asked for (it falls back to eager on failure)
             },

@@ -24,6 +24,7 @@ class SceneSimulator:
     """Advances states of one scene on backend ``xp`` (FLOAT or NUMPY)."""
 
     def __init__(self, scene: Scene, xp: Backend) -> None:
+        scene.system.require_kind(("avoid",), "environments")
         self.scene = scene
         self.system = scene.system
         self.xp = xp

@@ -149,6 +149,7 @@ class SafetyFilter:
         integrator: str = "rk4",
         **options: Any,
     ) -> None:
+        value_function.system.require_kind(("avoid",), "safety filters")
         settings = make_filter_settings(settings, threshold=threshold, **options)
         kind = settings.kind
         if dt is not None:

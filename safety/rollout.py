@@ -164,6 +164,7 @@ def rollout(
         dtype: precision of the simulation (default float32).
         progress: show a progress bar over chunk-steps.
     """
+    value_function.system.require_kind(("avoid",), "rollouts")
     settings = RolloutSettings.of(settings, keywords).for_system(value_function.system)
     horizon, dt, integrator, policy = settings.horizon, settings.dt, settings.integrator, settings.policy
     chunk_size, matmul_precision, early_exit = settings.chunk_size, settings.matmul_precision, settings.early_exit

@@ -18,6 +18,8 @@ from reach.systems import (
     TORCH,
     Air3D,
     Car,
+    Dubins3D,
+    DubinsReachAvoid,
     MultiVehicle,
     MultiVehicle6D,
     MultiVehicle9D,
@@ -31,6 +33,9 @@ SYSTEMS = [
     MultiVehicle9D(),
     # two pursuers with different limits and an evader: asymmetric boxes and both players present
     MultiVehicle([Car(0.5, 2.0, "control"), Car(0.7, 1.5, "disturbance"), Car(0.4, 0.5, "disturbance")]),
+    # the reach kinds: the control minimises, the disturbance (the wind) maximises
+    Dubins3D("reach"),
+    DubinsReachAvoid(),
 ]
 
 
@@ -289,8 +294,10 @@ def test_backends_agree(state, inputs):
         )
         np.testing.assert_allclose(f_numpy[0], f_float, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(f_torch[0].numpy(), f_float, rtol=1e-12, atol=1e-12)
-        assert system.failure_margin_float(x) == pytest.approx(
-            system.failure_margin(torch.tensor(x, dtype=torch.float64)).item(), abs=1e-12
+        # the kind's terminal margin l (the failure margin of an avoid system, else the target's)
+        x_torch = TORCH.unbind(torch.tensor([x], dtype=torch.float64))
+        assert float(system.terminal_margin_columns(x, FLOAT)) == pytest.approx(
+            float(system.terminal_margin_columns(x_torch, TORCH)[0]), abs=1e-12
         )
 
 

@@ -12,6 +12,7 @@ from reach.systems.arrays import FLOAT, NUMPY, TORCH
 from reach.systems.base import ControlAffineSystem
 from reach.systems.box import Box
 from reach.systems.deepreach_normalisation import DeepReachNormalisation
+from reach.systems.dubins import Dubins3D, DubinsReachAvoid
 from reach.systems.multivehicle import Car, MultiVehicle, MultiVehicle6D, MultiVehicle9D
 from reach.systems.registry import (
     SYSTEMS,
@@ -23,7 +24,7 @@ from reach.systems.registry import (
 )
 from reach.value_function import ValueFunction
 
-for _builtin in (Air3D, RelativePair, MultiVehicle, MultiVehicle6D, MultiVehicle9D):
+for _builtin in (Air3D, RelativePair, MultiVehicle, MultiVehicle6D, MultiVehicle9D, Dubins3D, DubinsReachAvoid):
     register_system(_builtin)
 
 
@@ -37,6 +38,8 @@ __all__ = [
     "Car",
     "ControlAffineSystem",
     "DeepReachNormalisation",
+    "Dubins3D",
+    "DubinsReachAvoid",
     "MultiVehicle",
     "MultiVehicle6D",
     "MultiVehicle9D",

@@ -31,7 +31,7 @@ import json
 import math
 from abc import ABCMeta, abstractmethod
 from collections.abc import Mapping, Sequence
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -40,9 +40,9 @@ from reach.systems.arrays import FLOAT, TORCH, Backend, Column, is_number
 from reach.systems.box import NO_INPUT, Box  # also importable from here, as before the split
 from reach.systems.deepreach_normalisation import DeepReachNormalisation  # likewise
 from reach.systems.hamiltonian import FixedStateHamiltonian
+from reach.systems.problem import Objective, ProblemKind, problem_kind
 from reach.systems.reference import system_reference
 
-Objective = Literal["max", "min"]
 #: Sparse input matrix: {(state index, input index): entry}; absent entries are zero.
 InputMatrix = Mapping[tuple[int, int], Column]
 
@@ -74,8 +74,11 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
     periodic: tuple[bool, ...]
     control_bounds: Box
     disturbance_bounds: Box = NO_INPUT
-    control_objective: Objective = "max"
-    disturbance_objective: Objective = "min"
+    #: the kind of problem (:mod:`reach.systems.problem`): ``"avoid"`` (write
+    #: :meth:`failure_margin_columns`), ``"reach"`` (write :meth:`target_margin_columns`) or
+    #: ``"reach-avoid"`` (both :meth:`target_margin_columns` and :meth:`constraint_margin_columns`).
+    #: The players' objectives, the variational inequality and the meaning of ``V <= 0`` follow.
+    kind: str = "avoid"
     horizon: float
     #: only for importing DeepReach checkpoints; network inputs are scaled from ``domain``
     deepreach: DeepReachNormalisation | None = None
@@ -98,9 +101,51 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
         """Nonzero entries of ``G_d(x)``; none by default (no disturbance)."""
         return {}
 
-    @abstractmethod
     def failure_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
-        """``l(x)``: negative inside the failure set, zero on its boundary."""
+        """``l(x)``: negative inside the failure set, zero on its boundary (an avoid system writes it).
+
+        A reach-avoid system's failure set is where its constraint fails, so by default this is
+        :meth:`constraint_margin_columns`; a reach system has no failure set."""
+        if self.problem.has_constraint:
+            return self.constraint_margin_columns(x, xp)
+        raise NotImplementedError(f"{self.name}: a {self.kind} system declares failure_margin_columns")
+
+    def target_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
+        """``l(x)`` of a reach or reach-avoid system: negative inside the target, zero on its boundary."""
+        raise NotImplementedError(f"{self.name}: a {self.kind} system declares target_margin_columns")
+
+    def constraint_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
+        """``g(x)`` of a reach-avoid system: positive where the state may be, zero or negative in an
+        obstacle (a reach-avoid trajectory must keep it positive until it reaches the target)."""
+        raise NotImplementedError(f"{self.name}: a {self.kind} system declares constraint_margin_columns")
+
+    @property
+    def problem(self) -> ProblemKind:
+        """The :class:`~reach.systems.problem.ProblemKind` of :attr:`kind`."""
+        return problem_kind(self.kind, self.name)
+
+    @property
+    def control_objective(self) -> Objective:
+        """``"max"`` (avoid: the control keeps ``V`` high) or ``"min"`` (reach kinds), from the kind."""
+        return self.problem.control_objective
+
+    @property
+    def disturbance_objective(self) -> Objective:
+        """The disturbance's objective, the opposite of the control's (from the kind)."""
+        return self.problem.disturbance_objective
+
+    def terminal_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
+        """The ``l`` of the kind's variational inequality: the failure margin (avoid) or the target
+        margin (reach kinds)."""
+        return getattr(self, self.problem.margin_method)(x, xp)
+
+    def require_kind(self, kinds: tuple[str, ...], what: str) -> None:
+        """Refuse, naming the kind, a tool that does not (yet) handle this system's kind of problem."""
+        if self.kind not in kinds:
+            raise ValueError(
+                f"{what} handle(s) {' and '.join(kinds)} problems; {self.name} is a {self.kind} problem "
+                "(the grid solver solves every kind)"
+            )
 
     def margin_rate_bound(self) -> float | None:
         """A bound on ``|d l(x(t)) / dt|`` along every trajectory with admissible inputs, or ``None``.
@@ -253,9 +298,18 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
         for side in ("control_bounds", "disturbance_bounds"):
             if not isinstance(getattr(self, side), Box):
                 raise ValueError(f"{what}: {side} must be a Box, got {getattr(self, side)!r}")
-        for side, objective in (("control", self.control_objective), ("disturbance", self.disturbance_objective)):
-            if objective not in ("max", "min"):
-                raise ValueError(f"{what}: {side}_objective must be 'max' or 'min', got {objective!r}")
+        problem = problem_kind(self.kind, what)
+        for attr in ("control_objective", "disturbance_objective"):
+            if any(attr in vars(cls) for cls in type(self).__mro__ if cls is not ControlAffineSystem):
+                raise ValueError(
+                    f"{what}: declare kind = 'avoid', 'reach' or 'reach-avoid' instead of {attr}: the "
+                    "players' objectives follow from the kind"
+                )
+        needed = ["failure_margin_columns"] if problem.name == "avoid" else ["target_margin_columns"]
+        needed += ["constraint_margin_columns"] if problem.has_constraint else []
+        for method in needed:
+            if getattr(type(self), method) is getattr(ControlAffineSystem, method):
+                raise ValueError(f"{what}: a {problem.name} system must define {method}")
         if isinstance(self.horizon, bool) or not (
             isinstance(self.horizon, (int, float)) and self.horizon > 0 and math.isfinite(self.horizon)
         ):
@@ -278,14 +332,16 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
                     raise ValueError(
                         f"{what}: {side} entry {key!r} is out of range: keys are (state index < {n}, input index < {m})"
                     )
-        margin = self.failure_margin_columns(x, TORCH)
-        if not isinstance(margin, torch.Tensor) or tuple(margin.shape) != (4,):
-            shape = tuple(margin.shape) if isinstance(margin, torch.Tensor) else type(margin).__name__
-            raise ValueError(
-                f"{what}: failure_margin_columns must return one value per state, shape (4,) for 4 states, got {shape}"
-            )
-        if not torch.isfinite(margin).all():
-            raise ValueError(f"{what}: failure_margin_columns returned non-finite values inside the domain")
+        methods = [self.problem.margin_method] + (["constraint_margin_columns"] if self.problem.has_constraint else [])
+        for method in methods:
+            margin = getattr(self, method)(x, TORCH)
+            if not isinstance(margin, torch.Tensor) or tuple(margin.shape) != (4,):
+                shape = tuple(margin.shape) if isinstance(margin, torch.Tensor) else type(margin).__name__
+                raise ValueError(
+                    f"{what}: {method} must return one value per state, shape (4,) for 4 states, got {shape}"
+                )
+            if not torch.isfinite(margin).all():
+                raise ValueError(f"{what}: {method} returned non-finite values inside the domain")
 
     # ------------------------------------------------------------------ derived, on columns
     def xdot_columns(self, x: Sequence[Column], u: Sequence[Column], d: Sequence[Column], xp: Backend) -> list[Column]:
@@ -436,6 +492,14 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
         """``l(x)`` for states ``(..., n)``; returns ``(...)``."""
         self._check("x", x, self.state_dim)
         return self.failure_margin_columns(TORCH.unbind(x), TORCH)
+
+    def target_margin(self, x: torch.Tensor) -> torch.Tensor:
+        """``l(x)`` of a reach kind for batched states ``(..., n)``: negative inside the target."""
+        return self.target_margin_columns(TORCH.unbind(x), TORCH)
+
+    def constraint_margin(self, x: torch.Tensor) -> torch.Tensor:
+        """``g(x)`` of a reach-avoid system for batched states ``(..., n)``: positive where allowed."""
+        return self.constraint_margin_columns(TORCH.unbind(x), TORCH)
 
     def wrap(self, x: torch.Tensor) -> torch.Tensor:
         """States with periodic dimensions wrapped into ``[-pi, pi)``."""
