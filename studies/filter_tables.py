@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from reach.json_files import read_json, restore_nan
 from reach.locking import exclusive_lock
 from studies.filter_configs import FilterConfig
 from studies.tables import columns_table, merge_rows, write_results
@@ -106,13 +107,10 @@ def _stored_filter_table(out: str | os.PathLike, header: dict[str, Any]) -> dict
     path = Path(out).with_suffix(".json")
     if not path.exists():
         return {}
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        unreadable = f"{path}: existing filter results are unreadable ({err}); move the file away to start over"
-        raise ValueError(unreadable) from err
-    if not isinstance(data, dict) or not isinstance(data.get("results"), list):
+    data = read_json(path, "existing filter results", hint="; move the file away to start over")
+    if not isinstance(data.get("results"), list):
         raise ValueError(f"{path} is not a filter results table; use another --out or delete it")
+    data["results"] = restore_nan(data["results"])  # strict JSON wrote NaN as null
     old, new = _episode_header(data), _episode_header(header)
     for key in sorted(old.keys() | new.keys()):
         if old.get(key) != new.get(key):
