@@ -48,10 +48,9 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+from hj_venv import hj_python  # benchmarks/hj_venv.py: the interpreter with hj_reachability
 
 ROOT = Path(__file__).resolve().parents[1]
-HJ_VENV = Path.home() / ".cache" / "reach-bench" / "hj-venv"
-HJ_REQUIREMENTS = ("hj_reachability==0.7.0", "jax[cpu]")
 
 #: (label, reach system, hj system key, grid sizes, horizon)
 CASES = (
@@ -144,18 +143,6 @@ t2 = time.perf_counter()
 np.save(sys.argv[5], np.asarray(values[-1]))
 print(json.dumps({"import_s": t1 - t0, "solve_s": t2 - t1}))
 """
-
-
-def hj_python(given: str | None) -> str:
-    """An interpreter with hj_reachability: ``given``, or this benchmark's own virtual environment."""
-    if given:
-        return given
-    python = HJ_VENV / "bin" / "python"
-    if not python.exists():
-        print(f"# installing {', '.join(HJ_REQUIREMENTS)} into {HJ_VENV} (for this benchmark only)", flush=True)
-        subprocess.run([sys.executable, "-m", "venv", str(HJ_VENV)], check=True)
-        subprocess.run([str(python), "-m", "pip", "install", "-q", *HJ_REQUIREMENTS], check=True)
-    return str(python)
 
 
 def _timed(argv: list[str], env: dict[str, str], what: str) -> tuple[subprocess.CompletedProcess[str], float]:
