@@ -13,27 +13,31 @@ of every layout first. As in the 9D accuracy-against-time study, minutes are tra
 run sharing the cores with other work trains what a quiet machine trains in that time: ``minutes x
 --steps-per-minute x`` the layout's speed relative to ``ssssl`` (:data:`RELATIVE_SPEED`; ReLU
 layers are cheaper, and equal wall time is the comparison the paper's question asks for).
-``--with ROW`` adds a change of the 9D ablation (``benchmarks/nine_d_ablation.py``, e.g.
-``upper-bound``) to every run: the second half of the study, the best recipe on the best layouts.
-``score`` and ``report`` are the accuracy-against-time study's (``reach evaluate`` with the same
-settings; mean and each seed per layout, beside the seed paper's violation rates).
+``--with ROW`` adds a change of the 9D ablation (``benchmarks/nine_d_ablation.py``,
+:data:`studies.step_budget_study.CHANGES`, e.g. ``upper-bound``) to every run: the second half of
+the study, the best recipe on the best layouts. ``score`` and ``report`` are the
+accuracy-against-time study's (``reach evaluate`` with the same settings; mean and each seed per
+layout, beside the seed paper's violation rates): the stages of :mod:`studies.step_budget_study`
+and the tables of :mod:`studies.step_budget_report`, which every 9D study shares.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from nine_d_ablation import ROWS, ensure_pairwise_for
-from nine_d_accuracy_vs_time import (
+from studies.step_budget_report import print_seed_table, read_metrics
+from studies.step_budget_study import (
+    CHANGES,
+    PlannedRun,
+    Scoring,
     add_run_arguments,
-    evaluate_runs,
-    read_metrics,
-    seed_cells,
-    train_or_resume,
+    change_settings,
+    run_path,
+    run_stage,
+    score_runs,
+    stage_parser,
+    train_runs,
 )
 
 #: the seed paper's six 9D layouts
@@ -65,7 +69,7 @@ PAPER_VIOLATION_PERCENT = {
 
 def run_dir(args: argparse.Namespace, layout: str, seed: int) -> Path:
     change = "" if args.with_row == "baseline" else f"-{args.with_row}"
-    return args.out / "runs" / f"{layout}-{args.minutes:g}m{change}-seed{seed}"
+    return run_path(args.out, layout, args.minutes, seed, change)
 
 
 def steps_for(args: argparse.Namespace, layout: str) -> int:
@@ -73,21 +77,18 @@ def steps_for(args: argparse.Namespace, layout: str) -> int:
 
 
 def train(args: argparse.Namespace) -> int:
-    code = ensure_pairwise_for([args.with_row], Path(args.pairwise))
-    if code:
-        return code
-    options = [option.format(pairwise=args.pairwise) for option in ROWS[args.with_row]]
-    for seed in args.seeds:  # every layout's seed 0 first: a partial study still ranks them all
-        for layout in args.layouts:
-            run = run_dir(args, layout, seed)
-            code = train_or_resume(run, steps_for(args, layout), seed, [*options, "--layout", layout], args.device)
-            if code:
-                return code
-    return 0
+    settings = change_settings(args.with_row, args.pairwise)
+    runs = [  # every layout's seed 0 first: a partial study still ranks them all
+        PlannedRun(run_dir(args, layout, seed), steps_for(args, layout), seed, {**settings, "layout": layout})
+        for seed in args.seeds
+        for layout in args.layouts
+    ]
+    return train_runs(runs, args.device)
 
 
 def score(args: argparse.Namespace) -> int:
-    return evaluate_runs([run_dir(args, layout, seed) for seed in args.seeds for layout in args.layouts], args)
+    runs = [run_dir(args, layout, seed) for seed in args.seeds for layout in args.layouts]
+    return score_runs(runs, args.out, Scoring.from_args(args))
 
 
 def report(args: argparse.Namespace) -> int:
@@ -99,33 +100,33 @@ def report(args: argparse.Namespace) -> int:
         f"# 9D layouts, {args.minutes:g} min of the quiet 2-core rate per run"
         f"{'' if args.with_row == 'baseline' else ', with ' + args.with_row}; mean over seeds (each seed)"
     )
-    print("| layout | steps | seeds | " + " | ".join(keys) + " | paper violation % |")
-    print("|---|---:|---:|" + "---:|" * len(keys) + "---:|")
-    for layout in args.layouts:
-        count, cells = seed_cells(rows, {run_dir(args, layout, seed).name for seed in args.seeds}, keys)
-        if count:
-            paper = PAPER_VIOLATION_PERCENT.get(layout, "")
-            print(f"| {layout} | {steps_for(args, layout)} | {count} | " + " | ".join(cells) + f" | {paper} |")
+    entries = [
+        (
+            [layout, str(steps_for(args, layout))],
+            {run_dir(args, layout, seed).name for seed in args.seeds},
+            [str(PAPER_VIOLATION_PERCENT.get(layout, ""))],
+        )
+        for layout in args.layouts
+    ]
+    print_seed_table(rows, keys, ["layout", "steps"], entries, last=["paper violation %"])
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("stage", choices=["train", "score", "report"])
-    parser.add_argument("--out", type=Path, default=Path("runs/studies/9d-layouts"))
+    parser = stage_parser(__doc__.splitlines()[0], "runs/studies/9d-layouts")
     parser.add_argument("--layouts", type=lambda s: s.split(","), default=list(PAPER_LAYOUTS))
     parser.add_argument("--minutes", type=float, default=15.0)
-    parser.add_argument("--with", dest="with_row", default="baseline", help=f"an ablation change: {', '.join(ROWS)}")
+    parser.add_argument("--with", dest="with_row", default="baseline", help=f"an ablation change: {', '.join(CHANGES)}")
     add_run_arguments(parser)
     args = parser.parse_args(argv)
     unknown = [layout for layout in args.layouts if layout not in RELATIVE_SPEED]
     if unknown:
         parser.error(f"--layouts: no measured speed for {unknown}; measured: {', '.join(RELATIVE_SPEED)}")
-    if args.with_row not in ROWS:
-        parser.error(f"--with: unknown change {args.with_row!r}; known: {', '.join(ROWS)}")
+    if args.with_row not in CHANGES:
+        parser.error(f"--with: unknown change {args.with_row!r}; known: {', '.join(CHANGES)}")
     if not (args.minutes > 0):
         parser.error(f"--minutes must be > 0, got {args.minutes}")
-    return {"train": train, "score": score, "report": report}[args.stage](args)
+    return run_stage(lambda: {"train": train, "score": score, "report": report}[args.stage](args), parser.prog)
 
 
 if __name__ == "__main__":

@@ -7,6 +7,8 @@ The top floor under the command line. Each module runs or reports an experiment:
 * :mod:`studies.filter_eval` - what a safety filter changes in episodes of a task
   (``reach filter-eval``), with :mod:`studies.tasks` (the nominal task controllers);
 * :mod:`studies.sweeps` - layouts x seeds on a training budget, with a report (``reach sweep``);
+* :mod:`studies.step_budget_study`, :mod:`studies.step_budget_report` - named 9D recipes trained
+  at fixed step budgets and seeds, scored into one table, reported (``benchmarks/nine_d_*.py``);
 * :mod:`studies.plots`, :mod:`studies.tables` - BRT slices, bars, trade-offs and GIFs; Markdown
   tables and results files;
 * :mod:`studies.demo` - Air3D end to end (``reach demo``).

@@ -7,6 +7,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -36,6 +37,25 @@ def _results(path: Path, labels: list[str]) -> None:
               enumerate(labels)]  # fmt: skip
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(lines) + "\n")
+
+
+def _recording_trainer(calls: list) -> type:
+    """A stand-in for :class:`training.Trainer` in the 9D study: records ``("train", run, config)``
+    for a new run and ``("resume", run, overrides)`` for a resumed one, and trains nothing."""
+
+    class Recording:
+        def __init__(self, config, run_dir):
+            calls.append(("train", Path(run_dir), config))
+
+        @classmethod
+        def resume(cls, run_dir, **overrides):
+            calls.append(("resume", Path(run_dir), overrides))
+            return cls.__new__(cls)
+
+        def train(self):
+            return {"run_dir": "run", "steps": 0, "wall_time_s": 0.0, "stopped": "steps"}
+
+    return Recording
 
 
 def test_nine_d_study_and_ablation_reports_read_the_scored_runs(tmp_path: Path):
@@ -70,26 +90,27 @@ def test_nine_d_study_and_ablation_reports_read_the_scored_runs(tmp_path: Path):
 def test_nine_d_study_cells_show_uncertified_seeds_and_runs_move_between_devices(tmp_path: Path, monkeypatch):
     """A seed whose robust search certified nothing (NaN) shows as "none" and withholds the mean; a
     study run trains and resumes on the device the script was given."""
-    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
-    import nine_d_accuracy_vs_time as study
+    from studies import step_budget_report as report
+    from studies import step_budget_study as study
 
     rows = [
         {"label": "x-seed1", "robust_certified_volume": "0.7", "violation_rate": "0.02"},
         {"label": "x-seed0", "robust_certified_volume": "nan", "violation_rate": "0.04"},
     ]
-    count, cells = study.seed_cells(rows, {"x-seed0", "x-seed1"}, ["robust_certified_volume", "violation_rate"])
+    count, cells = report.seed_cells(rows, {"x-seed0", "x-seed1"}, ["robust_certified_volume", "violation_rate"])
     assert count == 2 and cells == ["- (none, 0.7)", "0.03 (0.04, 0.02)"]
 
-    calls: list[list[str]] = []
-    monkeypatch.setattr(study, "reach_main", lambda argv: calls.append(argv) or 0)
+    calls: list[tuple] = []
+    monkeypatch.setattr(study, "Trainer", _recording_trainer(calls))
     run = tmp_path / "run"
-    study.train_or_resume(run, 50, 3, ["--layout", "rrrrl"], device="cuda")
+    assert study.train_or_resume(run, 50, 3, {"layout": "rrrrl"}, device="cuda") == 0
     run.mkdir()
     (run / "checkpoint.pt").write_bytes(b"")
-    study.train_or_resume(run, 80, 3, ["--layout", "rrrrl"], device="cpu")
-    new, resumed = calls
-    assert new[new.index("--device") + 1] == "cuda" and new[new.index("--steps") + 1] == "50" and "rrrrl" in new
-    assert resumed == ["train", "--resume", str(run), "--steps", "80", "--device", "cpu"]
+    assert study.train_or_resume(run, 80, 3, {"layout": "rrrrl"}, device="cpu") == 0
+    (kind, path, new), resumed = calls
+    assert kind == "train" and path == run and new.system == "multivehicle9d" and new.seed == 3
+    assert new.device == "cuda" and new.steps == 50 and new.layout == "rrrrl"
+    assert resumed == ("resume", run, {"steps": 80, "device": "cpu"})
 
     # only a run that reached its steps is scored: a stopped one has a checkpoint too
     assert not study.finished(tmp_path / "missing")
@@ -97,6 +118,27 @@ def test_nine_d_study_cells_show_uncertified_seeds_and_runs_move_between_devices
     assert not study.finished(run)
     (run / "checkpoint.json").write_text(json.dumps({"steps": 80, "config": {"steps": 80}}))
     assert study.finished(run)
+
+
+def test_step_budget_study_trains_resumes_and_scores_through_the_library(tmp_path: Path, pair_grid):
+    """The study's stages on the library itself (small): a run trained against the pairwise union
+    is finished, resumes to a longer budget, and is scored into the table the report reads; a run
+    that never trained is left out."""
+    from studies import step_budget_report as report
+    from studies import step_budget_study as study
+
+    pairwise = pair_grid.save(tmp_path / "pair.npz")
+    small = {"layout": "ssl", "width": 8, "points": 64, "upper_bound": str(pairwise)}
+    out = tmp_path / "s"
+    run = study.run_path(out, "tiny", 0.01, 0)
+    assert study.train_runs([study.PlannedRun(run, 3, 0, small)]) == 0 and study.finished(run)
+    assert study.train_or_resume(run, 5, 0, small) == 0
+    assert json.loads((run / "checkpoint.json").read_text())["steps"] == 5 and study.finished(run)
+    scoring = study.Scoring(samples=64, certify_samples=0, pairwise=str(pairwise))
+    assert study.score_runs([run, study.run_path(out, "tiny", 0.01, 1)], out, scoring) == 0
+    rows = report.read_results(out)
+    assert [r["label"] for r in rows] == [run.name] and rows[0]["containment_miss_rate"] != ""
+    assert report.scored_settings(out)["samples"] == 64
 
 
 def test_nine_d_study_scripts_refuse_a_bad_device_or_chunk_size_before_any_work(tmp_path: Path):
@@ -156,23 +198,28 @@ def test_false_safe_levels_shrink_with_the_level(tmp_path: Path, capsys, monkeyp
 def test_rows_trained_against_the_union_solve_the_pair_grid_first(tmp_path: Path, monkeypatch):
     """A run trained with --upper-bound reads the pair grid again when it resumes; on a fresh machine
     (the grid is not in the repository) the study scripts solve it before training, and only then."""
+    import torch
+
     monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
     import nine_d_ablation as ablation
-    import nine_d_accuracy_vs_time as study
     import nine_d_layouts as layouts
 
-    calls: list[list[str]] = []
-    monkeypatch.setattr(study, "reach_main", lambda argv: calls.append(argv) or 0)
+    from studies import step_budget_study as study
+
+    solve_pairwise = study.solve_pairwise
+    calls: list[tuple] = []
+    monkeypatch.setattr(study, "Trainer", _recording_trainer(calls))
+    monkeypatch.setattr(study, "solve_pairwise", lambda path: calls.append(("groundtruth", path)))
     pairwise = tmp_path / "pair.npz"
     common = ["--out", str(tmp_path / "s"), "--pairwise", str(pairwise), "--seeds", "0"]
     assert ablation.main(["train", "--rows", "upper-bound", "--minutes", "0.01", *common]) == 0
     solve, trained = calls
-    assert solve[:2] == ["groundtruth", "relativepair"] and solve[-1] == str(pairwise)
-    assert trained[0] == "train" and trained[trained.index("--upper-bound") + 1] == str(pairwise)
+    assert solve == ("groundtruth", pairwise)
+    assert trained[0] == "train" and trained[2].upper_bound == str(pairwise)
 
     calls.clear()
     assert layouts.main(["train", "--layouts", "ssssl", "--with", "upper-bound", "--minutes", "0.01", *common]) == 0
-    assert calls[0][:2] == ["groundtruth", "relativepair"] and calls[1][0] == "train"
+    assert calls[0] == ("groundtruth", pairwise) and calls[1][0] == "train" and calls[1][2].layout == "ssssl"
 
     calls.clear()  # no row that needs it: nothing solved
     assert ablation.main(["train", "--rows", "zero-level", "--minutes", "0.01", *common]) == 0
@@ -182,9 +229,28 @@ def test_rows_trained_against_the_union_solve_the_pair_grid_first(tmp_path: Path
     pairwise.write_bytes(b"")
     assert ablation.main(["train", "--rows", "upper-bound", "--minutes", "0.01", *common]) == 0
     assert [c[0] for c in calls] == ["train"]
-    # a failed solve stops before training
+    # a failed solve stops before training, with the command line's one-line error and status
     pairwise.unlink()
-    monkeypatch.setattr(study, "reach_main", lambda argv: calls.append(argv) or 2)
+
+    def failed_solve(path: Path) -> None:
+        calls.append(("groundtruth", path))
+        raise ValueError("a 101x101x101 grid needs more memory than this machine has")
+
+    monkeypatch.setattr(study, "solve_pairwise", failed_solve)
     calls.clear()
     assert ablation.main(["train", "--rows", "upper-bound", "--minutes", "0.01", *common]) == 2
     assert [c[0] for c in calls] == ["groundtruth"]
+
+    # the grid solved is what `reach groundtruth relativepair --grid 101` solves, every 0.1 s to the horizon
+    solved: list[tuple] = []
+
+    def grid_solve(system, grid, times, **options):
+        solved.append((system.name, grid, times, options))
+        meta = {"scheme": {"steps": 1}, "wall_time_s": 0.0}
+        return SimpleNamespace(save=Path, grid=SimpleNamespace(shape=(grid,) * 3), metadata=meta)
+
+    monkeypatch.setattr(study, "solve", grid_solve)
+    assert solve_pairwise(pairwise) == pairwise
+    [(name, grid, times, options)] = solved
+    assert (name, grid, options) == ("relativepair", 101, {"dtype": torch.float32})
+    assert times[0] == 0 and all(0 < b - a <= 0.1 + 1e-9 for a, b in itertools.pairwise(times))
