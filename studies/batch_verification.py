@@ -234,6 +234,7 @@ def evaluate_many(
                 f"none of {len(paths)} sources could be loaded (first: {errors[0]}); "
                 "give --system to see each error in the table"
             )
+    check_for_system(system, settings)  # before the table is claimed: a refused run leaves nothing behind
     reference = None
     if ground_truth is not None:
         gt = GridSolution.load(ground_truth, outside="clamp")
@@ -249,7 +250,6 @@ def evaluate_many(
         "pairwise": str(Path(pairwise).resolve()) if pairwise else None,
     }
     done = _claim(out, header)
-    check_for_system(system, settings)
     states = sample_states(system, settings.samples, settings.seed)
     horizon = system.horizon if settings.horizon is None else settings.horizon
     union_values = None if pairwise is None else pairwise_union_values(pairwise, system, states, horizon)

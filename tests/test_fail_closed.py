@@ -229,3 +229,13 @@ def test_an_output_folder_that_refuses_files_is_refused_before_work(capsys):
     # /proc passes a permission check for root, yet takes no new files: the check tries one
     with pytest.raises(ValueError, match="folder '/proc' is not writable"):
         check_output_path("/proc/x.gif", "--gif")
+
+
+def test_a_refused_verification_leaves_no_table_behind(tmp_path):
+    from safety import VerifySettings
+    from studies import evaluate_many
+
+    out = tmp_path / "r.csv"
+    with pytest.raises(ValueError, match="use fewer --samples"):
+        evaluate_many(["pretrained:air3d"], out, VerifySettings(samples=10**12), progress=False)
+    assert not out.with_suffix(".json").exists()  # a later run with other settings is not blocked
