@@ -24,14 +24,14 @@ from reach.systems.arrays import Backend, Column
 from reach.systems.base import ControlAffineSystem, InputMatrix
 from reach.systems.box import NO_INPUT, Box
 from reach.systems.deepreach_normalisation import DeepReachNormalisation
+from reach.validation import positive_finite
 
 ROLES = ("control", "disturbance")
 
 
 def _check_positive(owner: str, pairs: Sequence[tuple[str, Any]]) -> None:
     for field, value in pairs:
-        if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-            raise ValueError(f"{owner}: {field} must be a positive finite number, got {value!r}")
+        positive_finite(f"{owner}: {field}", value)
 
 
 class RelativePair(ControlAffineSystem):

@@ -42,6 +42,7 @@ from reach.systems.deepreach_normalisation import DeepReachNormalisation  # like
 from reach.systems.hamiltonian import FixedStateHamiltonian
 from reach.systems.problem import Objective, ProblemKind, problem_kind
 from reach.systems.reference import system_reference
+from reach.validation import positive_finite
 
 #: Sparse input matrix: {(state index, input index): entry}; absent entries are zero.
 InputMatrix = Mapping[tuple[int, int], Column]
@@ -310,10 +311,7 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
         for method in needed:
             if getattr(type(self), method) is getattr(ControlAffineSystem, method):
                 raise ValueError(f"{what}: a {problem.name} system must define {method}")
-        if isinstance(self.horizon, bool) or not (
-            isinstance(self.horizon, (int, float)) and self.horizon > 0 and math.isfinite(self.horizon)
-        ):
-            raise ValueError(f"{what}: horizon must be positive and finite, got {self.horizon!r}")
+        positive_finite(f"{what}: horizon", self.horizon)
         self._probe_physics(what)
 
     def _probe_physics(self, what: str) -> None:

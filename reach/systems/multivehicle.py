@@ -26,6 +26,7 @@ from reach.systems.arrays import Backend, Column
 from reach.systems.base import ControlAffineSystem, InputMatrix
 from reach.systems.box import Box
 from reach.systems.deepreach_normalisation import DeepReachNormalisation
+from reach.validation import positive_finite
 
 ROLES = ("control", "disturbance")
 
@@ -42,8 +43,7 @@ class Car:
     def __post_init__(self) -> None:
         for field in ("speed", "max_turn_rate"):
             value = getattr(self, field)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-                raise ValueError(f"Car {self.name or '?'}: {field} must be a positive finite number, got {value!r}")
+            positive_finite(f"Car {self.name or '?'}: {field}", value)
         if self.role not in ROLES:
             raise ValueError(f"Car {self.name or '?'}: role must be one of {ROLES}, got {self.role!r}")
 
@@ -69,8 +69,7 @@ class MultiVehicle(ControlAffineSystem):
         if not any(c.role == "control" for c in cars):
             raise ValueError("MultiVehicle: cars needs at least one car with role 'control'")
         for field, value in (("collision_radius", collision_radius), ("half_width", half_width)):
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"MultiVehicle: {field} must be a positive finite number, got {value!r}")
+            positive_finite(f"MultiVehicle: {field}", value)
         self.cars = tuple(
             c if c.name else Car(c.speed, c.max_turn_rate, c.role, f"car_{i + 1}") for i, c in enumerate(cars)
         )
