@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from reach_cli import guarded
 from studies.step_budget_report import BASELINE, print_seed_table, read_metrics
 from studies.step_budget_study import (
     CHANGES,
@@ -33,7 +34,6 @@ from studies.step_budget_study import (
     add_run_arguments,
     change_settings,
     run_path,
-    run_stage,
     score_runs,
     stage_parser,
     train_runs,
@@ -88,7 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [r for r in args.rows if r not in ROWS]
     if unknown:
         parser.error(f"--rows: unknown {unknown}; known: {', '.join(ROWS)}")
-    return run_stage(lambda: {"train": train, "score": score, "report": report}[args.stage](args), parser.prog)
+    stage = {"train": train, "score": score, "report": report}[args.stage]
+    return guarded(parser.prog, lambda: stage(args), catch_bugs=False)
 
 
 if __name__ == "__main__":

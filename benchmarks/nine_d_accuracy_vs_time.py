@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from reach_cli import guarded
 from studies.step_budget_report import BASELINE, plot, print_table, read_results
 from studies.step_budget_study import (
     PlannedRun,
@@ -38,7 +39,6 @@ from studies.step_budget_study import (
     add_run_arguments,
     float_list,
     run_path,
-    run_stage,
     score_runs,
     stage_parser,
     train_runs,
@@ -76,7 +76,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--minutes", type=float_list, default=[10, 30, 60, 120])
     add_run_arguments(parser)
     args = parser.parse_args(argv)
-    return run_stage(lambda: {"train": train, "score": score, "report": report}[args.stage](args), parser.prog)
+    stage = {"train": train, "score": score, "report": report}[args.stage]
+    return guarded(parser.prog, lambda: stage(args), catch_bugs=False)
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from reach_cli import guarded
 from studies.step_budget_report import print_seed_table, read_metrics
 from studies.step_budget_study import (
     CHANGES,
@@ -34,7 +35,6 @@ from studies.step_budget_study import (
     add_run_arguments,
     change_settings,
     run_path,
-    run_stage,
     score_runs,
     stage_parser,
     train_runs,
@@ -126,7 +126,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--with: unknown change {args.with_row!r}; known: {', '.join(CHANGES)}")
     if not (args.minutes > 0):
         parser.error(f"--minutes must be > 0, got {args.minutes}")
-    return run_stage(lambda: {"train": train, "score": score, "report": report}[args.stage](args), parser.prog)
+    stage = {"train": train, "score": score, "report": report}[args.stage]
+    return guarded(parser.prog, lambda: stage(args), catch_bugs=False)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,7 @@
-"""The exit statuses of ``reach``, one place for the handlers and the error boundary to share."""
+"""The exit statuses of ``reach`` and of the study scripts, one place for every command line to share.
+
+In the base layer because the studies return them too (a study stage that diverged or failed in part
+returns :data:`EXIT_PARTIAL`), and the command line sits above the studies."""
 
 from __future__ import annotations
 

@@ -26,13 +26,13 @@ import argparse
 import gc
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 
+from reach.exit_codes import EXIT_BROKEN_PIPE, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_USAGE
 from reach.threads import apply_thread_policy
 from reach_cli import demo, envs, evaluate, filter_eval, groundtruth, plot, pretrained, record, sweep, train
-from reach_cli.exit_codes import EXIT_BROKEN_PIPE, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_USAGE
 from reach_cli.options import OneLineParser, common_options, finish_namespace
 
 #: subcommand modules, in the order ``reach --help`` lists them
@@ -56,11 +56,20 @@ def _one_line(err: BaseException) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = finish_namespace(build_parser().parse_args(argv))
-    command = f"reach {args.command}"
     if args.debug:
         return _run(args)
+    return guarded(f"reach {args.command}", lambda: _run(args))
+
+
+def guarded(command: str, work: Callable[[], int], catch_bugs: bool = True) -> int:
+    """Run ``work`` behind the command line's error boundary, as ``command`` (e.g. ``"reach train"``,
+    or a study script's name): its status, or, for an expected failure (a bad value, an unreadable
+    file, a locked run), one line on stderr and :data:`~reach.exit_codes.EXIT_USAGE`; an interrupt
+    (Ctrl-C, SIGTERM, after the work saved what it can) one line and ``EXIT_INTERRUPTED``; a reader
+    that went away ``EXIT_BROKEN_PIPE``; a bug one line naming it and ``EXIT_INTERNAL`` (with
+    ``catch_bugs=False``, as the study scripts have no ``--debug``, its traceback instead)."""
     try:
-        return _run(args)
+        return work()
     except BrokenPipeError:  # the reader closed the pipe: nothing to report, and nobody to report it to
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # so the exit's flush cannot fail
         return EXIT_BROKEN_PIPE
@@ -71,6 +80,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{command}: error: {_one_line(err)}", file=sys.stderr)
         return EXIT_USAGE
     except Exception as err:  # a bug, not bad input: still one line, with the way to the traceback
+        if not catch_bugs:
+            raise
         print(
             f"{command}: internal error: {type(err).__name__}: {_one_line(err)} (rerun with --debug for the traceback)",
             file=sys.stderr,
@@ -104,4 +115,4 @@ def _run(args: argparse.Namespace) -> int:
         torch.set_num_threads(before)
 
 
-__all__ = ["build_parser", "console_main", "main"]
+__all__ = ["build_parser", "console_main", "guarded", "main"]

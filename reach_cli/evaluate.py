@@ -8,7 +8,6 @@ sources into it later, or from another process at the same time, keeps every row
 from __future__ import annotations
 
 import argparse
-import sys
 from typing import Any
 
 from reach.validation import (
@@ -21,7 +20,6 @@ from reach.validation import (
     probability_arg,
     seed_arg,
 )
-from reach_cli.exit_codes import EXIT_PARTIAL
 from reach_cli.options import add_subparser, default
 from safety.verify import VerifySettings
 
@@ -99,7 +97,7 @@ def add_parser(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     # lazy: this command's stack only when it runs
-    from studies.batch_verification import evaluate_many, markdown_table
+    from studies.batch_verification import evaluate_many, markdown_table, report_failures
     from studies.plots import plot_violation_bars
 
     settings = VerifySettings(
@@ -122,10 +120,4 @@ def run(args: argparse.Namespace) -> int:
     print(f"\nwrote {out.with_suffix('.csv')}, {out.with_suffix('.json')}, {out.with_suffix('.md')}")
     if args.plot and any(not r.get("error") for r in rows):
         print(f"wrote {plot_violation_bars(rows, out.with_name(out.stem + '_violations.png'))}")
-    failed = [r for r in rows if r.get("error")]
-    for row in failed:
-        print(f"reach evaluate: {row.get('source')}: {row['error']}", file=sys.stderr)
-    if failed:
-        print(f"reach evaluate: {len(failed)} of {len(rows)} sources failed (their rows say why)", file=sys.stderr)
-        return EXIT_PARTIAL
-    return 0
+    return report_failures(rows, "reach evaluate")

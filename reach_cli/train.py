@@ -13,6 +13,7 @@ import sys
 from typing import Any
 
 from groundtruth import GridSolution
+from reach.exit_codes import EXIT_PARTIAL
 from reach.validation import (
     device_arg,
     finite_float_arg,
@@ -23,7 +24,6 @@ from reach.validation import (
     seed_arg,
     unit_interval_arg,
 )
-from reach_cli.exit_codes import EXIT_PARTIAL
 from reach_cli.options import add_subparser, default
 from training import TrainConfig, Trainer, TrainingDivergedError, parse_duration
 from training.run_directory import RESUME_OVERRIDABLE, RunDirectory

@@ -22,6 +22,7 @@ import glob
 import hashlib
 import os
 import shutil
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +31,7 @@ from typing import Any
 from tqdm.auto import tqdm
 
 from groundtruth.solution import GridSolution
+from reach.exit_codes import EXIT_PARTIAL
 from reach.json_files import read_json, restore_nan
 from reach.locking import exclusive_lock
 from reach.systems import ControlAffineSystem, make_system
@@ -288,6 +290,18 @@ def evaluate_many(
     return rows
 
 
+def report_failures(rows: Sequence[dict[str, Any]], command: str, what: str = "sources") -> int:
+    """Name each failed row on stderr, as ``command``, and say how many of ``rows`` failed; returns
+    :data:`~reach.exit_codes.EXIT_PARTIAL` if any did (their rows say why), else 0."""
+    failed = [row for row in rows if row.get("error")]
+    for row in failed:
+        print(f"{command}: {row.get('source')}: {row['error']}", file=sys.stderr)
+    if not failed:
+        return 0
+    print(f"{command}: {len(failed)} of {len(rows)} {what} failed (their rows say why)", file=sys.stderr)
+    return EXIT_PARTIAL
+
+
 def _store_directory(out: Path, source: str | None) -> Path:
     """Where the rollouts of ``source`` are kept until its row is written (None: the parent of all)."""
     parent = out.parent / f"{out.name}.rollouts"
@@ -310,4 +324,4 @@ def load_results(path: str | os.PathLike) -> list[dict[str, Any]]:
     return restore_nan(read_json(p, "a reach evaluation file", expect_format=FORMAT)["results"])
 
 
-__all__ = ["References", "evaluate_many", "expand_sources", "load_results", "markdown_table"]
+__all__ = ["References", "evaluate_many", "expand_sources", "load_results", "markdown_table", "report_failures"]

@@ -26,7 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,11 +35,12 @@ import torch
 
 from groundtruth import Grid, solve
 from groundtruth.solver import check_memory, default_output_times
+from reach.exit_codes import EXIT_PARTIAL
 from reach.systems import make_system
 from reach.threads import thread_policy
-from reach.validation import check_output_path, device_arg, positive_int_arg
+from reach.validation import check_output_path, csv_floats, csv_items, device_arg, positive_int_arg
 from safety.verify import VerifySettings
-from studies.batch_verification import evaluate_many, markdown_table
+from studies.batch_verification import evaluate_many, markdown_table, report_failures
 from studies.step_budget_report import RESULTS
 from training import TrainConfig, Trainer, TrainingDivergedError
 
@@ -50,8 +51,6 @@ SYSTEM = "multivehicle9d"
 QUIET_STEPS_PER_MINUTE = 923.0
 #: the union of pairwise BRTs (``reach groundtruth relativepair --grid 101``), solved once where missing
 DEFAULT_PAIRWISE = "runs/pair_gt.npz"
-#: exit statuses, as ``reach`` uses them: bad input, a run that diverged, an interrupt
-EXIT_USAGE, EXIT_PARTIAL, EXIT_INTERRUPTED = 2, 3, 130
 
 #: stands for the pairwise grid's path in :data:`CHANGES` (the study's ``--pairwise``)
 PAIRWISE = "{pairwise}"
@@ -201,23 +200,18 @@ def score_runs(runs: Iterable[Path], out: Path, scoring: Scoring) -> int:
         rows = evaluate_many(done, table, settings, pairwise=scoring.pairwise, device=scoring.device)
     print(markdown_table(rows))
     print(f"\nwrote {table.with_suffix('.csv')}, {table.with_suffix('.json')}, {table.with_suffix('.md')}")
-    failed = [row for row in rows if row.get("error")]
-    for row in failed:
-        print(f"score: {row.get('source')}: {row['error']}", file=sys.stderr)
-    if failed:
-        print(f"score: {len(failed)} of {len(rows)} runs failed (their rows say why)", file=sys.stderr)
-        return EXIT_PARTIAL
-    return 0
+    return report_failures(rows, "score", "runs")
 
 
 def float_list(text: str) -> list[float]:
-    """argparse type: comma-separated numbers, e.g. budgets in minutes ``10,30,60``."""
-    return [float(v) for v in text.split(",")]
+    """argparse type: comma-separated finite numbers, e.g. budgets in minutes ``10,30,60``
+    (:func:`reach.validation.csv_floats`: an empty item is refused)."""
+    return csv_floats("value", text)
 
 
 def int_list(text: str) -> list[int]:
-    """argparse type: comma-separated integers, e.g. seeds ``0,1``."""
-    return [int(v) for v in text.split(",")]
+    """argparse type: comma-separated integers, e.g. seeds ``0,1`` (an empty item is refused)."""
+    return [int(v) for v in csv_items("value", text)]
 
 
 def stage_parser(description: str, out: str) -> argparse.ArgumentParser:
@@ -243,17 +237,3 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="states per batch when scoring (reach evaluate's default; on a GPU 262144 avoids being launch-bound)",
     )
-
-
-def run_stage(stage: Callable[[], int], name: str) -> int:
-    """Run a study's stage with the command line's error boundary: an expected failure (a bad value,
-    a missing file, a locked run) is one line on stderr and exit status 2, an interrupt (Ctrl-C,
-    SIGTERM, after the run saved its checkpoint) one line and 130."""
-    try:
-        return stage()
-    except KeyboardInterrupt as err:
-        print(f"{name}: interrupted{': ' + ' '.join(str(err).split()) if str(err) else ''}", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except (ValueError, OSError) as err:
-        print(f"{name}: error: {' '.join(str(err).split()) or type(err).__name__}", file=sys.stderr)
-        return EXIT_USAGE

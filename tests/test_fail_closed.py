@@ -239,3 +239,26 @@ def test_a_refused_verification_leaves_no_table_behind(tmp_path):
     with pytest.raises(ValueError, match="use fewer --samples"):
         evaluate_many(["pretrained:air3d"], out, VerifySettings(samples=10**12), progress=False)
     assert not out.with_suffix(".json").exists()  # a later run with other settings is not blocked
+
+
+def test_one_error_boundary_serves_the_cli_and_the_study_scripts(capsys):
+    from reach.exit_codes import EXIT_INTERNAL, EXIT_USAGE
+    from reach_cli import guarded
+    from studies.step_budget_study import float_list, int_list
+
+    def bad_value() -> int:
+        raise ValueError("steps must be >= 1, got 0")
+
+    def bug() -> int:
+        raise RuntimeError("boom")
+
+    assert guarded("study", bad_value, catch_bugs=False) == EXIT_USAGE
+    assert capsys.readouterr().err.strip() == "study: error: steps must be >= 1, got 0"
+    assert guarded("reach x", bug) == EXIT_INTERNAL
+    assert "reach x: internal error: RuntimeError: boom" in capsys.readouterr().err
+    with pytest.raises(RuntimeError, match="boom"):  # a script's bug keeps its traceback
+        guarded("study", bug, catch_bugs=False)
+    assert float_list("10,30") == [10.0, 30.0] and int_list("0,1") == [0, 1]
+    for parse, text in ((float_list, "10,,30"), (int_list, "0,")):
+        with pytest.raises(ValueError, match="empty item"):
+            parse(text)
