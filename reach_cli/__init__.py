@@ -38,6 +38,7 @@ from reach_cli.options import OneLineParser, common_options, finish_namespace
 #: subcommand modules, in the order ``reach --help`` lists them
 COMMANDS = (envs, pretrained, record, groundtruth, train, evaluate, filter_eval, plot, sweep, demo)
 
+
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(
         prog="reach", description="Neural Hamilton-Jacobi reachability toolkit.", parents=[common_options()]

@@ -26,6 +26,7 @@ from reach.validation import (
 )
 from reach_cli.options import add_subparser, default
 from training import TrainConfig, Trainer, TrainingDivergedError, parse_duration
+from training.network import PARAMETERISATIONS
 from training.run_directory import RESUME_OVERRIDABLE, RunDirectory
 
 
@@ -42,7 +43,12 @@ TRAIN_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
     ("--layout", "layout", {}, "one letter per activated layer (s sine, r ReLU, t tanh, g GELU) and a final l"),
     ("--width", "width", {"type": positive_int_arg}, "hidden width"),
     ("--w0", "w0", {"type": positive_float_arg}, "sine frequency"),
-    ("--parameterisation", "parameterisation", {"choices": ["exact", "vanilla"]}, "exact: V(x, 0) = l(x) by design"),
+    (
+        "--parameterisation",
+        "parameterisation",
+        {"choices": list(PARAMETERISATIONS)},
+        "exact: V(x, 0) = l(x) by design; exact-constraint (reach-avoid): also V >= -g",
+    ),
     (
         "--sincos",
         "sincos",

@@ -15,6 +15,14 @@ DeepReach's verification code, and Lin & Bansal's scenario optimisation):
 * robust scenario level (Lin & Bansal, L4DC 2024, Thm 2): the same bound with failures allowed. For a
   target ``eps``, the lowest level (largest set ``{V > level}``) whose sampled states, ``n`` of them
   with ``k`` failures, keep ``P(Bin(n, eps) <= k) <= beta`` (:func:`robust_level_search`).
+
+Reach and reach-avoid problems mirror all of it on the other side of zero: a value function claims
+*reachable* where ``V < 0`` (the boundary, of measure zero, counts as no claim), a rollout *fails*
+when it does not reach the target in time without a collision, and the certified set is
+``{V < -delta}``. The functions here take values *oriented* so that ``> 0`` is the claim
+(:meth:`~reach.systems.problem.ProblemKind.orient`: ``-V`` for reach kinds) and the per-state
+failures, so one implementation serves every kind; :func:`violation_statistics` names its columns
+for the kind (:data:`KIND_COLUMNS`).
 """
 
 from __future__ import annotations
@@ -123,29 +131,53 @@ def wilson_interval(successes: int, n: int, z: float = 1.959963984540054) -> tup
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
-def violation_statistics(initial_value: torch.Tensor, collided: torch.Tensor) -> dict[str, float]:
-    """The paper's violations (both kinds, and together), the collision rate and the delta-level."""
-    if initial_value.shape != collided.shape or initial_value.ndim != 1:
-        raise ValueError(f"values {tuple(initial_value.shape)} and outcomes {tuple(collided.shape)} must be (N,)")
-    n = int(collided.numel())
+#: per kind of problem, the names :func:`violation_statistics` gives its columns: a wrong claim on
+#: the good side, a wrong claim on the other side, the failed rollouts, and the share of the states
+#: in the certified set (``{V > delta}`` for avoid, ``{V < -delta}`` for reach kinds)
+KIND_COLUMNS = {
+    "avoid": ("false_safe_rate", "false_unsafe_rate", "collision_rate", "safe_fraction"),
+    "reach": ("false_reachable_rate", "false_unreachable_rate", "failure_rate", "reachable_fraction"),
+    "reach-avoid": ("false_reachable_rate", "false_unreachable_rate", "failure_rate", "reachable_fraction"),
+}
+
+
+def violation_statistics(
+    initial_value: torch.Tensor, failed: torch.Tensor, kind: str = "avoid", collided: torch.Tensor | None = None
+) -> dict[str, float]:
+    """The paper's violations (both ways, apart and together), the failure rate and the delta-level.
+
+    ``initial_value`` is ``V(x, T)`` *oriented* so that ``> 0`` is the claim (``V`` for avoid, ``-V``
+    for reach kinds) and ``failed`` the rollouts that failed their task. The columns are named for
+    ``kind`` (:data:`KIND_COLUMNS`); a reach-avoid row also gets ``collision_rate``, the rollouts that
+    left the constraint set (``collided``).
+    """
+    if kind not in KIND_COLUMNS:
+        raise ValueError(f"kind must be one of {tuple(KIND_COLUMNS)}, got {kind!r}")
+    if initial_value.shape != failed.shape or initial_value.ndim != 1:
+        raise ValueError(f"values {tuple(initial_value.shape)} and outcomes {tuple(failed.shape)} must be (N,)")
+    n = int(failed.numel())
     if n == 0:
         raise ValueError("no states to compute statistics on")
     v = initial_value.double()
-    collided = collided.bool()
-    false_safe = int(((v > 0) & collided).sum())
-    false_unsafe = int(((v <= 0) & ~collided).sum())
-    failures = v[collided]
+    failed = failed.bool()
+    false_claim = int(((v > 0) & failed).sum())
+    false_denial = int(((v <= 0) & ~failed).sum())
+    failures = v[failed]
     delta_raw = float(failures.max()) if failures.numel() else -math.inf
-    return {
+    claim, denial, failure, certified = KIND_COLUMNS[kind]
+    row: dict[str, float] = {
         "samples": n,
-        "violation_rate": (false_safe + false_unsafe) / n,
-        "false_safe_rate": false_safe / n,
-        "false_unsafe_rate": false_unsafe / n,
-        "collision_rate": int(collided.sum()) / n,
+        "violation_rate": (false_claim + false_denial) / n,
+        claim: false_claim / n,
+        denial: false_denial / n,
+        failure: int(failed.sum()) / n,
         "delta_raw": delta_raw,
         "delta": max(0.0, delta_raw),
-        "safe_fraction": float((v > max(0.0, delta_raw)).double().mean()),
+        certified: float((v > max(0.0, delta_raw)).double().mean()),
     }
+    if kind == "reach-avoid" and collided is not None:
+        row["collision_rate"] = int(collided.bool().sum()) / n
+    return row
 
 
 def containment_statistics(union_values: torch.Tensor, learned_values: torch.Tensor) -> dict[str, float]:

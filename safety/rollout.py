@@ -6,16 +6,26 @@ horizon, DeepReach-compatible by default: explicit Euler, ``dt = 0.0025``, headi
 every step, collision = some visited state with ``l(x) <= 0``. ``integrator="rk4"`` holds the inputs
 of a step constant and integrates the dynamics with RK4 instead.
 
+The outcome follows the system's kind (:mod:`reach.systems.problem`). Avoid: the rollout *fails*
+when it collides. Reach and reach-avoid: the control minimises ``V`` and the rollout *succeeds* when
+it reaches the target (``l(x) <= 0``, target margin) before the horizon without first leaving the
+constraint set (``g(x) <= 0`` is a collision, reach-avoid only; a state in both counts as a
+collision, as in the grid's ``max(min(V, l), -g)``). Either outcome ends the trajectory. A reach
+trajectory that leaves the system's domain (a non-periodic dimension out of its bounds) has failed:
+the problem, and its value function, stop at the domain's edge.
+
 It simulates only what is still undecided:
 
-* a trajectory that has collided is finished (and states already in collision never start);
+* a trajectory that has collided (or, for reach kinds, reached the target) is finished, and states
+  already in collision (or in the target) never start;
 * where the system bounds how fast ``l`` can fall
   (:meth:`~reach.systems.base.ControlAffineSystem.margin_floor`: by default
   ``l(x) - c * time`` from a declared ``|dl/dt| <= c``; multi-vehicle systems also use the cars'
   headings, since cars facing apart must turn before they can close), a trajectory whose floor over
   ``time_left + dt`` is positive can no longer reach the failure set under *any* inputs, so its
   outcome (no collision) is decided and it stops too. Exact for Euler (a held step moves ``l`` by
-  at most what the floor allows); the extra ``dt`` covers RK4's truncation.
+  at most what the floor allows); the extra ``dt`` covers RK4's truncation. Avoid problems only: a
+  reach problem's outcome is open until the target is reached or the horizon ends.
 
 States go through in chunks (bounded memory), the network runs without an autograd graph (one
 fused value-and-gradient pass per state and step, see ``ValueNetwork.value_and_gradient``), and a
@@ -36,6 +46,7 @@ from tqdm.auto import tqdm
 from reach.integrators import check_integrator, make_stepper
 from reach.systems import ControlAffineSystem
 from reach.systems.arrays import TORCH
+from reach.systems.problem import problem_kind
 from reach.validation import check_int, positive_finite, settings_from
 from reach.value_function import ValueFunction, check_time_coverage
 from safety.value_policies import GreedyPolicy, check_policy, check_states
@@ -49,14 +60,19 @@ class RolloutResult:
 
     Attributes:
         initial_value: ``V(x0, T)`` from the same value function.
-        collided: the trajectory visited a state with ``l(x) <= 0`` (including ``x0``).
+        collided: the trajectory visited a state with ``l(x) <= 0`` (including ``x0``): the failure
+            set (avoid) or outside the constraint set (reach-avoid; never for reach).
         collision_time: first time with ``l <= 0`` (0 for states starting in collision; NaN if none).
         decided_time: when the outcome was settled: the collision time, the time the margin bound
             ruled collision out, or the horizon.
         state_steps: value-gradient evaluations done (the work; ``N x steps`` without early exits).
         steps: steps of the full horizon.
         wall_time: seconds.
-        trajectories: ``(steps + 1, N, n)`` states when ``record=True`` (frozen after a collision).
+        trajectories: ``(steps + 1, N, n)`` states when ``record=True`` (frozen once decided).
+        kind: the system's kind of problem (``"avoid"``, ``"reach"`` or ``"reach-avoid"``).
+        reached: reach kinds: the trajectory reached the target before the horizon without a
+            collision first (None for avoid).
+        reach_time: reach kinds: when it reached the target (NaN if it did not).
     """
 
     initial_value: torch.Tensor
@@ -67,10 +83,29 @@ class RolloutResult:
     steps: int
     wall_time: float
     trajectories: torch.Tensor | None = field(default=None, repr=False)
+    kind: str = "avoid"
+    reached: torch.Tensor | None = None
+    reach_time: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if problem_kind(self.kind, "rollout result").reaches and (self.reached is None or self.reach_time is None):
+            raise ValueError(f"a {self.kind} rollout result needs reached and reach_time")
 
     @property
     def num_states(self) -> int:
         return int(self.collided.numel())
+
+    @property
+    def failed(self) -> torch.Tensor:
+        """Per state, whether the rollout failed its task: collided (avoid), or did not reach the
+        target in time without a collision (reach kinds)."""
+        return self.collided if self.reached is None else ~self.reached
+
+    @property
+    def oriented_value(self) -> torch.Tensor:
+        """``V(x0, T)`` turned so that ``> 0`` is the value function's claim (safe, or reachable):
+        :meth:`~reach.systems.problem.ProblemKind.orient`."""
+        return problem_kind(self.kind).orient(self.initial_value)
 
     @property
     def work_fraction(self) -> float:
@@ -164,7 +199,6 @@ def rollout(
         dtype: precision of the simulation (default float32).
         progress: show a progress bar over chunk-steps.
     """
-    value_function.system.require_kind(("avoid",), "rollouts")
     settings = RolloutSettings.of(settings, keywords).for_system(value_function.system)
     horizon, dt, integrator, policy = settings.horizon, settings.dt, settings.integrator, settings.policy
     chunk_size, matmul_precision, early_exit = settings.chunk_size, settings.matmul_precision, settings.early_exit
@@ -184,7 +218,10 @@ def rollout(
     n_steps = num_steps(horizon, dt)
     if record and states.shape[0] > 100_000:
         raise ValueError(f"record=True keeps every state; {states.shape[0]} states is too many (<= 100000)")
-    floor_exit = early_exit and not record
+    problem = system.problem
+    floor_exit = early_exit and not record and not problem.reaches
+    # what ends a trajectory in failure: the failure set (avoid), leaving the constraint set (reach-avoid)
+    collision_margin = None if problem.name == "reach" else system.failure_margin
     use_disturbance = system.disturbance_dim > 0 and disturbance != "none"
 
     advance = make_stepper(system, dt, integrator, TORCH)
@@ -210,6 +247,35 @@ def rollout(
     collided = torch.zeros(n, dtype=torch.bool)
     collision_time = torch.full((n,), math.nan, dtype=torch.float64)
     decided_time = torch.full((n,), horizon, dtype=torch.float64)
+    reached = torch.zeros(n, dtype=torch.bool) if problem.reaches else None
+    reach_time = torch.full((n,), math.nan, dtype=torch.float64) if problem.reaches else None
+
+    bounded = [i for i, p in enumerate(system.periodic) if not p]
+    low = torch.tensor([system.domain[i][0] for i in bounded], device=device, dtype=dtype)
+    high = torch.tensor([system.domain[i][1] for i in bounded], device=device, dtype=dtype)
+
+    def outcomes(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+        """Per state: collided (constraint or failure set) and, for reach kinds, in the target first,
+        and out of the domain (a failure) otherwise."""
+        nothing = torch.zeros_like(x[..., 0], dtype=torch.bool)
+        hit = nothing if collision_margin is None else collision_margin(x) <= 0
+        if not problem.reaches:
+            return hit, None, None
+        in_target = (system.target_margin(x) <= 0) & ~hit
+        inside = x[..., bounded]
+        out = ((inside < low) | (inside > high)).any(dim=-1) & ~hit & ~in_target
+        return hit, in_target, out
+
+    def settle(where_hit: torch.Tensor, where_reached: torch.Tensor | None, at: float) -> None:
+        """Record the trajectories decided at time ``at`` (global indices on the CPU)."""
+        collided[where_hit] = True
+        collision_time[where_hit] = at
+        decided_time[where_hit] = at
+        if where_reached is not None and where_reached.numel():
+            reached[where_reached] = True
+            reach_time[where_reached] = at
+            decided_time[where_reached] = at
+
     trajectories = torch.empty((n_steps + 1, n, system.state_dim), dtype=dtype) if record else None
     state_steps = 0
     chunks = list(range(0, n, chunk_size))
@@ -224,17 +290,16 @@ def rollout(
             hi = min(lo + chunk_size, n)
             x = states[lo:hi].to(device=device, dtype=dtype)
             initial_value[lo:hi] = value_function.value(x, horizon).to(dtype).cpu()
-            margin = system.failure_margin(x)
             idx = torch.arange(lo, hi, device=device)
-            hit0 = margin <= 0
+            hit0, in_target, out = outcomes(x)
+            done0 = hit0 if in_target is None else hit0 | in_target | out
             if record:
                 trajectories[0, lo:hi] = x.cpu()
-            if bool(hit0.any()):
-                where = idx[hit0].cpu()
-                collided[where] = True
-                collision_time[where] = 0.0
-                decided_time[where] = 0.0
-                x, idx = x[~hit0], idx[~hit0]
+            if bool(done0.any()):
+                settle(idx[hit0].cpu(), None if in_target is None else idx[in_target].cpu(), 0.0)
+                if out is not None:
+                    decided_time[idx[out].cpu()] = 0.0
+                x, idx = x[~done0], idx[~done0]
             for k in range(n_steps):
                 if idx.numel() == 0:
                     bar.update(n_steps - k)
@@ -242,25 +307,20 @@ def rollout(
                 t_go = max(horizon - k * dt, 0.0)
                 x = step(x, t_go)
                 state_steps += int(idx.numel())
-                margin = system.failure_margin(x)
                 elapsed = min((k + 1) * dt, horizon)
                 if record:
                     trajectories[k + 1, lo:hi] = trajectories[k, lo:hi]
                     trajectories[k + 1, idx.cpu()] = x.cpu()
-                hit = margin <= 0
-                done = hit
+                hit, in_target, out = outcomes(x)
+                done = hit if in_target is None else hit | in_target | out
                 floor = system.margin_floor(x, horizon - elapsed + dt) if floor_exit else None
                 if floor is not None:
-                    done = hit | (floor > 0)
+                    done = done | (floor > 0)
                 if bool(done.any()):
-                    if bool(hit.any()):
-                        where = idx[hit].cpu()
-                        collided[where] = True
-                        collision_time[where] = elapsed
-                        decided_time[where] = elapsed
-                    safe = done & ~hit
-                    if bool(safe.any()):
-                        decided_time[idx[safe].cpu()] = elapsed
+                    settle(idx[hit].cpu(), None if in_target is None else idx[in_target].cpu(), elapsed)
+                    rest = done & ~hit if in_target is None else out  # safe (avoid), or left the domain
+                    if bool(rest.any()):
+                        decided_time[idx[rest].cpu()] = elapsed
                     keep = ~done
                     x, idx = x[keep], idx[keep]
                 bar.update(1)
@@ -273,4 +333,7 @@ def rollout(
         steps=n_steps,
         wall_time=time.perf_counter() - start,
         trajectories=trajectories,
+        kind=problem.name,
+        reached=reached,
+        reach_time=reach_time,
     )

@@ -49,6 +49,13 @@ from safety.rollout import RolloutResult, RolloutSettings, rollout
 MANIFEST = "manifest.json"
 #: per-state outcome tensors a block keeps, with their dtypes
 OUTCOMES = {"collided": torch.bool, "collision_time": torch.float64, "decided_time": torch.float64}
+#: ... and, for reach kinds, these too
+REACH_OUTCOMES = {"reached": torch.bool, "reach_time": torch.float64}
+
+
+def outcome_fields(kind: str) -> dict[str, torch.dtype]:
+    """The per-state outcome tensors a block of a ``kind`` problem keeps, with their dtypes."""
+    return {**OUTCOMES, **REACH_OUTCOMES} if kind != "avoid" else dict(OUTCOMES)
 
 
 def states_digest(states: torch.Tensor) -> str:
@@ -67,7 +74,7 @@ def block_digest(key: str, states: str, payload: dict[str, Any]) -> str:
     """SHA-256 over a whole block: its store key's and states' digests, each outcome tensor (dtype,
     shape, bytes) and its counts, so that any change to what the block says is detected."""
     h = hashlib.sha256(f"{key}:{states}:".encode())
-    for name in ("initial_value", *OUTCOMES):
+    for name in ("initial_value", *outcome_fields(payload.get("kind", "avoid"))):
         t = payload[name].detach().cpu().contiguous()
         h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
         h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
@@ -163,7 +170,7 @@ class RolloutStore:
             part = states[lo : lo + block]
             path = self.directory / f"{name}-{index:05d}.pt"
             digest = states_digest(part)
-            result = self._load(path, digest, part.shape[0])
+            result = self._load(path, digest, part.shape[0], value_function.system.kind)
             if result is None:
                 result = rollout(value_function, part, settings, **run)
                 self._save(path, digest, result)
@@ -173,14 +180,14 @@ class RolloutStore:
             parts.append(result)
         if not parts:
             return rollout(value_function, states, settings, **run)
+        kind = parts[0].kind
         return RolloutResult(
             initial_value=torch.cat([p.initial_value for p in parts]),
-            collided=torch.cat([p.collided for p in parts]),
-            collision_time=torch.cat([p.collision_time for p in parts]),
-            decided_time=torch.cat([p.decided_time for p in parts]),
+            **{k: torch.cat([getattr(p, k) for p in parts]) for k in outcome_fields(kind)},
             state_steps=sum(p.state_steps for p in parts),
             steps=parts[0].steps,
             wall_time=sum(p.wall_time for p in parts),
+            kind=kind,
         )
 
     def remove(self) -> None:
@@ -192,8 +199,9 @@ class RolloutStore:
         payload = {
             "key": self.key_digest,
             "digest": digest,
+            "kind": result.kind,
             "initial_value": result.initial_value,
-            **{k: getattr(result, k) for k in OUTCOMES},
+            **{k: getattr(result, k) for k in outcome_fields(result.kind)},
             "state_steps": int(result.state_steps),
             "steps": int(result.steps),
             "wall_time": float(result.wall_time),
@@ -202,7 +210,7 @@ class RolloutStore:
         with atomic_path(path) as tmp:
             torch.save(payload, tmp)
 
-    def _load(self, path: Path, digest: str, count: int) -> RolloutResult | None:
+    def _load(self, path: Path, digest: str, count: int, kind: str) -> RolloutResult | None:
         """The block at ``path`` if it is this store's, these states', whole and well formed, else
         None (simulate it)."""
         if not path.is_file():
@@ -213,7 +221,9 @@ class RolloutStore:
             return None
         if not isinstance(data, dict) or data.get("key") != self.key_digest or data.get("digest") != digest:
             return None
-        tensors = {"initial_value": None, **OUTCOMES}
+        if data.get("kind", "avoid") != kind:
+            return None
+        tensors = {"initial_value": None, **outcome_fields(kind)}
         for name, dtype in tensors.items():
             t = data.get(name)
             if not isinstance(t, torch.Tensor) or t.shape != (count,) or (dtype is not None and t.dtype != dtype):
@@ -225,12 +235,11 @@ class RolloutStore:
             return None  # a changed outcome (a flipped bit, an edit) is simulated again, not trusted
         return RolloutResult(
             initial_value=data["initial_value"],
-            collided=data["collided"],
-            collision_time=data["collision_time"],
-            decided_time=data["decided_time"],
+            **{k: data[k] for k in tensors if k != "initial_value"},
             state_steps=int(data["state_steps"]),
             steps=int(data["steps"]),
             wall_time=float(data["wall_time"]),
+            kind=kind,
         )
 
 

@@ -4,6 +4,11 @@
 compared), computes :func:`~safety.metrics.violation_statistics`, and, unless told not to, certifies
 the delta-level on a *fresh* sample drawn uniformly from ``{V(x, T) > delta}`` (a delta chosen from
 one sample must be certified on another), giving the scenario ``eps`` for ``beta``.
+
+For reach and reach-avoid problems the same steps run on the other side of zero: the certified set
+is ``{V(x, T) < -delta}``, the states from which the learned policy reaches the target in time (and,
+for reach-avoid, without a collision) with confidence ``1 - beta``; every row names its ``problem``
+kind, and its columns are the kind's (:data:`~safety.metrics.KIND_COLUMNS`).
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ from reach.memory import require_memory
 from reach.systems import ControlAffineSystem
 from reach.threads import thread_policy
 from reach.value_function import ValueFunction
-from safety.metrics import robust_level_search, scenario_epsilon, violation_statistics, wilson_interval
+from safety.metrics import KIND_COLUMNS, robust_level_search, scenario_epsilon, violation_statistics, wilson_interval
 from safety.rollout import RolloutResult, RolloutSettings, rollout
 from safety.rollout_store import RolloutStore
 
@@ -104,8 +109,9 @@ def values_at(
 #: bytes a verification holds per sampled state and state dimension: the float32 states, the
 #: rollout's working copies (the integrator's stages, the chunk's gradient) and the outcomes
 BYTES_PER_STATE_AND_DIM = 4 * 6
-#: bytes per sampled state besides: value, collided, collision and decision times (float64)
-BYTES_PER_STATE = 4 + 1 + 8 + 8 + 16
+#: bytes per sampled state besides: value, collided, collision and decision times (float64), and a
+#: reach problem's reached flag and time
+BYTES_PER_STATE = 4 + 1 + 8 + 8 + 16 + 1 + 8
 
 
 def estimate_rollout_bytes(state_dim: int, settings: VerifySettings) -> int:
@@ -137,7 +143,9 @@ def sample_superlevel_set(
 ) -> tuple[torch.Tensor, int]:
     """``n`` states uniform on ``{V(x, t) > level}`` by rejection, and how many uniform draws it took.
 
-    Raises ``ValueError`` when the set is too small to fill after ``max_draws`` draws (default 100 n).
+    ``V`` is oriented by the system's kind (:meth:`~reach.systems.problem.ProblemKind.orient`): for a
+    reach problem this is ``{V(x, t) < -level}``. Raises ``ValueError`` when the set is too small
+    to fill after ``max_draws`` draws (default 100 n).
     """
     system = vf.system
     gen = torch.Generator().manual_seed(seed)
@@ -153,7 +161,7 @@ def sample_superlevel_set(
             )
         x = system.sample_states(batch, generator=gen, dtype=torch.float32)
         draws += batch
-        inside = x[values_at(vf, x, t, chunk, device) > level]
+        inside = x[system.problem.orient(values_at(vf, x, t, chunk, device)) > level]
         kept.append(inside)
         have += inside.shape[0]
     return torch.cat(kept)[:n], draws
@@ -198,10 +206,13 @@ def _verify(
     precision = settings.matmul_precision if hasattr(vf, "with_matmul_dtype") else "float32"
     common = {"settings": settings.rollout_settings(horizon, precision), "device": device, "progress": progress}
     result = _rollout(store, "samples", vf, states, common)
-    row: dict[str, Any] = violation_statistics(result.initial_value, result.collided)
+    kind = vf.system.kind
+    row: dict[str, Any] = {"problem": kind}
+    row.update(violation_statistics(result.oriented_value, result.failed, kind, result.collided))
     row["matmul_precision"] = precision
-    collisions = int(result.collided.sum())
-    row["collision_ci_low"], row["collision_ci_high"] = wilson_interval(collisions, result.num_states)
+    failures = int(result.failed.sum())
+    ci = "collision_ci" if kind == "avoid" else "failure_ci"
+    row[f"{ci}_low"], row[f"{ci}_high"] = wilson_interval(failures, result.num_states)
     row["rollout_seconds"] = result.wall_time
     row["work_fraction"] = result.work_fraction
     row["state_steps_per_second"] = result.state_steps / max(result.wall_time, 1e-12)
@@ -215,13 +226,13 @@ def _verify(
             row["certify_error"] = str(err)
         else:
             check = _rollout(store, "certify", vf, fresh, common)
-            k = int(check.collided.sum())
+            k = int(check.failed.sum())
             n = check.num_states
             row.update(
                 certified_samples=n,
                 certified_failures=k,
                 eps=scenario_epsilon(k, n, settings.beta) if k < n else 1.0,
-                certified_volume=row["safe_fraction"],
+                certified_volume=row[KIND_COLUMNS[kind][3]],
             )
     if settings.robust_sample_count:
         row.update(robust_certification(vf, settings, horizon, common, device, store))
@@ -257,7 +268,7 @@ def robust_certification(
     }
     search_states = sample_states(vf.system, n, settings.seed + 2)
     search = _rollout(store, "robust-search", vf, search_states, common)
-    found = robust_level_search(search.initial_value, search.collided, settings.target_eps, settings.beta)
+    found = robust_level_search(search.oriented_value, search.failed, settings.target_eps, settings.beta)
     if found is None:
         need = math.ceil(math.log(1 / settings.beta) / settings.target_eps)
         out["robust_error"] = (
@@ -271,7 +282,7 @@ def robust_certification(
         out["robust_error"] = str(err)
         return out
     check = _rollout(store, "robust-check", vf, fresh, common)
-    k = int(check.collided.sum())
+    k = int(check.failed.sum())
     out.update(
         robust_level=level,
         robust_eps=scenario_epsilon(k, check.num_states, settings.beta) if k < check.num_states else 1.0,

@@ -60,6 +60,9 @@ TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("false_safe_rate", "false safe %", "pct"),
     ("false_unsafe_rate", "false unsafe %", "pct"),
     ("collision_rate", "collision %", "pct"),
+    ("false_reachable_rate", "false reachable %", "pct"),
+    ("false_unreachable_rate", "false unreachable %", "pct"),
+    ("failure_rate", "failure %", "pct"),
     ("delta", "delta", "{:.3g}"),  # 3 significant digits: small deltas are the point
     ("eps", "eps", "{:.2e}"),
     ("certified_volume", "certified vol.", "{:.3f}"),
@@ -105,8 +108,21 @@ def fingerprint(path: str) -> dict[str, Any]:
 
 
 def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
-    """The paper-style table; columns nobody has (e.g. ground truth for 9D) are left out."""
-    return columns_table(rows, TABLE_COLUMNS, drop_empty=True)
+    """The paper-style table; columns nobody has (e.g. ground truth for 9D) are left out.
+
+    Each kind of problem has its own columns (:data:`~safety.metrics.KIND_COLUMNS`): an avoid row
+    counts false *safe* claims and collisions, a reach row false *reachable* claims and failures, and
+    its delta certifies ``{V < -delta}``. Rows of several kinds get a ``problem`` column and a first
+    line that says the table mixes kinds."""
+    kinds = sorted({str(r["problem"]) for r in rows if r.get("problem")})
+    if len(kinds) < 2:
+        return columns_table(rows, TABLE_COLUMNS, drop_empty=True)
+    columns = (TABLE_COLUMNS[0], ("problem", "problem", "{}"), *TABLE_COLUMNS[1:])
+    note = (
+        f"This table mixes kinds of problem ({', '.join(kinds)}): each row fills its own kind's columns, and "
+        "delta certifies {V > delta} for avoid rows, {V < -delta} for reach rows.\n\n"
+    )
+    return note + columns_table(rows, columns, drop_empty=True)
 
 
 def _write_outputs(out: Path, header: dict[str, Any], rows: list[dict[str, Any]]) -> list[dict[str, Any]]:

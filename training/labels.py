@@ -39,6 +39,8 @@ from training.network import NeuralValueFunction, ValueNetwork
 
 def check_lower_bound_system(system: ControlAffineSystem) -> None:
     """Refuse, before training, a system whose policy rollouts bound nothing or miss dips of ``l``."""
+    # a reach kind's policy rollout bounds the value from above (the control minimises), not below
+    system.require_kind(("avoid",), "lower_bound labels")
     if system.disturbance_dim:
         raise ValueError(
             f"lower_bound: {system.name} has a disturbance, and a rollout against a model "

@@ -1,9 +1,13 @@
 """The HJI variational-inequality residual and the training loss.
 
-With ``t`` time-to-go, the value solves ``max(dV/dt - H(x, grad_x V), V - l(x)) = 0`` (see
-docs/concepts.md). The residual is that left-hand side at sampled ``(x, t)``; the loss is its mean absolute
-value (``l1``) or mean square (``l2``). The vanilla parameterisation adds a boundary term
-``|V(x, 0) - l(x)|`` on the points sampled at ``t = 0``.
+With ``t`` time-to-go, the value of an avoid or reach problem solves ``max(dV/dt - H, V - l(x)) = 0``
+(``H`` with the kind's objectives, see docs/concepts.md), and a reach-avoid value
+``min(max(dV/dt - H, V - l(x)), V + g(x)) = 0`` (``l`` the target margin, ``g`` the constraint
+margin: DeepReach's ``brat_hjivi``, the continuous form of the grid's ``V <- max(min(V, l), -g)``).
+The residual is that left-hand side at sampled ``(x, t)``; the loss is its mean absolute value
+(``l1``) or mean square (``l2``). The vanilla parameterisation adds a boundary term
+``|V(x, 0) - b(x)|`` on the points sampled at ``t = 0`` (``b = l``, or ``max(l, -g)`` for
+reach-avoid).
 
 The input derivatives ``dV/dx``, ``dV/dt`` come one of two ways (``gradients``):
 
@@ -24,7 +28,7 @@ import torch
 
 from reach.compiling import maybe_compile
 from reach.validation import check_float
-from training.network import ValueNetwork
+from training.network import Margins, ValueNetwork
 
 GRADIENTS = ("fused", "autograd")
 Terms = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
@@ -42,11 +46,14 @@ def hji_residual(network: ValueNetwork, x: torch.Tensor, t: torch.Tensor, gradie
         t = t.detach().requires_grad_(True)
         v = network(x, t)
         dv_dx, dv_dt = torch.autograd.grad(v.sum(), (x, t), create_graph=True)
-        margin = system.failure_margin(x.detach())
+        x = x.detach()
+        terminal = system.terminal_margin(x)
+        constraint = system.constraint_margin(x) if system.problem.has_constraint else None
     else:
-        margin, dmargin = network.failure_margin_and_gradient(x)
-        v, dv_dx, dv_dt = network.value_and_derivatives(x, t, margin, dmargin)
-    return _residual(network, x.detach(), v, dv_dx, dv_dt, margin), v, dv_dx
+        margins = network.margins(x)
+        v, dv_dx, dv_dt = network.value_and_derivatives(x, t, margins)
+        terminal, constraint = margins.terminal, margins.constraint
+    return _residual(network, x.detach(), v, dv_dx, dv_dt, terminal, constraint), v, dv_dx
 
 
 def _residual(
@@ -55,9 +62,13 @@ def _residual(
     v: torch.Tensor,
     dv_dx: torch.Tensor,
     dv_dt: torch.Tensor,
-    margin: torch.Tensor,
+    terminal: torch.Tensor,
+    constraint: torch.Tensor | None,
 ) -> torch.Tensor:
-    return torch.maximum(dv_dt - network.system.hamiltonian(x, dv_dx), v - margin)
+    """The kind's variational inequality: ``max(dV/dt - H, V - l)``, then ``min(., V + g)`` where a
+    constraint must hold (the Hamiltonian carries the kind's objectives)."""
+    residual = torch.maximum(dv_dt - network.system.hamiltonian(x, dv_dx), v - terminal)
+    return residual if constraint is None else torch.minimum(residual, v + constraint)
 
 
 def residual_function(
@@ -79,15 +90,23 @@ def residual_function(
             raise ValueError("compile needs gradients='fused' (torch.compile does not take double backward)")
         return lambda x, t: hji_residual(network, x, t, "autograd")
 
-    def fused(x: torch.Tensor, t: torch.Tensor, margin: torch.Tensor, dmargin: torch.Tensor) -> Terms:
-        v, dv_dx, dv_dt = network.value_and_derivatives(x, t, margin, dmargin)
-        return _residual(network, x, v, dv_dx, dv_dt, margin), v, dv_dx
+    def fused(
+        x: torch.Tensor,
+        t: torch.Tensor,
+        boundary: torch.Tensor,
+        d_boundary: torch.Tensor,
+        terminal: torch.Tensor,
+        constraint: torch.Tensor | None,
+        d_constraint: torch.Tensor | None,
+    ) -> Terms:
+        margins = Margins(boundary, d_boundary, terminal, constraint, d_constraint)
+        v, dv_dx, dv_dt = network.value_and_derivatives(x, t, margins)
+        return _residual(network, x, v, dv_dx, dv_dt, terminal, constraint), v, dv_dx
 
     body = maybe_compile(fused, compile, "training", own_cache=True)  # guards on this network fail for the next one
 
     def residual_fn(x: torch.Tensor, t: torch.Tensor) -> Terms:
-        margin, dmargin = network.failure_margin_and_gradient(x)  # autograd on l alone, outside the compiled graph
-        return body(x, t, margin, dmargin)
+        return body(x, t, *network.margins(x))  # autograd on the margins alone, outside the compiled graph
 
     return residual_fn
 
@@ -169,7 +188,7 @@ def training_loss(
         total = total + weights.lower_bound * shortfall
         terms["lower_bound"] = float(shortfall.detach())
     if network.parameterisation == "vanilla" and boundary_mask is not None and boundary_mask.any():
-        gap = v[boundary_mask] - network.system.failure_margin(x[boundary_mask])
+        gap = v[boundary_mask] - network.system.boundary_value(x[boundary_mask])
         boundary = gap.abs().mean() if weights.norm == "l1" else gap.square().mean()
         total = total + weights.boundary * boundary
         terms["boundary"] = float(boundary.detach())

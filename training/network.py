@@ -17,15 +17,19 @@ whatever mixes the layout has:
 
 Inputs ``(t, x)`` are encoded by an :class:`Encoding` (affine maps to about [-1, 1]; optionally
 ``(sin, cos)`` of periodic dimensions). Outputs: ``vanilla`` ``V = value_scale o + value_offset``
-(DeepReach) or ``exact`` ``V = l(x) + (t / T) value_scale o``, which meets ``V(x, 0) = l(x)`` by
-construction.
+(DeepReach) or ``exact`` ``V = b(x) + (t / T) value_scale o``, which meets the boundary condition
+``V(x, 0) = b(x)`` by construction (``b`` is the system's
+:meth:`~reach.systems.base.ControlAffineSystem.boundary_value`: ``l``, or ``max(l, -g)`` for a
+reach-avoid problem). A reach-avoid network may also hold its constraint ``V >= -g`` at every time
+by construction, ``exact-constraint``: ``V = max(b(x) + (t / T) value_scale o, -g(x))`` (see
+docs/training.md for what each costs and wins).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import torch
 from torch import nn
@@ -36,7 +40,36 @@ from reach.value_function import check_time
 
 #: Activation letters and their names.
 ACTIVATIONS = {"s": "sine", "r": "relu", "t": "tanh"}
-Parameterisation = Literal["exact", "vanilla"]
+Parameterisation = Literal["exact", "vanilla", "exact-constraint"]
+#: the output parameterisations (:class:`ValueNetwork`); ``exact-constraint`` is for reach-avoid systems
+PARAMETERISATIONS = ("exact", "vanilla", "exact-constraint")
+
+
+class Margins(NamedTuple):
+    """What the exact parameterisations and the residual read of the system at a batch of states,
+    computed once per step outside any compiled region (none depends on the network's weights).
+
+    ``boundary`` is ``V(x, 0)`` and ``boundary_gradient`` its ``d/dx``; ``terminal`` the ``l`` of the
+    variational inequality; ``constraint`` and ``constraint_gradient`` reach-avoid's ``g`` and
+    ``dg/dx`` (None for other kinds)."""
+
+    boundary: torch.Tensor
+    boundary_gradient: torch.Tensor
+    terminal: torch.Tensor
+    constraint: torch.Tensor | None = None
+    constraint_gradient: torch.Tensor | None = None
+
+
+def check_parameterisation(parameterisation: object, system: ControlAffineSystem) -> str:
+    """``parameterisation`` if it is one of :data:`PARAMETERISATIONS` and suits ``system``'s kind."""
+    if parameterisation not in PARAMETERISATIONS:
+        raise ValueError(f"parameterisation must be one of {PARAMETERISATIONS}, got {parameterisation!r}")
+    if parameterisation == "exact-constraint" and not system.problem.has_constraint:
+        raise ValueError(
+            f"parameterisation 'exact-constraint' holds a reach-avoid constraint; {system.name} is a "
+            f"{system.kind} problem (use 'exact')"
+        )
+    return str(parameterisation)
 
 
 def parse_layout(layout: str) -> tuple[str, ...]:
@@ -167,7 +200,7 @@ class ValueNetwork(nn.Module):
         system: the system whose value this is (gives ``l(x)``, dimensions and default encoding).
         layout: e.g. ``"ssssl"`` (DeepReach's 4 sine layers + linear output) or ``"ssrsl"``.
         width: neurons per hidden layer.
-        parameterisation: ``"exact"`` or ``"vanilla"``.
+        parameterisation: ``"exact"``, ``"vanilla"`` or (reach-avoid) ``"exact-constraint"``.
         w0: sine frequency.
         encoding: input/output encoding (default: :meth:`Encoding.for_system`).
     """
@@ -185,8 +218,7 @@ class ValueNetwork(nn.Module):
         letters = parse_layout(layout)
         if isinstance(width, bool) or not isinstance(width, int) or width < 1:
             raise ValueError(f"width must be a positive integer, got {width!r}")
-        if parameterisation not in ("exact", "vanilla"):
-            raise ValueError(f"parameterisation must be 'exact' or 'vanilla', got {parameterisation!r}")
+        check_parameterisation(parameterisation, system)
         w0 = positive_finite("w0", w0)
         self.system = system
         self.layout = layout
@@ -323,16 +355,33 @@ class ValueNetwork(nn.Module):
         (see the rollout benchmark). The first layer, activations and output stay in float32.
         """
         o, g = self._raw_and_input_gradient(self.encode(x, t), matmul_dtype, inplace=True)
-        offset, d_offset, scale, _ = self.output_map(x, t)
-        return offset + scale * o, d_offset + _per_state(scale) * self._state_gradient(g, x)
+        margins = self.margins(x) if self.parameterisation != "vanilla" else None
+        offset, d_offset, scale, _ = self.output_map(x, t, margins)
+        v, dv_dx = offset + scale * o, d_offset + _per_state(scale) * self._state_gradient(g, x)
+        if self.parameterisation == "exact-constraint":
+            v, dv_dx, _ = hold_constraint(v, dv_dx, None, margins)
+        return v, dv_dx
 
-    def failure_margin_and_gradient(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``l(x)`` and ``dl/dx`` (autograd on the margin alone; neither depends on the parameters)."""
+    def margins(self, x: torch.Tensor) -> Margins:
+        """The system's :class:`Margins` at states ``x`` (autograd on the margins alone; none depends
+        on the parameters)."""
+        system = self.system
         with torch.enable_grad():
             xg = x.detach().requires_grad_(True)
-            margin = self.system.failure_margin(xg)
-            (dl,) = torch.autograd.grad(margin.sum(), xg)
-        return margin.detach(), dl
+            terminal = system.terminal_margin(xg)
+            if not system.problem.has_constraint:
+                (dl,) = torch.autograd.grad(terminal.sum(), xg)
+                return Margins(terminal.detach(), dl, terminal.detach())
+            g = system.constraint_margin(xg)
+            boundary = system.problem.boundary_value(terminal, g)
+            db, dg = (torch.autograd.grad(f.sum(), xg, retain_graph=True)[0] for f in (boundary, g))
+        return Margins(boundary.detach(), db, terminal.detach(), g.detach(), dg)
+
+    def failure_margin_and_gradient(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``V(x, 0)`` and its gradient (the failure margin ``l`` and ``dl/dx`` for an avoid system);
+        :meth:`margins` has them all."""
+        margins = self.margins(x)
+        return margins.boundary, margins.boundary_gradient
 
     def margin_slope(self, samples: int = 65536, seed: int = 0) -> float:
         """The failure margin's steepest slope in the network's normalised coordinates: the largest
@@ -344,51 +393,72 @@ class ValueNetwork(nn.Module):
         generator = torch.Generator().manual_seed(seed)
         p = next(self.parameters())
         x = self.system.sample_states(samples, generator=generator).to(device=p.device, dtype=p.dtype)
-        _, dl = self.failure_margin_and_gradient(x)
+        dl = self.margins(x).boundary_gradient
         return float(torch.linalg.vector_norm(dl * self._scale.to(dl.dtype), dim=-1).max())
 
     def value_and_derivatives(
-        self, x: torch.Tensor, t: torch.Tensor, margin: torch.Tensor | None = None, dmargin: torch.Tensor | None = None
+        self, x: torch.Tensor, t: torch.Tensor, margins: Margins | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(V, dV/dx, dV/dt)``, differentiable with respect to the parameters (for training).
 
         The input derivatives come from :meth:`_raw_and_input_gradient`, so a training step needs one
         ordinary backward pass instead of autograd's double backward, and the whole step is a plain
-        first-order graph that ``torch.compile`` can fuse. ``margin`` and ``dmargin`` (``l(x)`` and
-        ``dl/dx``, exact parameterisation) may be passed in when computed outside a compiled region.
+        first-order graph that ``torch.compile`` can fuse. ``margins`` (:meth:`margins`, exact
+        parameterisations) may be passed in when computed outside a compiled region.
         Agrees with autograd's ``create_graph`` input gradients to float32 round-off (tested).
         """
         o, g = self._raw_and_input_gradient(self.encode(x, t))
         do_dx = self._state_gradient(g, x)
         do_dt = g[..., 0] / self.encoding.time_scale
-        offset, d_offset, scale, d_scale = self.output_map(x, t, margin, dmargin)
-        return offset + scale * o, d_offset + _per_state(scale) * do_dx, d_scale * o + scale * do_dt
+        if self.parameterisation != "vanilla" and margins is None:
+            margins = self.margins(x)
+        offset, d_offset, scale, d_scale = self.output_map(x, t, margins)
+        v, dv_dx, dv_dt = offset + scale * o, d_offset + _per_state(scale) * do_dx, d_scale * o + scale * do_dt
+        if self.parameterisation == "exact-constraint":
+            return hold_constraint(v, dv_dx, dv_dt, margins)
+        return v, dv_dx, dv_dt
 
     def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """``V(x, t)`` for states ``(..., n)`` and times ``(...)``."""
         o = self.raw(x, t)
-        # l(x) stays differentiable in x here: autograd's double-backward training path needs it
-        margin = self.system.failure_margin(x) if self.parameterisation == "exact" else None
-        offset, _, scale, _ = self.output_map(x, t, margin, torch.zeros(()))
-        return offset + scale * o
+        if self.parameterisation == "vanilla":
+            offset, _, scale, _ = self.output_map(x, t)
+            return offset + scale * o
+        # the margins stay differentiable in x here: autograd's double-backward training path needs them
+        system = self.system
+        offset = system.boundary_value(x)
+        _, _, scale, _ = self.output_map(x, t, Margins(offset, torch.zeros(()), offset))
+        v = offset + scale * o
+        return torch.maximum(v, -system.constraint_margin(x)) if self.parameterisation == "exact-constraint" else v
 
-    def output_map(
-        self, x: torch.Tensor, t: torch.Tensor, margin: torch.Tensor | None = None, dmargin: torch.Tensor | None = None
-    ) -> tuple[Any, Any, Any, Any]:
-        """The output parameterisation, written once: ``V = offset + scale * o`` for the raw output ``o``.
+    def output_map(self, x: torch.Tensor, t: torch.Tensor, margins: Margins | None = None) -> tuple[Any, Any, Any, Any]:
+        """The output parameterisation's affine part, written once: ``V = offset + scale * o`` for the
+        raw output ``o`` (``exact-constraint`` then takes ``max(V, -g)``, :func:`hold_constraint`).
 
         Returns ``(offset, d offset / dx, scale, d scale / dt)``: ``vanilla`` (DeepReach) has
-        ``offset = value_offset``, ``scale = value_scale``; ``exact`` has ``offset = l(x)`` and
-        ``scale = value_scale * t / horizon``, so ``V(x, 0) = l(x)`` for any weights. ``margin`` and
-        ``dmargin`` (``l(x)``, ``dl/dx``) may be passed in when computed elsewhere (outside a compiled
+        ``offset = value_offset``, ``scale = value_scale``; the exact ones have ``offset = b(x)``
+        (``V(x, 0)``) and ``scale = value_scale * t / horizon``, so ``V(x, 0) = b(x)`` for any weights.
+        ``margins`` (:meth:`margins`) may be passed in when computed elsewhere (outside a compiled
         region, or differentiably)."""
         enc = self.encoding
         if self.parameterisation == "vanilla":
             return enc.value_offset, 0.0, enc.value_scale, 0.0
-        if margin is None or dmargin is None:
-            margin, dmargin = self.failure_margin_and_gradient(x)
+        if margins is None:
+            margins = self.margins(x)
         rate = enc.value_scale / enc.horizon
-        return margin, dmargin, rate * t, rate
+        return margins.boundary, margins.boundary_gradient, rate * t, rate
+
+
+def hold_constraint(
+    v: torch.Tensor, dv_dx: torch.Tensor, dv_dt: torch.Tensor | None, margins: Margins
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """``max(V, -g)`` with its derivatives: where the constraint binds, ``V = -g``, ``dV/dx = -dg/dx``
+    and ``dV/dt = 0`` (the ``exact-constraint`` parameterisation; ties take the network's branch)."""
+    g, dg = margins.constraint, margins.constraint_gradient
+    binds = v < -g
+    v = torch.where(binds, -g, v)
+    dv_dx = torch.where(binds.unsqueeze(-1), -dg.to(dv_dx.dtype), dv_dx)
+    return v, dv_dx, None if dv_dt is None else torch.where(binds, 0.0, dv_dt)
 
 
 def _per_state(scale: Any) -> Any:

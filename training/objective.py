@@ -44,7 +44,6 @@ class Objective:
     """The training loss of ``network`` under ``config``, at whatever points a step draws."""
 
     def __init__(self, config: TrainConfig, network: ValueNetwork) -> None:
-        network.system.require_kind(("avoid",), "training")
         self.config = config
         self.network = network
         self.residual_fn = residual_function(network, config.gradients, config.compile_resolved())

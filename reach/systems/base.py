@@ -231,7 +231,13 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
         return isinstance(other, ControlAffineSystem) and self.physics_config() == other.physics_config()
 
     def require_same_physics(self, other: ControlAffineSystem, what: str) -> None:
-        """Raise ``ValueError`` saying ``what`` is for ``other`` unless :meth:`same_physics` holds."""
+        """Raise ``ValueError`` saying ``what`` is for ``other`` unless :meth:`same_physics` holds
+        (naming both kinds first where the kinds of problem differ: their values mean opposite things)."""
+        if isinstance(other, ControlAffineSystem) and other.kind != self.kind:
+            raise ValueError(
+                f"{what} is for a {other.kind} problem ({other.name}), not a {self.kind} problem ({self.name}): "
+                "their values do not compare"
+            )
         if not self.same_physics(other):
             found = other.config() if isinstance(other, ControlAffineSystem) else type(other).__name__
             raise ValueError(f"{what} is for system {found}, not {self.config()}")
@@ -498,6 +504,17 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
     def constraint_margin(self, x: torch.Tensor) -> torch.Tensor:
         """``g(x)`` of a reach-avoid system for batched states ``(..., n)``: positive where allowed."""
         return self.constraint_margin_columns(TORCH.unbind(x), TORCH)
+
+    def terminal_margin(self, x: torch.Tensor) -> torch.Tensor:
+        """The ``l`` of the kind's variational inequality for batched states ``(..., n)``: the failure
+        margin (avoid) or the target margin (reach kinds)."""
+        self._check("x", x, self.state_dim)
+        return self.terminal_margin_columns(TORCH.unbind(x), TORCH)
+
+    def boundary_value(self, x: torch.Tensor) -> torch.Tensor:
+        """``V(x, 0)`` for batched states ``(..., n)``: ``l(x)``, or ``max(l(x), -g(x))`` for reach-avoid."""
+        g = self.constraint_margin(x) if self.problem.has_constraint else None
+        return self.problem.boundary_value(self.terminal_margin(x), g)
 
     def wrap(self, x: torch.Tensor) -> torch.Tensor:
         """States with periodic dimensions wrapped into ``[-pi, pi)``."""

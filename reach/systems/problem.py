@@ -56,6 +56,18 @@ class ProblemKind:
         """Whether ``{V <= 0}`` is the *good* side (reach kinds), not the unsafe one (avoid)."""
         return self.name != "avoid"
 
+    @property
+    def claim(self) -> str:
+        """What a value function claims of the states on its good side: ``"safe"`` (avoid: ``V > 0``)
+        or ``"reachable"`` (reach kinds: ``V < 0``)."""
+        return "reachable" if self.reaches else "safe"
+
+    def orient(self, v: torch.Tensor) -> torch.Tensor:
+        """``V`` turned so that ``> 0`` is the claim (:attr:`claim`): ``V`` for avoid, ``-V`` for reach
+        kinds. Verification tests claims on this side: a certified level ``delta`` means the set
+        ``{V > delta}`` (avoid) or ``{V < -delta}`` (reach kinds)."""
+        return -v if self.reaches else v
+
     def boundary_value(self, margin: torch.Tensor, g: torch.Tensor | None) -> torch.Tensor:
         """``V(x, 0)``: the terminal margin ``l``, or ``max(l, -g)`` where a constraint must hold."""
         return margin if g is None else torch.maximum(margin, -g)

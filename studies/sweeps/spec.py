@@ -36,6 +36,7 @@ def default_layouts(system: Any) -> list[str]:
     paper's six (:data:`AIR3D_LAYOUTS`) for Air3D and for any other system, a user's own included."""
     return list(NINE_D_LAYOUTS if isinstance(make_system(system), MultiVehicle) else AIR3D_LAYOUTS)
 
+
 #: keys that may differ between runs into one sweep directory
 GROWABLE = ("layouts", "seeds")
 
