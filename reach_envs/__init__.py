@@ -1,8 +1,11 @@
 """reach_envs: scenes and Gymnasium / PettingZoo environments for the systems of :mod:`reach.systems`.
 
 Importing the package registers ``Air3D-v0``, ``MultiVehicle6D-v0`` and ``MultiVehicle9D-v0`` (named
-scenes) and ``Reach-v0`` (any system: ``gym.make("Reach-v0", system=DubinsAvoid(), dt=0.02)``) with
-Gymnasium (also reachable as ``gym.make("reach_envs:Air3D-v0")``). Registration is by entry-point
+scenes), ``DubinsReachAvoid-v0`` (the built-in reach-avoid car, :data:`SYSTEM_ENVS`) and ``Reach-v0``
+(any system: ``gym.make("Reach-v0", system=DubinsAvoid(), dt=0.02)``, or ``system="dubins3d"`` for
+DeepReach's reach problem) with Gymnasium (also reachable as ``gym.make("reach_envs:Air3D-v0")``).
+Environments of reach and reach-avoid systems end on reaching the goal or on a collision, and report
+which in ``info["outcome"]`` (:mod:`reach_envs.env`). Registration is by entry-point
 string, so importing this package loads no environment module until an env is made.
 
 :func:`make_env` and :func:`make_vector_env` build the environments of any system directly: an
@@ -29,6 +32,12 @@ ENV_SCENES = {
     "MultiVehicle9D-v0": "three-car-9d",
 }
 
+#: Gymnasium id -> the system and scene fields of a built-in system's env. Not named scenes: every id
+#: of :data:`ENV_SCENES` ships a value network for safety filters, which handle avoid problems only.
+SYSTEM_ENVS: dict[str, dict[str, Any]] = {
+    "DubinsReachAvoid-v0": {"system": "dubinsreachavoid", "disturbance": "pursue"},
+}
+
 #: Gymnasium id of the environment of any system, given as ``system=``.
 SYSTEM_ENV_ID = "Reach-v0"
 
@@ -42,6 +51,15 @@ def _register() -> None:
             entry_point="reach_envs.env:ReachEnv",
             vector_entry_point="reach_envs.vector:ReachVectorEnv",
             kwargs={"scene": scene},
+        )
+    for env_id, fields in SYSTEM_ENVS.items():
+        if env_id in registry:
+            continue
+        register(
+            id=env_id,
+            entry_point="reach_envs.env:ReachEnv",
+            vector_entry_point="reach_envs.vector:ReachVectorEnv",
+            kwargs=dict(fields),
         )
     if SYSTEM_ENV_ID not in registry:
         register(
@@ -77,4 +95,4 @@ def make_vector_env(system: Any, num_envs: int, render_mode: str | None = None, 
 
 _register()
 
-__all__ = ["ENV_SCENES", "SYSTEM_ENV_ID", "make_env", "make_vector_env"]
+__all__ = ["ENV_SCENES", "SYSTEM_ENVS", "SYSTEM_ENV_ID", "make_env", "make_vector_env"]

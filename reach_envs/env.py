@@ -5,17 +5,39 @@ same as :func:`reach_envs.make_env`).
 Actions are the system's controls (the controlled cars' turn rates) normalised to [-1, 1] (values
 outside are clipped to the box; NaN, inf and wrong shapes raise ``ValueError``). The disturbance
 comes from the scene. Observations are float32 states with periodic dimensions (headings) wrapped to
-[-pi, pi). ``render_mode="rgb_array"`` draws cars, or for a system without cars the projection view
-(:mod:`reach_envs.projection`). An episode *terminates* on
-collision (``l(x) <= 0``, if the scene says so) or on leaving the arena, and is *truncated* at the
-horizon. The reward is -1 on a step that ends in collision and 0 otherwise: the env is a safety
-testbed, and reward shaping belongs in a wrapper.
+[-pi, pi). ``render_mode="rgb_array"`` draws cars, or for a system without cars (or of a reach
+kind) the projection view (:mod:`reach_envs.projection`), the goal green, obstacles and failure sets
+red. What ends an episode and what it earns follow the system's kind (:mod:`reach.systems.problem`,
+:mod:`reach_envs.regions`); states are judged after each step:
+
+=============  =======================================  ==========================================  ==========
+kind           *terminates* on                          reward of a step                            outcome
+=============  =======================================  ==========================================  ==========
+avoid          collision ``l(x) <= 0`` (if the scene    -1 if it ends in collision (terminating or  (no key)
+               says so), leaving the arena              not), else 0
+reach          goal ``l(x) <= 0``, leaving the arena    +1 on reaching the goal, else 0             reached,
+                                                                                                    out_of_arena,
+                                                                                                    timeout
+reach-avoid    collision ``g(x) <= 0`` (even inside     +1 on reaching the goal, -1 on collision,   reached,
+               the goal), goal ``l(x) <= 0``,           else 0                                      collided,
+               leaving the arena                                                                    out_of_arena,
+                                                                                                    timeout
+=============  =======================================  ==========================================  ==========
+
+Every kind is *truncated* at the horizon; for a reach kind that is a failure, ``outcome="timeout"``
+(reward 0). No kind shapes its reward: the env is a testbed of the reachability problem, and shaping
+(distance to the goal, say) belongs in a wrapper.
 
 Stepping before ``reset`` or after the episode ended raises
 :class:`~reach_envs.spaces.EpisodeOverError`, and unknown ``reset`` options raise ``ValueError``.
 
-``info`` holds ``margin`` (``l(x)``), ``collision``, ``out_of_arena``, ``control`` and
-``disturbance`` (inputs actually applied, physical units, after clipping) and ``time`` (seconds).
+``info`` holds ``margin`` (avoid: the failure margin ``l(x)``; reach kinds: the constraint margin
+``g(x)``, ``+inf`` for reach, which has no obstacle), ``collision``, ``out_of_arena``, ``control`` and
+``disturbance`` (inputs actually applied, physical units, after clipping) and ``time`` (seconds). A
+reach kind adds ``target_margin`` (``l(x)``), ``constraint_margin`` (``g(x)``), ``reached`` (in the
+goal and no obstacle) and ``outcome``: ``"reached"``, ``"collided"``, ``"out_of_arena"`` or
+``"timeout"`` on the step that ends the episode, ``None`` before (and at ``reset``). A NaN or
+infinite margin or state raises ``ValueError`` naming the state, for every kind (fail closed).
 
 A single step runs on Python floats (see :mod:`reach.systems.arrays`): at one state, array
 libraries' per-call overhead would cost more than the arithmetic.
@@ -29,6 +51,7 @@ import gymnasium as gym
 import numpy as np
 
 from reach.systems.arrays import FLOAT
+from reach_envs.regions import OUTCOME_REWARDS, episode_outcome
 from reach_envs.scenes import Scene, env_scene
 from reach_envs.simulator import SceneSimulator
 from reach_envs.spaces import (
@@ -44,6 +67,16 @@ from reach_envs.views import make_renderer, render_frame, trail_points
 
 class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
     """A single environment of a :class:`~reach_envs.scenes.Scene`, or of any system.
+
+    Rewards by the system's kind (see the module docstring for termination and ``info``):
+
+    =============  ==================  ================  ==================================
+    kind           collision step      goal reached      any other step (timeout included)
+    =============  ==================  ================  ==================================
+    avoid          -1                  (no goal)         0
+    reach          (no obstacle)       +1, terminates    0
+    reach-avoid    -1, terminates      +1, terminates    0
+    =============  ==================  ================  ==================================
 
     Args:
         scene: a :class:`Scene` or a named scene (``"air3d"``, ``"head-on"``, ...).
@@ -75,6 +108,7 @@ class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
         self._dt = self.scene.dt
         self._max_steps = self.scene.max_steps
         self._terminate_on_collision = self.scene.terminate_on_collision
+        self._reaches = system.problem.reaches
         self._record_trails = self.scene.trails and render_mode is not None
         self._trail_points = trail_points(self.scene) if self._record_trails else None
         self._renderer = None
@@ -102,8 +136,13 @@ class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
         self._over = None
         if self._record_trails:
             self._trails = [[p] for p in self._trail_points(self._state)]
-        margin = self.sim.margin(self._state)
-        info = {"margin": margin, "collision": margin <= 0.0, "time": 0.0}
+        if self._reaches:
+            target, constraint, collision, reached = self.sim.reach_status(self._state)
+            info = {"margin": constraint, "collision": bool(collision), "time": 0.0}
+            info.update(target_margin=target, constraint_margin=constraint, reached=bool(reached), outcome=None)
+        else:
+            margin = self.sim.margin(self._state)
+            info = {"margin": margin, "collision": margin <= 0.0, "time": 0.0}
         return np.array(self._state, dtype=np.float32), info
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
@@ -122,10 +161,16 @@ class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
         x = self._state = sim.advance(x, u, d, self.np_random)
         self._steps += 1
         self._time = self._steps * self._dt
-        margin = sim.margin(x)
-        collision = margin <= 0.0
-        out = sim.out_of_arena(x)
-        terminated = bool((collision and self._terminate_on_collision) or out)
+        if self._reaches:
+            target, margin, collision, reached = sim.reach_status(x)
+            collision, reached = bool(collision), bool(reached)
+            out = sim.out_of_arena(x)
+            terminated = bool(collision or reached or out)
+        else:
+            margin = sim.margin(x)
+            collision = margin <= 0.0
+            out = sim.out_of_arena(x)
+            terminated = bool((collision and self._terminate_on_collision) or out)
         truncated = not terminated and self._steps >= self._max_steps
         if terminated or truncated:
             self._over = "after the episode was " + ("terminated" if terminated else "truncated")
@@ -141,7 +186,12 @@ class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
             "disturbance": np.array(d),
             "time": self._time,
         }
-        return np.array(x, dtype=np.float32), (-1.0 if collision else 0.0), terminated, truncated, info
+        if not self._reaches:
+            return np.array(x, dtype=np.float32), (-1.0 if collision else 0.0), terminated, truncated, info
+        outcome = episode_outcome(collision, reached, bool(out), truncated)
+        info.update(target_margin=target, constraint_margin=margin, reached=reached, outcome=outcome)
+        reward = OUTCOME_REWARDS[outcome] if outcome is not None else 0.0
+        return np.array(x, dtype=np.float32), reward, terminated, truncated, info
 
     def render(self) -> np.ndarray | None:
         if self.render_mode is None:

@@ -6,6 +6,9 @@ collides (comes within the collision radius of another live car) if the scene te
 collision, or when any car leaves the arena; a crashed car stops where it is and no longer takes
 part in collision checks. All remaining agents are truncated at the horizon. Reward: -1 on the step
 an agent's car collides, 0 otherwise.
+
+Only avoid problems: a scene of a reach or reach-avoid system raises ``ValueError`` naming its kind
+(its goal is the whole system's, not one car's; use :class:`~reach_envs.env.ReachEnv`).
 """
 
 from __future__ import annotations
@@ -34,6 +37,11 @@ class MultiVehicleParallelEnv(ParallelEnv):
     def __init__(self, scene: str | Scene = "three-car-9d", render_mode: str | None = None, **overrides: Any) -> None:
         self.scene = make_scene(scene, **overrides)
         system = self.system = self.scene.system
+        if system.kind != "avoid":  # per-car collision margins and rewards are an avoid game's
+            raise ValueError(
+                f"MultiVehicleParallelEnv handles avoid problems only (per-car collisions); {system.name} is a "
+                f"{system.kind} problem: use ReachEnv (gym.make('Reach-v0', system=...))"
+            )
         if not isinstance(system, MultiVehicle):
             raise ValueError(f"MultiVehicleParallelEnv needs a MultiVehicle scene, got system {system.name}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:

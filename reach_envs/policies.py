@@ -5,8 +5,9 @@ environment (Python floats) and the vector environment (NumPy batches). Policies
 disturbances in physical units; the simulator clips them to the system's disturbance box.
 
 ``"pursue"`` means :class:`PursuitPolicy` for vehicle systems (disturbance cars chase control cars)
-and :class:`MarginPursuit` for any other system (the disturbance pushes the state down the failure
-margin's gradient, toward the failure set).
+and :class:`MarginPursuit` for any other system (the disturbance plays its side of the game on the
+margins: toward the failure set of an avoid system, away from the goal or toward an obstacle of a
+reach kind).
 """
 
 from __future__ import annotations
@@ -71,13 +72,18 @@ class PursuitPolicy:
 
 
 class MarginPursuit:
-    """The disturbance that drives ``l(x)`` down fastest, for any system: the corner of the disturbance
-    box that the system's own optimal-input rule picks for the costate ``p = grad l(x)`` (with the
-    usual ``disturbance_objective="min"``, the corner minimising ``grad l . G_d(x) d``; the box centre
-    along inputs that do not move ``l``).
+    """The disturbance that plays its side of the game on the margins, for any system: the corner of
+    the disturbance box that the system's own optimal-input rule picks for the costate ``p = grad m(x)``
+    of one margin ``m``; the box centre along inputs that do not move ``m``.
+
+    ``m`` is the failure margin of an avoid system (the disturbance minimises it: toward the failure
+    set) and the target margin ``l`` of a reach system (the disturbance maximises it: away from the
+    goal). A reach-avoid disturbance goes for the nearer of its two wins: away from the goal (``m = l``)
+    where ``l(x) <= g(x)``, else toward the obstacles (``m = -g``, the constraint margin turned so that
+    maximising it closes in).
 
     The gradient is a central difference, taken only along the state dimensions the disturbance
-    enters (two ``l`` evaluations each), with a step of ``1e-6`` times each dimension's domain width.
+    enters (two margin evaluations each), with a step of ``1e-6`` times each dimension's domain width.
     """
 
     def __init__(self, system: ControlAffineSystem, rel_step: float = 1e-6) -> None:
@@ -85,16 +91,28 @@ class MarginPursuit:
         self.system = system
         self._steps = [rel_step * (hi - lo) for lo, hi in system.domain]
 
-    def columns(self, x: Sequence[Column], xp: Backend, rng: np.random.Generator) -> list[Column]:
-        system = self.system
-        margin = system.failure_margin_columns
-        p: list[Column] = [0.0] * system.state_dim
-        for i in sorted({i for i, _ in system.disturbance_matrix(x, xp)}):
+    def _gradient(self, margin: Callable[..., Column], x: Sequence[Column], xp: Backend) -> list[Column]:
+        """``grad margin(x)`` along the dimensions the disturbance enters, 0 along the others."""
+        p: list[Column] = [0.0] * self.system.state_dim
+        for i in sorted({i for i, _ in self.system.disturbance_matrix(x, xp)}):
             h = self._steps[i]
             up, down = list(x), list(x)
             up[i] = x[i] + h
             down[i] = x[i] - h
             p[i] = (margin(up, xp) - margin(down, xp)) / (2.0 * h)
+        return p
+
+    def columns(self, x: Sequence[Column], xp: Backend, rng: np.random.Generator) -> list[Column]:
+        system = self.system
+        if not system.problem.reaches:
+            p = self._gradient(system.failure_margin_columns, x, xp)
+        elif not system.problem.has_constraint:
+            p = self._gradient(system.target_margin_columns, x, xp)
+        else:
+            near_goal = system.target_margin_columns(x, xp) <= system.constraint_margin_columns(x, xp)
+            to_goal = self._gradient(system.target_margin_columns, x, xp)
+            to_obstacle = self._gradient(system.constraint_margin_columns, x, xp)
+            p = [xp.where(near_goal, a, -b) for a, b in zip(to_goal, to_obstacle)]
         return system.optimal_inputs_columns(x, p, xp)[1]
 
 

@@ -7,6 +7,10 @@ are not cars. Environments build their step from the active effects only: no dis
 evaluated without a disturbance, no random number is drawn without noise or a random policy, no
 trail is recorded unless asked for and rendered.
 
+A scene of a reach or reach-avoid system carries its goal and obstacles (:attr:`Scene.goal`,
+:attr:`Scene.obstacles`, :attr:`Scene.regions`), derived from the system's target and constraint
+margins (:mod:`reach_envs.regions`), never declared a second time.
+
 Named scenes (:data:`SCENES`, :func:`make_scene`): ``air3d``, ``pursuit-evasion-6d``,
 ``three-car-9d``, ``head-on``, ``crossing``, ``three-car-merge`` and ``three-car-crossing``. A scene
 of any other system (an instance, a registered name or an import path ``pkg.mod:Class``):
@@ -25,6 +29,7 @@ import numpy as np
 
 from reach.integrators import INTEGRATORS
 from reach.systems import (
+    FLOAT,
     Air3D,
     Car,
     ControlAffineSystem,
@@ -35,24 +40,42 @@ from reach.systems import (
 )
 from reach.validation import check_known_fields
 from reach_envs.policies import DISTURBANCE_KINDS, make_disturbance_policy
+from reach_envs.regions import Region, goal_region, obstacle_region, system_regions
 
 
 # ---------------------------------------------------------------------- initial states
 @dataclass(frozen=True)
 class UniformSafe:
-    """States uniform over the system's domain, redrawn while ``l(x) <= margin`` (in collision)."""
+    """States uniform over the system's domain, redrawn while the episode would already be decided:
+    avoid, while ``l(x) <= margin`` (in collision); reach kinds, while in the goal (``l(x) <= 0``) or,
+    reach-avoid, while ``g(x) <= margin`` (in an obstacle)."""
 
     margin: float = 0.0
     max_tries: int = 10_000
 
     def sample(self, system: ControlAffineSystem, rng: np.random.Generator) -> np.ndarray:
+        accept = _undecided(system, self.margin)
         for _ in range(self.max_tries):
             x = system.sample_states_numpy(rng)
-            if system.failure_margin_float(x.tolist()) > self.margin:
+            if accept(x.tolist()):
                 return x
-        raise RuntimeError(
-            f"UniformSafe: no state with l(x) > {self.margin} in {self.max_tries} draws from the {system.name} domain"
+        wanted = {"avoid": f"l(x) > {self.margin}", "reach": "l(x) > 0"}.get(
+            system.kind, f"l(x) > 0 and g(x) > {self.margin}"
         )
+        raise RuntimeError(
+            f"UniformSafe: no state with {wanted} in {self.max_tries} draws from the {system.name} domain"
+        )
+
+
+def _undecided(system: ControlAffineSystem, margin: float) -> Callable[[list[float]], bool]:
+    """``state -> bool``: whether an episode from the state is not decided yet (see :class:`UniformSafe`)."""
+    if not system.problem.reaches:
+        return lambda x: system.failure_margin_float(x) > margin
+    if not system.problem.has_constraint:
+        return lambda x: system.target_margin_columns(x, FLOAT) > 0.0
+    return lambda x: (
+        system.target_margin_columns(x, FLOAT) > 0.0 and system.constraint_margin_columns(x, FLOAT) > margin
+    )
 
 
 @dataclass(frozen=True)
@@ -109,7 +132,9 @@ class Scene:
             ``"random"``, or a callable ``state -> disturbance`` in physical units.
         process_noise: ``None`` or the standard deviation per sqrt(second) of Brownian noise added
             to each state dimension (scalar or one per dimension).
-        terminate_on_collision: end the episode when ``l(x) <= 0``.
+        terminate_on_collision: end the episode when ``l(x) <= 0`` (avoid). A reach-kind episode
+            always ends at its first collision (the goal counts only if reached before any), so
+            ``False`` is refused there.
         arena: ``None`` or a half-width; a car leaving ``[-arena, arena]^2`` ends the episode.
         trails: record trails for rendering (only when a render mode is set): each car's position, or
             for a system without cars the projected state.
@@ -118,7 +143,7 @@ class Scene:
         integrator: ``"rk4"`` or ``"euler"``.
         view_dims: for a system without cars, the two state dimensions (indices or state names) the
             projection view draws; ``None``: the first two non-periodic dimensions, else ``(0, 1)``.
-            Vehicle systems are drawn as cars and take no ``view_dims``.
+            Vehicle systems of avoid problems are drawn as cars and take no ``view_dims``.
     """
 
     system: ControlAffineSystem
@@ -138,6 +163,13 @@ class Scene:
         if not isinstance(self.system, ControlAffineSystem):
             raise ValueError(f"Scene: system must be a ControlAffineSystem, got {type(self.system).__name__}")
         _positive("dt", self.dt)
+        if self.system.problem.reaches and not (
+            self.terminate_on_collision is True or self.terminate_on_collision is np.True_
+        ):
+            raise ValueError(
+                f"Scene: terminate_on_collision must be True for a {self.system.kind} system (its episodes "
+                f"end at the first collision), got {self.terminate_on_collision!r}"
+            )
         if self.horizon is not None:
             _positive("horizon", self.horizon)
         if self.dt > self.episode_horizon:
@@ -195,6 +227,27 @@ class Scene:
         return dataclasses.replace(self, **changes)
 
     @property
+    def kind(self) -> str:
+        """The system's kind of problem: ``"avoid"``, ``"reach"`` or ``"reach-avoid"``."""
+        return self.system.kind
+
+    @property
+    def goal(self) -> Region | None:
+        """The goal of a reach kind, ``{l <= 0}`` of the system's target margin; ``None`` for avoid."""
+        return goal_region(self.system)
+
+    @property
+    def obstacles(self) -> Region | None:
+        """The obstacles of a reach-avoid system, ``{g <= 0}`` of its constraint margin; else ``None``."""
+        return obstacle_region(self.system)
+
+    @property
+    def regions(self) -> tuple[Region, ...]:
+        """The sets an episode is judged by, in drawing order: the failure set (avoid), the goal
+        (reach), the goal then the obstacles (reach-avoid)."""
+        return system_regions(self.system)
+
+    @property
     def episode_horizon(self) -> float:
         return self.horizon if self.horizon is not None else self.system.horizon
 
@@ -214,7 +267,7 @@ def _check_fields(fields: dict[str, Any]) -> None:
 
 def _view_dims(system: ControlAffineSystem, dims: Any) -> tuple[int, int]:
     """``view_dims`` checked and as two indices (state names are looked up)."""
-    if hasattr(system, "car_poses"):
+    if hasattr(system, "car_poses") and not system.problem.reaches:
         raise ValueError(
             f"Scene: view_dims is for the projection view of systems without cars; {system.name} is drawn as cars"
         )

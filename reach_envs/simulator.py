@@ -4,6 +4,9 @@
 floats) or NumPy for vector environments (state = list of ``(num_envs,)`` columns). At construction
 it resolves which effects the scene asks for; the per-step methods then do that work and no other.
 The counters in :attr:`SceneSimulator.calls` make this checkable in tests.
+
+Every margin it returns is checked finite: a NaN margin would read as "not in the set" (NaN <= 0 is
+False), so it raises ``ValueError`` naming the state instead (fail closed).
 """
 
 from __future__ import annotations
@@ -24,7 +27,6 @@ class SceneSimulator:
     """Advances states of one scene on backend ``xp`` (FLOAT or NUMPY)."""
 
     def __init__(self, scene: Scene, xp: Backend) -> None:
-        scene.system.require_kind(("avoid",), "environments")
         self.scene = scene
         self.system = scene.system
         self.xp = xp
@@ -41,6 +43,7 @@ class SceneSimulator:
                 noise = std * math.sqrt(scene.dt)
         self._noise = noise
         self._arena = scene.arena
+        self._has_constraint = self.system.problem.has_constraint
 
     # ------------------------------------------------------------------ disturbance
     def disturbance(self, x: Sequence[Column], rng: np.random.Generator) -> list[Column]:
@@ -76,6 +79,29 @@ class SceneSimulator:
         value = self.system.failure_margin_columns(x, self.xp)
         self._require_finite([value], "the failure margin", x)
         return value
+
+    def target_margin(self, x: Sequence[Column]) -> Column:
+        """Target margin ``l(x)`` of a reach kind (``<= 0`` in the goal); non-finite raises ``ValueError``."""
+        value = self.system.target_margin_columns(x, self.xp)
+        self._require_finite([value], "the target margin", x)
+        return value
+
+    def constraint_margin(self, x: Sequence[Column]) -> Column:
+        """Constraint margin ``g(x)`` of a reach-avoid system (``<= 0`` in an obstacle), ``+inf`` for a
+        reach system (no obstacle anywhere); non-finite values of ``g`` raise ``ValueError``."""
+        if not self._has_constraint:
+            return math.inf if self.xp is FLOAT else np.full(np.shape(x[0]), math.inf)
+        value = self.system.constraint_margin_columns(x, self.xp)
+        self._require_finite([value], "the constraint margin", x)
+        return value
+
+    def reach_status(self, x: Sequence[Column]) -> tuple[Column, Column, Column, Column]:
+        """For a reach kind: ``(l, g, collision, reached)`` with ``collision = g <= 0`` and ``reached =
+        l <= 0 < g`` (a state in the goal and an obstacle is a collision), on floats or arrays alike."""
+        target = self.target_margin(x)
+        constraint = self.constraint_margin(x)
+        collision = constraint <= 0.0
+        return target, constraint, collision, (target <= 0.0) & (constraint > 0.0)
 
     def _require_finite(self, columns: Sequence[Column], what: str, state: Sequence[Column]) -> None:
         """Raise ``ValueError`` if any entry of ``columns`` is NaN or infinite, naming ``state``."""

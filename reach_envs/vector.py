@@ -10,6 +10,11 @@ from one vector-level generator: the same distribution, not the same draws.
 
 Autoreset follows Gymnasium's default ``NEXT_STEP`` mode: the step after an episode ends resets that
 sub-environment, returns its first observation with reward 0, and ignores its action.
+
+Termination, rewards and ``info`` follow the system's kind as in :class:`~reach_envs.env.ReachEnv`,
+per sub-environment, as ``(num_envs,)`` arrays: a reach kind's ``info["outcome"]`` is an object
+array of ``"reached"``, ``"collided"``, ``"out_of_arena"``, ``"timeout"`` or ``None`` (running, or
+reset on this step).
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from reach.systems.arrays import NUMPY
+from reach_envs.regions import COLLIDED, OUT_OF_ARENA, OUTCOME_REWARDS, REACHED, TIMEOUT
 from reach_envs.scenes import Scene, env_scene
 from reach_envs.simulator import SceneSimulator
 from reach_envs.spaces import action_space, check_action, check_reset_options, check_state, observation_space
@@ -74,8 +80,23 @@ class ReachVectorEnv(VectorEnv):
         self._autoreset = np.zeros(num_envs, dtype=bool)
         self._crashed = np.zeros(num_envs, dtype=bool)
         self._renderer = None
+        self._reaches = system.problem.reaches
 
     # ------------------------------------------------------------------ helpers
+    def _reach_info(self, info: dict, status: tuple, ended: np.ndarray | None = None, out: Any = False) -> dict:
+        """``info`` of a reach kind with its margins, flags and outcome from ``status`` (the simulator's
+        :meth:`~reach_envs.simulator.SceneSimulator.reach_status`); ``ended`` masks the sub-envs whose
+        episode ended on this step (``None`` at reset: no outcome yet)."""
+        target, constraint, collision, reached = status
+        info.update(margin=constraint, collision=collision)
+        info.update(target_margin=target, constraint_margin=constraint, reached=reached)
+        outcome = np.full(self.num_envs, None, dtype=object)
+        if ended is not None:  # the first match wins, as in reach_envs.regions.episode_outcome
+            for name, mask in ((TIMEOUT, True), (OUT_OF_ARENA, out), (REACHED, reached), (COLLIDED, collision)):
+                outcome[ended & mask] = name
+        info["outcome"] = outcome
+        return info
+
     def _sample_into(self, indices: np.ndarray, states: np.ndarray | None = None) -> None:
         """Draw fresh initial states for the given sub-environments (a loop over resets only)."""
         x = np.stack(self._state, axis=-1)
@@ -131,6 +152,8 @@ class ReachVectorEnv(VectorEnv):
             states = states[indices]
         self._sample_into(indices, states)
         self._autoreset[indices] = False
+        if self._reaches:
+            return self._observation(), self._reach_info({"time": np.zeros(n)}, self.sim.reach_status(self._state))
         margin = self.sim.margin(self._state)
         info = {"margin": margin, "collision": margin <= 0.0, "time": np.zeros(n)}
         return self._observation(), info
@@ -145,12 +168,18 @@ class ReachVectorEnv(VectorEnv):
         resetting = np.flatnonzero(self._autoreset)
         if resetting.size:
             self._sample_into(resetting)
-        margin = sim.margin(self._state)
-        collision = margin <= 0.0
         out = np.broadcast_to(sim.out_of_arena(self._state), (self.num_envs,))
-        terminated = out | (collision & self.scene.terminate_on_collision)
+        if self._reaches:
+            status = sim.reach_status(self._state)
+            _, _, collision, reached = status
+            terminated = out | collision | reached
+            reward = np.where(reached, OUTCOME_REWARDS[REACHED], np.where(collision, OUTCOME_REWARDS[COLLIDED], 0.0))
+        else:
+            margin = sim.margin(self._state)
+            collision = margin <= 0.0
+            terminated = out | (collision & self.scene.terminate_on_collision)
+            reward = np.where(collision, -1.0, 0.0)
         truncated = ~terminated & (self._steps >= self.scene.max_steps)
-        reward = np.where(collision, -1.0, 0.0)
         if resetting.size:
             terminated[resetting] = False
             truncated[resetting] = False
@@ -161,13 +190,15 @@ class ReachVectorEnv(VectorEnv):
             np.stack([np.broadcast_to(v, (self.num_envs,)) for v in d], axis=-1) if d else np.zeros((self.num_envs, 0))
         )
         info = {
-            "margin": margin,
+            "margin": None if self._reaches else margin,
             "collision": collision,
             "out_of_arena": out.copy(),
             "control": np.stack(u, axis=-1),
             "disturbance": d_arr,
             "time": self._steps * self.scene.dt,
         }
+        if self._reaches:
+            info = self._reach_info(info, status, terminated | truncated, out)
         return self._observation(), reward, terminated, truncated, info
 
     def render(self) -> tuple[np.ndarray, ...] | None:

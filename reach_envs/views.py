@@ -1,8 +1,10 @@
 """How an environment is drawn: the renderer a scene calls for, its frames and its trails.
 
-Vehicle systems (those with ``car_poses``) are drawn as cars
-(:class:`~reach_envs.rendering.SceneRenderer`), any other system as a projection on two state
-dimensions (:class:`~reach_envs.projection.ProjectionRenderer`); :func:`render_frame` and
+Vehicle systems (those with ``car_poses``) of avoid problems are drawn as cars
+(:class:`~reach_envs.rendering.SceneRenderer`), any other system (reach kinds included, whose goal
+and obstacles live in the state space, not around a car) as a projection on two state
+dimensions (:class:`~reach_envs.projection.ProjectionRenderer`, which shades the scene's regions:
+failure set, goal, obstacles); :func:`render_frame` and
 :func:`trail_points` hide the difference from the environments.
 """
 
@@ -20,10 +22,15 @@ from reach_envs.scenes import Scene
 
 
 def projected_view(scene: Scene) -> tuple[int, int] | None:
-    """The two state dimensions a projection view draws, or ``None`` for a vehicle system (drawn as cars)."""
-    if hasattr(scene.system, "car_poses"):
+    """The two state dimensions a projection view draws, or ``None`` for an avoid vehicle system (drawn as cars)."""
+    if _drawn_as_cars(scene.system):
         return None
     return scene.view_dims if scene.view_dims is not None else default_view_dims(scene.system)
+
+
+def _drawn_as_cars(system: ControlAffineSystem) -> bool:
+    """Cars for a vehicle system of an avoid problem; a reach kind's goal needs the projection view."""
+    return hasattr(system, "car_poses") and not system.problem.reaches
 
 
 def make_renderer(scene: Scene, size: int = 400) -> SceneRenderer | ProjectionRenderer:
@@ -33,7 +40,7 @@ def make_renderer(scene: Scene, size: int = 400) -> SceneRenderer | ProjectionRe
     view = projected_view(scene)
     if view is not None:
         title = scene.name if scene.name == system.name else f"{scene.name} ({system.name})"
-        return ProjectionRenderer(system, view, title=title, size=size)
+        return ProjectionRenderer(system, view, title=title, size=size, regions=scene.regions)
     extent = scene.arena if scene.arena is not None else 1.15 * getattr(system, "half_width", 1.0)
     return SceneRenderer(
         roles=system.car_roles,
