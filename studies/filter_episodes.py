@@ -247,7 +247,8 @@ def outside_states(
     scene: Scene | None = None,
     max_draws_per_episode: int = 100,
 ) -> np.ndarray:
-    """``episodes`` states of ``{V(x, T) > margin}`` (float64), seeded: uniform over the system's
+    """``episodes`` states of ``{V(x, T) > margin}`` (float64; ``{V(x, T) < -margin}``, where the task
+    is feasible, for a reach kind: ``V`` oriented by the kind), seeded: uniform over the system's
     domain, or, given ``scene``, the scene's own starts (its initial-state sampler) that lie there,
     so a merge stays a merge. Too few such starts raise ``ValueError`` saying how many were found."""
     horizon = value_function.system.horizon
@@ -265,7 +266,9 @@ def outside_states(
             )
         batch = np.stack([sampler.sample(scene.system, rng) for _ in range(2 * episodes)])  # the scene's API
         draws += len(batch)
-        v = values_at(value_function, torch.as_tensor(batch, dtype=torch.float32), horizon).numpy()
+        v = value_function.system.problem.orient(
+            values_at(value_function, torch.as_tensor(batch, dtype=torch.float32), horizon)
+        ).numpy()
         kept.append(batch[v > margin])
         have += int((v > margin).sum())
     return np.concatenate(kept)[:episodes]

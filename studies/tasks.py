@@ -11,8 +11,11 @@ episodes in NumPy.
 * :class:`EvaderGoalTask` (Air3D, relative coordinates): the state says where the pursuer is relative
   to the evader, not where the evader is, so the task integrates the evader's world pose itself (exact
   arcs under the applied turn rate) and steers it to a goal drawn per episode.
-* :class:`NominalTask` (any system, a user's own included): no goal; the nominal policy is a callable
-  the user supplies, or by default "keep the nominal input" (the centre of the control box).
+* :class:`NominalTask` (any avoid system, a user's own included): no goal; the nominal policy is a
+  callable the user supplies, or by default "keep the nominal input" (the centre of the control box).
+* :class:`TargetTask` (reach and reach-avoid systems): the goal is the system's own target set
+  (``target_margin <= 0``); the nominal policy is the user's, or by default one that heads for the
+  target and ignores every obstacle (:func:`head_for_target`).
 """
 
 from __future__ import annotations
@@ -22,8 +25,10 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 
 import numpy as np
+import torch
 
-from reach.systems import NUMPY, ControlAffineSystem, MultiVehicle, RelativePair
+from reach.integrators import make_stepper
+from reach.systems import NUMPY, TORCH, ControlAffineSystem, MultiVehicle, RelativePair
 from reach.validation import positive_finite
 
 _wrap = NUMPY.wrap_angle  # the package's one angle wrap, on NumPy arrays
@@ -193,9 +198,65 @@ class NominalTask(GoalTask):
         return None
 
 
+#: how far ahead (seconds) and in how many steps :func:`head_for_target` looks
+LOOKAHEAD_S = 0.5
+LOOKAHEAD_STEPS = 10
+
+
+def head_for_target(system: ControlAffineSystem) -> NominalPolicy:
+    """A nominal policy for a reach kind that heads for the target and ignores every obstacle: among
+    the control box's corners and centre, the input that, held for :data:`LOOKAHEAD_S` seconds with
+    no disturbance, ends with the smallest target margin (ties: the first candidate, the centre).
+
+    Derived from the system alone, so a user's reach system gets one too; a policy that steers by the
+    target margin's gradient alone would not turn a car (a disc's margin does not depend on heading)."""
+    system.require_kind(("reach", "reach-avoid"), "head_for_target")
+    m = system.control_dim
+    corners = torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=torch.float64)] * m).reshape(-1, m)
+    candidates = torch.cat([torch.zeros(1, m, dtype=torch.float64), corners])  # normalised to [-1, 1]
+    centre = torch.tensor(system.control_bounds.center, dtype=torch.float64)
+    half = torch.tensor(system.control_bounds.half_width, dtype=torch.float64)
+    step = make_stepper(system, LOOKAHEAD_S / LOOKAHEAD_STEPS, "rk4", TORCH)
+    d = list(system.disturbance_bounds.center)
+
+    def policy(states: np.ndarray) -> np.ndarray:
+        x = torch.as_tensor(states, dtype=torch.float64)
+        n, k = x.shape[0], candidates.shape[0]
+        cols = TORCH.unbind(x.repeat_interleave(k, dim=0))
+        u = TORCH.unbind(centre + half * candidates.repeat(n, 1))
+        for _ in range(LOOKAHEAD_STEPS):
+            cols = step(cols, u, d)
+        margin = system.target_margin(TORCH.stack(cols, like=cols[0])).reshape(n, k)
+        return candidates[margin.argmin(dim=1)].numpy()
+
+    return policy
+
+
+class TargetTask(NominalTask):
+    """A reach or reach-avoid system's own task: reach its target set in time. Nominal actions come
+    from ``policy`` (default :func:`head_for_target`, checked every step as :class:`NominalTask`
+    checks its policy's), and an episode has reached the goal once a running, collision-free
+    episode's state has ``target_margin <= 0``."""
+
+    has_goal = True
+
+    def __init__(self, system: ControlAffineSystem, policy: NominalPolicy | None = None) -> None:
+        system.require_kind(("reach", "reach-avoid"), "TargetTask")
+        super().__init__(system, policy if policy is not None else head_for_target(system))
+
+    def advance(self, states: np.ndarray, applied: np.ndarray, dt: float, active: np.ndarray, time: float) -> None:
+        margin = self.system.target_margin(torch.as_tensor(states, dtype=torch.float64)).numpy()
+        self._mark(margin <= 0, active, time)
+
+
 def make_task(system: ControlAffineSystem, nominal: NominalPolicy | None = None, **kwargs: float) -> GoalTask:
-    """The default task of a scene's system: waypoints for cars, a goal for Air3D's evader, and for any
-    other system (or whenever ``nominal`` is given) a :class:`NominalTask` with that policy."""
+    """The default task of a scene's system: a reach kind's own target (:class:`TargetTask`, with
+    ``nominal`` if given), waypoints for cars, a goal for Air3D's evader, and for any other system (or
+    whenever ``nominal`` is given) a :class:`NominalTask` with that policy."""
+    if system.problem.reaches:
+        if kwargs:
+            raise ValueError(f"task options {sorted(kwargs)} do not apply to {system.name}'s own target")
+        return TargetTask(system, nominal)
     if nominal is not None or not isinstance(system, (MultiVehicle, RelativePair)):
         if kwargs:
             raise ValueError(f"task options {sorted(kwargs)} need a goal task; {system.name} gets a NominalTask")

@@ -59,12 +59,18 @@ class RolloutScorer:
 
     headline = (("violation_rate", False), ("delta", False), ("certified_volume", True), ("collision_rate", False))
 
-    #: the columns of :func:`safety.verify.verify` a sweep keeps
+    #: the columns of :func:`safety.verify.verify` a sweep keeps (each kind of problem fills its own:
+    #: :data:`safety.metrics.KIND_COLUMNS`)
     KEEP = (
+        "problem",
         "violation_rate",
         "false_safe_rate",
         "false_unsafe_rate",
         "collision_rate",
+        "false_reachable_rate",
+        "false_unreachable_rate",
+        "failure_rate",
+        "reachable_fraction",
         "delta",
         "delta_raw",
         "safe_fraction",
@@ -100,12 +106,12 @@ class RolloutScorer:
 
     def __call__(self, vf: ValueFunction) -> dict[str, float]:
         # lazy: the safety stack only for rollout scoring
-        from safety.metrics import containment_statistics
+        from safety.metrics import KIND_COLUMNS, containment_statistics
         from safety.verify import values_at, verify
 
         row = verify(vf, self.states, self.settings, device=self.device, progress=False)
         if self.settings.fresh_samples == 0:  # no guarantee asked for: the volume a certificate would cover
-            row["certified_volume"] = row["safe_fraction"]
+            row["certified_volume"] = row[KIND_COLUMNS[row["problem"]][3]]
         out = {k: row[k] for k in self.KEEP if k in row}
         if self.union_values is not None:
             learned = values_at(vf, self.states, vf.system.horizon, device=self.device)
