@@ -47,6 +47,38 @@ barrier condition (``u*``).
 
 The time-to-go ``t`` is the caller's choice (see :mod:`safety.wrappers`). Every kind fails closed: a
 non-finite value, gradient or optimal input raises instead of passing the nominal input.
+
+Reach kinds (``system.kind`` ``"reach"`` or ``"reach-avoid"``, :mod:`reach.systems.problem`): the
+filter keeps a task *feasible* instead of a system safe. ``{V(x, t) <= 0}`` is where the target can
+be reached within the time-to-go ``t`` (reach-avoid: while the constraint margin ``g`` stays
+positive), the control minimises ``V`` and the disturbance maximises it, so ``u*`` (the gradient's,
+:meth:`~reach.systems.base.ControlAffineSystem.optimal_control`) is the minimising input. Every
+decision reads ``V`` through :meth:`~reach.systems.problem.ProblemKind.orient` (``V`` for avoid,
+``-V`` for reach kinds: ``> 0`` is the good side for both), so one implementation serves both:
+
+- the switch keeps ``u_nominal`` where ``V(x, t) < -threshold``, else applies ``u*``;
+- the lookahead keeps it where the state one step ahead under ``u_nominal`` has
+  ``V(y, t - dt) < -threshold`` and the backup rollout of ``u*`` after it keeps
+  ``min(-V, g) > threshold`` (``-V`` alone for reach) until it reaches the target (``l < 0`` and
+  ``g > 0``: the task is done there, and the path stops) or its time-to-go runs out; else ``u*``
+  (or the centre, as for avoid). A predicted state outside the domain certifies nothing (``-inf``);
+- the smooth filter refuses reach kinds at construction: its barrier condition holds the time-to-go
+  fixed so that ``dV/dt`` drops out, sound for avoid's fixed-horizon tube, but a reach task has a
+  deadline: the countdown puts ``dV/dt`` into the condition (the value function gives no time
+  derivative), and with ``t`` held fixed a car circling inside ``{V(., T) < 0}`` meets the
+  condition while the deadline passes;
+- the backup input is ``u*`` (``policy="gradient"``; ``"greedy"`` is refused:
+  :func:`~safety.filter_settings.settings_for_system`).
+
+The time-to-go counts down: the caller passes ``t = horizon - elapsed`` each step (the env adapters
+do, :mod:`safety.wrappers`), and the lookahead predicts at ``t - dt``, ``t - 2 dt``, ... (floored at
+0). Where ``t`` has run out (``t <= 0`` for the switch, ``t < dt`` for the lookahead, whose nominal
+step would end past the deadline) nothing can be certified and ``u*`` is applied. For avoid the
+lookahead evaluates its predictions at ``t`` itself (the fixed horizon of the env adapters; avoid's
+tube value only falls as ``t`` grows, so holding ``t`` is the cautious side), as before.
+``FilterInfo`` keeps its fields: ``value`` is ``V`` itself (not oriented), ``intervened`` the
+override. A value function of another kind than the system the filter serves (``system=``) is
+refused at construction, naming both kinds.
 """
 
 from __future__ import annotations
@@ -60,6 +92,7 @@ import torch
 
 from reach.integrators import check_integrator, make_stepper
 from reach.systems.arrays import TORCH
+from reach.systems.base import ControlAffineSystem
 from reach.validation import positive_finite
 from reach.value_function import ValueFunction
 from safety.filter_settings import (
@@ -72,6 +105,7 @@ from safety.filter_settings import (
     FilterSettings,
     make_filter_settings,
     resolve_policy,
+    settings_for_system,
 )
 from safety.value_policies import GreedyPolicy, OptimalPolicy, check_states
 
@@ -85,8 +119,12 @@ __all__ = [
     "SafetyFilter",
     "check_filter_settings",
     "make_filter_settings",
+    "require_served_kind",
     "resolve_policy",
 ]
+
+#: slack (s) on the lookahead's "a whole step of time-to-go is left" (times summed in float arithmetic)
+TIME_SLACK = 1e-9
 
 
 def check_filter_settings(kind: str, *args: Any, **kwargs: Any) -> None:
@@ -99,6 +137,18 @@ def check_filter_settings(kind: str, *args: Any, **kwargs: Any) -> None:
         stacklevel=2,
     )
     FilterSettings(kind, **dict(zip(("gamma", "backup_horizon", "backup_disturbance", "policy"), args)), **kwargs)
+
+
+def require_served_kind(served: ControlAffineSystem, value_system: ControlAffineSystem) -> None:
+    """Refuse a value function whose kind of problem differs from the system's the filter serves,
+    naming both kinds: an avoid value's ``V > 0`` (safe) read for a reach task, or a reach value's
+    ``V < 0`` (reachable) read for an avoid one, would keep the nominal input on the wrong side."""
+    if served.kind != value_system.kind:
+        raise ValueError(
+            f"the value function solves a problem of kind {value_system.kind!r} ({value_system.name}), but the "
+            f"filter serves one of kind {served.kind!r} ({served.name}); a filter needs a value function of its "
+            "system's kind"
+        )
 
 
 @dataclass
@@ -130,6 +180,9 @@ class SafetyFilter:
         dt: the step the lookahead predicts over (required for ``"lookahead"``; the env adapters
             pass the env's ``dt``).
         integrator: how the lookahead predicts (``"rk4"``, the envs' default, or ``"euler"``).
+        system: the system the filter serves (the env adapters pass the env's): a value function of
+            another kind of problem is refused naming both kinds, then one of other physics;
+            ``None``: the value function's own system.
         **options: any :class:`FilterSettings` field by name (``kind="smooth", gamma=2.0``), a
             convenience that replaces that field of ``settings``
             (:func:`~safety.filter_settings.make_filter_settings`).
@@ -147,10 +200,15 @@ class SafetyFilter:
         settings: FilterSettings | None = None,
         dt: float | None = None,
         integrator: str = "rk4",
+        system: ControlAffineSystem | None = None,
         **options: Any,
     ) -> None:
-        value_function.system.require_kind(("avoid",), "safety filters")
-        settings = make_filter_settings(settings, threshold=threshold, **options)
+        if system is not None:
+            require_served_kind(system, value_function.system)
+            system.require_same_physics(value_function.system, "the filter's value function")
+        settings = settings_for_system(
+            make_filter_settings(settings, threshold=threshold, **options), value_function.system
+        )
         kind = settings.kind
         if dt is not None:
             dt = positive_finite("the filter's step dt", dt)
@@ -170,6 +228,7 @@ class SafetyFilter:
         self.backup_disturbance = settings.backup_disturbance
         self.value_function = value_function
         self.system = value_function.system
+        self.problem = self.system.problem
         self.policy = OptimalPolicy(value_function)
         self.policy_name = settings.backup_policy
         self.greedy = (
@@ -216,15 +275,14 @@ class SafetyFilter:
         # an input outside the control box cannot be applied: every kind decides on (and keeps) the
         # input the system would get, the nominal one clipped to the box (unchanged where inside)
         box = system.control_bounds
-        given = torch.minimum(
-            torch.maximum(u_nominal, u_nominal.new_tensor(box.low)), u_nominal.new_tensor(box.high)
-        )
+        given = torch.minimum(torch.maximum(u_nominal, u_nominal.new_tensor(box.low)), u_nominal.new_tensor(box.high))
         value, p, u_star, d_star = self._evaluate(x, t)
         u_nominal = given.to(u_star.dtype)
         infeasible = None
         if self.kind == "switch":
-            # a NaN value compares False with everything: "not above" (never "at or below") decides
-            keep = value > self.threshold
+            # a NaN value compares False with everything: "not above" (never "at or below") decides;
+            # oriented, "> threshold" is the good side of every kind (V > thr avoid, V < -thr reach)
+            keep = (self.problem.orient(value) > self.threshold) & self._time_left(t, 0.0, value)
             applied = torch.where(keep.unsqueeze(-1), u_nominal, self._backup_input(x, t, u_star, d_star, ~keep))
         elif self.kind == "lookahead":
             keep = self._backup_holds(x, t, u_nominal, d_star)
@@ -300,7 +358,10 @@ class SafetyFilter:
         self, x: torch.Tensor, t: float | torch.Tensor, u_nominal: torch.Tensor, d_star: torch.Tensor | None
     ) -> torch.Tensor:
         """Where ``min(V, l)`` stays above the threshold over the nominal step and the backup rollout
-        after it, along every predicted disturbance path (the lookahead's decision).
+        after it, along every predicted disturbance path (the lookahead's decision). Reach kinds:
+        ``min(-V, g)`` at the counted-down time-to-go, each path stopping at the target or when its
+        time-to-go runs out, and nothing holds where less than one step ``dt`` of it is left
+        (:meth:`_safety_value`, :meth:`_after`).
 
         Both paths (``d*``, and the greedy worst case when robust) roll in one batch: per backup step
         one value-and-gradient evaluation, plus one value evaluation of the greedy path's candidates.
@@ -311,6 +372,7 @@ class SafetyFilter:
         n = system.state_dim
         batch = x.shape[:-1]
         x = x.reshape(-1, n)
+        enough = self._time_left(t, self.dt, x[:, 0])  # reach kinds: a whole step before the deadline
         paths = 2 if self.backup_disturbance == "robust" and system.disturbance_dim > 0 else 1
         start = x.repeat(paths, 1)
         greedy = torch.arange(len(start), device=x.device) >= len(x)  # the second half of the batch
@@ -318,25 +380,31 @@ class SafetyFilter:
         domain = system.domain_tensor(x.dtype, x.device)
         if isinstance(t, torch.Tensor) and t.ndim:  # per-state times-to-go follow their states
             t = t.reshape(-1).expand(len(x)).repeat(paths)
-        y = self._predict(start, u_nominal.reshape(-1, system.control_dim).repeat(paths, 1), d, greedy, domain, t)
+        u_start = u_nominal.reshape(-1, system.control_dim).repeat(paths, 1)
+        y = self._predict(start, u_start, d, greedy, domain, self._after(t, 1))
         low = torch.full((len(start),), math.inf, dtype=x.dtype, device=x.device)
         stopped = torch.zeros(len(start), dtype=torch.bool, device=x.device)
         for k in range(self.backup_steps + 1):
+            tk = self._after(t, k + 1)  # the predicted state's time-to-go (held for avoid)
             inside = self._inside(y, domain)
             y_in = torch.where(inside.unsqueeze(-1), y, start)  # states rolled out of the domain idle
             if k < self.backup_steps:
-                v, _, u_back, d_back = self._evaluate(y_in, t)
-                u_back = self._backup_input(y_in, t, u_back, d_back, ~stopped & inside)
+                v, _, u_back, d_back = self._evaluate(y_in, tk)
+                u_back = self._backup_input(y_in, tk, u_back, d_back, ~stopped & inside)
             else:  # the rollout's last state: its value alone
-                v = self.value_function.value(y_in, t)
-                self._trust(y_in, t, v, None, None)
+                v = self.value_function.value(y_in, tk)
+                self._trust(y_in, tk, v, None, None)
             low = torch.where(stopped, low, torch.minimum(low, self._safety_value(v, y, inside)))
-            stopped = stopped | ~inside
+            # a state fails once any of its paths has: its verdict is decided, its rollouts stop
+            failed = (low <= self.threshold).reshape(paths, -1).any(0).repeat(paths)
+            stopped = stopped | ~inside | self._finished(y, tk) | failed
             if k == self.backup_steps or bool(stopped.all()):
                 break
-            y = torch.where(inside.unsqueeze(-1), self._predict(y_in, u_back, d_back, greedy, domain, t), y)
+            y = torch.where(
+                inside.unsqueeze(-1), self._predict(y_in, u_back, d_back, greedy, domain, self._after(t, k + 2)), y
+            )
         # a NaN compares False: "not above" keeps no nominal input (and _trust refuses it first)
-        return (low.reshape(paths, -1).amin(0) > self.threshold).reshape(batch)
+        return ((low.reshape(paths, -1).amin(0) > self.threshold) & enough).reshape(batch)
 
     def _fallback(
         self,
@@ -410,11 +478,56 @@ class SafetyFilter:
         return y
 
     def _safety_value(self, v: torch.Tensor, y: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
-        """``min(V, l)`` at predicted states, ``l`` alone outside the domain (no trusted ``V`` there).
-        ``V <= l`` holds for the exact value function; a network or a grid's interpolation can break
-        it at the failure set's edge."""
-        margin = self.system.failure_margin(y).to(v.dtype)
-        return torch.where(inside, torch.minimum(v, margin), margin)
+        """How far predicted states lie on the good side, ``> threshold`` to pass.
+
+        Avoid: ``min(V, l)``, ``l`` alone outside the domain (no trusted ``V`` there). ``V <= l`` holds
+        for the exact value function; a network or a grid's interpolation can break it at the
+        failure set's edge. Reach kinds: ``min(-V, g)`` (``-V`` for reach; ``-V <= g`` likewise holds
+        for the exact value), ``+inf`` where the target is reached (the task is done), ``-inf``
+        outside the domain (nothing certifies reaching from there)."""
+        if not self.problem.reaches:
+            margin = self.system.failure_margin(y).to(v.dtype)
+            return torch.where(inside, torch.minimum(v, margin), margin)
+        oriented = self.problem.orient(v)
+        if self.problem.has_constraint:
+            oriented = torch.minimum(oriented, self.system.constraint_margin(y).to(v.dtype))
+        oriented = torch.where(inside, oriented, -math.inf)
+        return torch.where(self._reached(y), math.inf, oriented)
+
+    def _reached(self, y: torch.Tensor) -> torch.Tensor:
+        """Where a reach kind's target is reached (``l < 0``, and ``g > 0`` for reach-avoid: the
+        boundary value ``max(l, -g) < 0``); never for avoid."""
+        if not self.problem.reaches:
+            return torch.zeros(y.shape[:-1], dtype=torch.bool, device=y.device)
+        g = self.system.constraint_margin(y) if self.problem.has_constraint else None
+        return self.problem.boundary_value(self.system.target_margin(y), g) < 0
+
+    def _finished(self, y: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        """Where a backup path stops for good: reach kinds at the target or out of time-to-go."""
+        done = self._reached(y)
+        if self.problem.reaches:
+            done = done | (torch.as_tensor(t, device=y.device) <= 0)
+        return done
+
+    def _after(self, t: float | torch.Tensor, steps: int) -> float | torch.Tensor:
+        """The time-to-go ``steps`` filter steps after ``t``: counted down for reach kinds (floored
+        at 0; the task's deadline approaches), held for avoid (the fixed-horizon tube)."""
+        if not self.problem.reaches or steps == 0 or self.dt is None:
+            return t
+        if isinstance(t, torch.Tensor):
+            return (t - steps * self.dt).clamp_min(0.0)
+        return max(float(t) - steps * self.dt, 0.0)
+
+    def _time_left(self, t: float | torch.Tensor, need: float, like: torch.Tensor) -> torch.Tensor:
+        """Where a reach kind's time-to-go exceeds ``need`` (0 for the switch, ``dt`` for the
+        lookahead's nominal step, to :data:`TIME_SLACK`): elsewhere nothing can be certified and the
+        filter fails closed. All True for avoid (``like``'s shape)."""
+        ok = torch.ones(like.shape, dtype=torch.bool, device=like.device)
+        if not self.problem.reaches:
+            return ok
+        tt = torch.as_tensor(t, dtype=torch.float64, device=like.device)
+        left = tt > 0 if need == 0 else tt >= need - TIME_SLACK
+        return ok & (left.reshape(()) if left.numel() == 1 else left.reshape(ok.shape))
 
     @staticmethod
     def _inside(y: torch.Tensor, domain: torch.Tensor) -> torch.Tensor:

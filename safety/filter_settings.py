@@ -48,8 +48,9 @@ class FilterSettings:
             the nominal input inside the unsafe set); ``None``: the default rule
             (:meth:`threshold_for`: ``2 * rate * dt`` for a switch or smooth filter acting every
             ``dt``, 0 for the lookahead or where no control period is known).
-        time_to_go: where the env adapters evaluate ``V``: ``None`` at the system's horizon, a
-            number >= 0, or ``"remaining"`` (the time left in the episode). A bare
+        time_to_go: where the env adapters evaluate ``V``: ``None`` at the system's horizon (avoid;
+            for reach kinds ``None`` means ``"remaining"``: the task's deadline counts down), a
+            number >= 0 (avoid only), or ``"remaining"`` (the time left in the episode). A bare
             :class:`~safety.filter.SafetyFilter` is given ``t`` by its caller and ignores it.
         gamma: the smooth filter's barrier rate (1/s, finite, >= 0; 0 forbids any decrease of ``V``).
         backup_horizon: how long (s) the lookahead rolls the backup policy after the nominal step
@@ -57,7 +58,8 @@ class FilterSettings:
             :data:`MAX_BACKUP_STEPS` steps of the filter's ``dt``.
         backup_disturbance: the lookahead's predicted disturbance paths, ``"robust"`` or ``"model"``.
         policy: the backup input, ``"gradient"`` or ``"greedy"``; ``None``: the kind's default
-            (:data:`DEFAULT_POLICIES`, :attr:`backup_policy`).
+            (:data:`DEFAULT_POLICIES`, :attr:`backup_policy`; always ``"gradient"`` for reach kinds,
+            :func:`settings_for_system`).
     """
 
     kind: str = "switch"
@@ -142,12 +144,47 @@ def resolve_policy(kind: str, policy: str | None) -> str:
     return DEFAULT_POLICIES[kind] if policy is None else check_policy(policy)
 
 
+def settings_for_system(settings: FilterSettings, system: Any) -> FilterSettings:
+    """``settings`` as they apply to ``system``'s kind of problem (:attr:`system.problem`), refusing
+    what that kind cannot use, naming it. Avoid problems take every setting as it is.
+
+    Reach kinds (``"reach"``, ``"reach-avoid"``: the control minimises ``V``, see
+    :mod:`safety.filter`) back up with the gradient's ``u*``: ``policy=None`` resolves to
+    ``"gradient"``, and ``"greedy"`` is refused (:class:`~safety.value_policies.GreedyPolicy` maximises
+    ``min(V, l)``, the avoid rule). They refuse the smooth kind (its barrier condition holds the
+    time-to-go fixed, which would certify loitering past the deadline: :mod:`safety.filter`) and a
+    fixed ``time_to_go`` (the task has a deadline: the time-to-go must count down with the episode).
+    """
+    problem = system.problem
+    if not problem.reaches:
+        return settings
+    what = f"{system.name} is a {problem.name} problem"
+    if settings.kind == "smooth":
+        raise ValueError(
+            f"the smooth filter serves avoid problems only; {what}: its barrier condition holds the "
+            "time-to-go fixed (dV/dt drops out), which for a task with a deadline would certify "
+            "loitering past it; use kind='switch' or 'lookahead'"
+        )
+    if settings.policy == "greedy":
+        raise ValueError(
+            f"policy='greedy' backs up with the input that maximises min(V, l), the avoid rule; {what} "
+            "(the control minimises V): use policy='gradient' (u*)"
+        )
+    if settings.time_to_go is not None and settings.time_to_go != REMAINING:
+        raise ValueError(
+            f"time_to_go={settings.time_to_go!r} holds the time-to-go fixed; {what} with a deadline, so "
+            f"the time-to-go must count down: use time_to_go=None or {REMAINING!r}"
+        )
+    return settings if settings.policy == "gradient" else dataclasses.replace(settings, policy="gradient")
+
+
 def default_threshold(system: Any, dt: float, kind: str = "switch") -> float:
     """The default threshold of a filter kind in an env stepping ``dt``: the switch and the smooth
     filter decide on the current state, so theirs is ``2 * rate * dt``, twice what ``V`` can lose in
     one held step, with ``rate`` the system's :meth:`margin_rate_bound` or, for a system that declares
     none, :meth:`margin_rate_estimate` (sampled over the domain); the lookahead checks the next
-    state, so 0."""
+    state, so 0. (For a reach kind the estimate samples the rate of ``V``'s boundary value, the target
+    margin, or ``max(l, -g)`` for reach-avoid.)"""
     if kind == "lookahead":
         return 0.0
     bound = system.margin_rate_bound()
@@ -166,4 +203,5 @@ __all__ = [
     "default_threshold",
     "make_filter_settings",
     "resolve_policy",
+    "settings_for_system",
 ]

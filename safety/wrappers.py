@@ -7,7 +7,10 @@ a replaced one is ``u*`` normalised (a box corner, so exactly +-1, or 0 on a tie
 
 Time-to-go: ``time_to_go=None`` (default) evaluates ``V`` at the system's horizon, the fixed tube the
 value function was trained for; a number fixes another horizon; ``"remaining"`` uses the time left
-in the episode (``horizon - elapsed``, floored at 0).
+in the episode (``horizon - elapsed``, floored at 0). Reach kinds (``"reach"``, ``"reach-avoid"``)
+have a deadline, the end of the episode: ``None`` means ``"remaining"`` there, so the time-to-go
+counts down every step, a fixed number is refused, and once it has run out the filter applies
+``u*`` (it can certify nothing; :mod:`safety.filter`).
 
 Settings: the filter's options are one :class:`~safety.filter_settings.FilterSettings`, given whole
 (``SafetyFilterWrapper(env, vf, settings=FilterSettings(kind="lookahead"))``) or field by field as
@@ -48,7 +51,7 @@ from gymnasium.vector import VectorWrapper
 from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from reach.value_function import ValueFunction, check_time_coverage
-from safety.filter import FilterInfo, SafetyFilter
+from safety.filter import FilterInfo, SafetyFilter, require_served_kind
 from safety.filter_settings import DEFAULT_GAMMA, REMAINING, FilterSettings, default_threshold, make_filter_settings
 from safety.sources import as_value_function
 from training import pretrained
@@ -69,6 +72,8 @@ class _Adapter:
         self, system: Any, value_function: ValueFunction | str, scene: Any, device: str, settings: FilterSettings
     ) -> None:
         episode_horizon = scene.episode_horizon
+        if isinstance(value_function, ValueFunction):  # a kind mismatch names both kinds, before physics
+            require_served_kind(system, value_function.system)
         threshold = settings.threshold_for(system, scene.dt)  # None: the rule for a filter acting every dt
         vf = as_value_function(
             value_function, system, device, "value function (the environment simulates another system)"
@@ -78,9 +83,13 @@ class _Adapter:
             settings=make_filter_settings(settings, threshold=threshold),
             dt=scene.dt,
             integrator=scene.integrator,
+            system=system,
         )
-        # the times the filter will ask for, checked now rather than mid-episode
+        # the times the filter will ask for, checked now rather than mid-episode; a reach task's
+        # time-to-go counts down to its deadline (a fixed one was refused by the filter)
         time_to_go = settings.time_to_go
+        if time_to_go is None and system.problem.reaches:
+            time_to_go = REMAINING
         if time_to_go is None:
             check_time_coverage(vf, vf.system.horizon, vf.system.horizon, "the filter (time_to_go=None)")
         elif time_to_go == REMAINING:
@@ -94,6 +103,7 @@ class _Adapter:
         self.half = np.array(system.control_bounds.half_width)
 
     def times(self, elapsed: np.ndarray | float) -> float | torch.Tensor:
+        """The time-to-go the filter evaluates ``V`` at, after ``elapsed`` seconds of the episode."""
         if self.time_to_go is None:
             return self.filter.system.horizon
         if self.time_to_go == REMAINING:

@@ -149,13 +149,13 @@ def test_bad_declarations_fail_at_construction_naming_the_field():
         Dubins3D("escape")
 
 
-def test_tools_that_do_not_handle_a_kind_yet_refuse_it_by_name():
+def test_a_filter_that_does_not_suit_a_kind_refuses_it_by_name():
     from safety import SafetyFilter
     from training import NeuralValueFunction, ValueNetwork
 
     system = make_system("dubinsreachavoid")
     vf = NeuralValueFunction(ValueNetwork(system, "ssl", width=8))
     x = system.sample_states(4)
-    with pytest.raises(ValueError, match="safety filters handle"):
-        SafetyFilter(vf)
+    with pytest.raises(ValueError, match="smooth filter serves avoid problems only; dubinsreachavoid is a reach-avoid"):
+        SafetyFilter(vf, kind="smooth")
     assert system.terminal_margin_columns(TORCH.unbind(x), TORCH).shape == (4,)

@@ -200,7 +200,7 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
         A sampled estimate, not a bound: it sets default filter thresholds for systems that declare
         no :meth:`margin_rate_bound`, and never licenses skipping simulation."""
         x = self.sample_states(samples, torch.Generator().manual_seed(seed), dtype=torch.float64).requires_grad_(True)
-        (p,) = torch.autograd.grad(self.failure_margin(x).sum(), x)
+        (p,) = torch.autograd.grad(self.boundary_value(x).sum(), x)  # l, or max(l, -g): what V starts from
         x = x.detach()
         cols, pc = TORCH.unbind(x), TORCH.unbind(p)
         centre = self.xdot_columns(cols, self.control_bounds.center, self.disturbance_bounds.center, TORCH)
