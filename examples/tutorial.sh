@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Every command of docs/custom_system.md, in order: two systems defined outside the package
+# Every command of docs/custom_system.md, in order: three systems defined outside the package
 # (examples/my_systems.py) through the grid solver, training, verification, filters and a sweep.
 #
 # Usage (from the repository root): bash examples/tutorial.sh [OUT]   (default OUT: runs/tutorial)
@@ -41,3 +41,17 @@ step accel-evaluate reach evaluate "$out/accel" "$out/accel_gt.npz" --system my_
 step accel-filter reach filter-eval --policy gradient "$out/accel_gt.npz" "$out/accel" --system my_systems:DubinsAccel \
     --filters switch,lookahead,smooth --pursuer worst-case --adversary "$out/accel_gt.npz" \
     --start-outside "$out/accel_gt.npz" --nominal my_systems:cruise --episodes 500 --out "$out/accel_filter.csv"
+
+# --- DubinsGap: a reach-avoid problem (reach the goal through the gap, against the wind)
+step gap-grid reach groundtruth my_systems:DubinsGap --grid 101 --out "$out/gap_gt.npz" --plot "$out/gap_gt.png"
+step gap-train reach train --system my_systems:DubinsGap --steps 3000 --seed 0 \
+    --groundtruth "$out/gap_gt.npz" --out "$out/gap"
+step gap-evaluate reach evaluate "$out/gap" "$out/gap_gt.npz" --system my_systems:DubinsGap \
+    --ground-truth "$out/gap_gt.npz" --samples 20000 --certify-samples 20000 --robust-samples 0 \
+    --out "$out/gap_eval.csv"
+step gap-filter reach filter-eval --policy gradient "$out/gap_gt.npz" "$out/gap" --system my_systems:DubinsGap \
+    --filters switch,lookahead --pursuer worst-case --adversary "$out/gap_gt.npz" \
+    --start-outside "$out/gap_gt.npz" --episodes 500 --out "$out/gap_filter.csv" --gif "$out/gap_filter.gif"
+step gap-sweep reach sweep --system my_systems:DubinsGap --layouts ssssl,rrrsl --seeds 1 --steps 500 \
+    --snapshots 2 --grid 51 --out "$out/gap_sweep"
+step gap-python python examples/reach_avoid_tour.py "$out"
