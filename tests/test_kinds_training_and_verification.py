@@ -195,3 +195,16 @@ def test_a_results_table_names_the_kind_and_refuses_to_mix_kinds(reach_avoid_gri
     avoid.save(avoid_path)
     rows = evaluate_many([str(avoid_path)], tmp_path / "other", settings, system=Dubins3D("reach"), progress=False)
     assert "for a avoid problem (dubins3d), not a reach problem" in rows[0]["error"]
+
+
+def test_robust_certification_of_a_reach_kind_certifies_below_minus_the_level(reach_avoid_grid):
+    grid = reach_avoid_grid
+    settings = VerifySettings(samples=200, certify_samples=0, robust_samples=3000, target_eps=0.1, beta=1e-3, dt=0.01)
+    row = verify(grid, sample_states(grid.system, 200, 0), settings, progress=False)
+    assert "robust_error" not in row, row.get("robust_error")
+    level = row["robust_level"]
+    assert math.isfinite(level) and row["robust_eps"] <= 1.0 and row["robust_certified_volume"] > 0
+    # the certified set is {V < -level}: its volume is that share of a uniform sample
+    x = sample_states(grid.system, 3000, settings.seed + 2)
+    share = float((grid.value(x, 2.0) < -level).double().mean())
+    assert row["robust_certified_volume"] == pytest.approx(share, abs=1e-9)
