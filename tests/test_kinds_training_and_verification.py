@@ -208,3 +208,17 @@ def test_robust_certification_of_a_reach_kind_certifies_below_minus_the_level(re
     x = sample_states(grid.system, 3000, settings.seed + 2)
     share = float((grid.value(x, 2.0) < -level).double().mean())
     assert row["robust_certified_volume"] == pytest.approx(share, abs=1e-9)
+
+
+def test_a_reach_problem_has_no_collisions_and_certifies_its_reachable_set():
+    """A plain reach problem (DeepReach's Dubins3D, reach mode): nothing to collide with, success is
+    reaching the disc in time, and the same verification certifies {V < -delta}."""
+    grid = solve(Dubins3D("reach"), 21, [0.0, 0.5, 1.0], progress=False, compile=False)
+    x = torch.tensor([[0.5, 0.0, math.pi], [0.5, 0.0, 0.0], [0.0, 0.1, 0.0]])  # facing it, facing away, inside
+    r = rollout(grid, x, dt=0.01, progress=False)
+    assert r.kind == "reach" and not bool(r.collided.any())
+    assert r.reached.tolist() == [True, False, True] and float(r.reach_time[2]) == 0.0
+    settings = VerifySettings(samples=400, certify_samples=100, robust_samples=0, dt=0.01)
+    row = verify(grid, sample_states(grid.system, 400, 0), settings, progress=False)
+    assert row["problem"] == "reach" and "collision_rate" not in row and row["certified_samples"] == 100
+    assert row["failure_rate"] > 0 and row["certified_volume"] == row["reachable_fraction"] > 0
