@@ -10,9 +10,10 @@ The outcome follows the system's kind (:mod:`reach.systems.problem`). Avoid: the
 when it collides. Reach and reach-avoid: the control minimises ``V`` and the rollout *succeeds* when
 it reaches the target (``l(x) <= 0``, target margin) before the horizon without first leaving the
 constraint set (``g(x) <= 0`` is a collision, reach-avoid only; a state in both counts as a
-collision, as in the grid's ``max(min(V, l), -g)``). Either outcome ends the trajectory. A reach
-trajectory that leaves the system's domain (a non-periodic dimension out of its bounds) has failed:
-the problem, and its value function, stop at the domain's edge.
+collision, as in the grid's ``max(min(V, l), -g)``). Either outcome ends the trajectory. The
+dynamics hold beyond the domain, so a trajectory that leaves it and comes back to the target in
+time has succeeded: the value function is read out there as for avoid problems (a grid solution
+refuses unless it was loaded with ``outside="clamp"``, as ``reach evaluate`` does).
 
 It simulates only what is still undecided:
 
@@ -250,21 +251,11 @@ def rollout(
     reached = torch.zeros(n, dtype=torch.bool) if problem.reaches else None
     reach_time = torch.full((n,), math.nan, dtype=torch.float64) if problem.reaches else None
 
-    bounded = [i for i, p in enumerate(system.periodic) if not p]
-    low = torch.tensor([system.domain[i][0] for i in bounded], device=device, dtype=dtype)
-    high = torch.tensor([system.domain[i][1] for i in bounded], device=device, dtype=dtype)
-
-    def outcomes(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-        """Per state: collided (constraint or failure set) and, for reach kinds, in the target first,
-        and out of the domain (a failure) otherwise."""
+    def outcomes(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Per state: collided (constraint or failure set) and, for reach kinds, in the target first."""
         nothing = torch.zeros_like(x[..., 0], dtype=torch.bool)
         hit = nothing if collision_margin is None else collision_margin(x) <= 0
-        if not problem.reaches:
-            return hit, None, None
-        in_target = (system.target_margin(x) <= 0) & ~hit
-        inside = x[..., bounded]
-        out = ((inside < low) | (inside > high)).any(dim=-1) & ~hit & ~in_target
-        return hit, in_target, out
+        return hit, (system.target_margin(x) <= 0) & ~hit if problem.reaches else None
 
     def settle(where_hit: torch.Tensor, where_reached: torch.Tensor | None, at: float) -> None:
         """Record the trajectories decided at time ``at`` (global indices on the CPU)."""
@@ -291,14 +282,12 @@ def rollout(
             x = states[lo:hi].to(device=device, dtype=dtype)
             initial_value[lo:hi] = value_function.value(x, horizon).to(dtype).cpu()
             idx = torch.arange(lo, hi, device=device)
-            hit0, in_target, out = outcomes(x)
-            done0 = hit0 if in_target is None else hit0 | in_target | out
+            hit0, in_target = outcomes(x)
+            done0 = hit0 if in_target is None else hit0 | in_target
             if record:
                 trajectories[0, lo:hi] = x.cpu()
             if bool(done0.any()):
                 settle(idx[hit0].cpu(), None if in_target is None else idx[in_target].cpu(), 0.0)
-                if out is not None:
-                    decided_time[idx[out].cpu()] = 0.0
                 x, idx = x[~done0], idx[~done0]
             for k in range(n_steps):
                 if idx.numel() == 0:
@@ -311,16 +300,16 @@ def rollout(
                 if record:
                     trajectories[k + 1, lo:hi] = trajectories[k, lo:hi]
                     trajectories[k + 1, idx.cpu()] = x.cpu()
-                hit, in_target, out = outcomes(x)
-                done = hit if in_target is None else hit | in_target | out
+                hit, in_target = outcomes(x)
+                done = hit if in_target is None else hit | in_target
                 floor = system.margin_floor(x, horizon - elapsed + dt) if floor_exit else None
                 if floor is not None:
                     done = done | (floor > 0)
                 if bool(done.any()):
                     settle(idx[hit].cpu(), None if in_target is None else idx[in_target].cpu(), elapsed)
-                    rest = done & ~hit if in_target is None else out  # safe (avoid), or left the domain
-                    if bool(rest.any()):
-                        decided_time[idx[rest].cpu()] = elapsed
+                    safe = done & ~hit if in_target is None else torch.zeros_like(done)  # avoid's floor exit
+                    if bool(safe.any()):
+                        decided_time[idx[safe].cpu()] = elapsed
                     keep = ~done
                     x, idx = x[keep], idx[keep]
                 bar.update(1)

@@ -29,8 +29,11 @@ SMALL = 31
 
 @pytest.fixture(scope="module")
 def reach_avoid_grid():
-    """DubinsReachAvoid's value on a coarse grid, every 0.25 s to its 2 s horizon."""
-    return solve(DubinsReachAvoid(), SMALL, [0.25 * k for k in range(9)], progress=False, compile=False)
+    """DubinsReachAvoid's value on a coarse grid, every 0.25 s to its 2 s horizon, read beyond its
+    edge at the nearest node (rollouts may leave the domain and come back)."""
+    grid = solve(DubinsReachAvoid(), SMALL, [0.25 * k for k in range(9)], progress=False, compile=False)
+    grid.outside = "clamp"
+    return grid
 
 
 @pytest.mark.parametrize(
@@ -214,6 +217,7 @@ def test_a_reach_problem_has_no_collisions_and_certifies_its_reachable_set():
     """A plain reach problem (DeepReach's Dubins3D, reach mode): nothing to collide with, success is
     reaching the disc in time, and the same verification certifies {V < -delta}."""
     grid = solve(Dubins3D("reach"), 21, [0.0, 0.5, 1.0], progress=False, compile=False)
+    grid.outside = "clamp"
     x = torch.tensor([[0.5, 0.0, math.pi], [0.5, 0.0, 0.0], [0.0, 0.1, 0.0]])  # facing it, facing away, inside
     r = rollout(grid, x, dt=0.01, progress=False)
     assert r.kind == "reach" and not bool(r.collided.any())
