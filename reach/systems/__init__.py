@@ -11,6 +11,7 @@ from reach.systems.air3d import Air3D, RelativePair
 from reach.systems.arrays import FLOAT, NUMPY, TORCH
 from reach.systems.base import ControlAffineSystem
 from reach.systems.box import Box
+from reach.systems.deepreach_catalogue import NarrowPassage, ParameterizedVertDrone2D, Quadrotor
 from reach.systems.deepreach_normalisation import DeepReachNormalisation
 from reach.systems.dubins import Dubins3D, DubinsReachAvoid
 from reach.systems.multivehicle import Car, MultiVehicle, MultiVehicle6D, MultiVehicle9D
@@ -24,7 +25,18 @@ from reach.systems.registry import (
 )
 from reach.value_function import ValueFunction
 
-for _builtin in (Air3D, RelativePair, MultiVehicle, MultiVehicle6D, MultiVehicle9D, Dubins3D, DubinsReachAvoid):
+for _builtin in (
+    Air3D,
+    RelativePair,
+    MultiVehicle,
+    MultiVehicle6D,
+    MultiVehicle9D,
+    Dubins3D,
+    DubinsReachAvoid,
+    NarrowPassage,
+    Quadrotor,
+    ParameterizedVertDrone2D,
+):
     register_system(_builtin)
 
 
@@ -43,6 +55,9 @@ __all__ = [
     "MultiVehicle",
     "MultiVehicle6D",
     "MultiVehicle9D",
+    "NarrowPassage",
+    "ParameterizedVertDrone2D",
+    "Quadrotor",
     "RelativePair",
     "ValueFunction",
     "make_system",
