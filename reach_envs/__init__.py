@@ -43,23 +43,15 @@ SYSTEM_ENV_ID = "Reach-v0"
 
 
 def _register() -> None:
-    for env_id, scene in ENV_SCENES.items():
+    named = {env_id: {"scene": scene} for env_id, scene in ENV_SCENES.items()}
+    for env_id, kwargs in {**named, **{i: dict(f) for i, f in SYSTEM_ENVS.items()}}.items():
         if env_id in registry:
             continue
         register(
             id=env_id,
             entry_point="reach_envs.env:ReachEnv",
             vector_entry_point="reach_envs.vector:ReachVectorEnv",
-            kwargs={"scene": scene},
-        )
-    for env_id, fields in SYSTEM_ENVS.items():
-        if env_id in registry:
-            continue
-        register(
-            id=env_id,
-            entry_point="reach_envs.env:ReachEnv",
-            vector_entry_point="reach_envs.vector:ReachVectorEnv",
-            kwargs=dict(fields),
+            kwargs=kwargs,
         )
     if SYSTEM_ENV_ID not in registry:
         register(

@@ -426,9 +426,8 @@ class ValueNetwork(nn.Module):
             return offset + scale * o
         # the margins stay differentiable in x here: autograd's double-backward training path needs them
         system = self.system
-        offset = system.boundary_value(x)
-        _, _, scale, _ = self.output_map(x, t, Margins(offset, torch.zeros(()), offset))
-        v = offset + scale * o
+        scale, _ = self._exact_scale(t)
+        v = system.boundary_value(x) + scale * o
         return torch.maximum(v, -system.constraint_margin(x)) if self.parameterisation == "exact-constraint" else v
 
     def output_map(self, x: torch.Tensor, t: torch.Tensor, margins: Margins | None = None) -> tuple[Any, Any, Any, Any]:
@@ -445,8 +444,13 @@ class ValueNetwork(nn.Module):
             return enc.value_offset, 0.0, enc.value_scale, 0.0
         if margins is None:
             margins = self.margins(x)
-        rate = enc.value_scale / enc.horizon
-        return margins.boundary, margins.boundary_gradient, rate * t, rate
+        return margins.boundary, margins.boundary_gradient, *self._exact_scale(t)
+
+    def _exact_scale(self, t: torch.Tensor) -> tuple[Any, float]:
+        """The exact parameterisations' factor of the raw output, ``value_scale * t / horizon``, and
+        its time derivative: zero at ``t = 0``, so ``V(x, 0)`` is the boundary value."""
+        rate = self.encoding.value_scale / self.encoding.horizon
+        return rate * t, rate
 
 
 def hold_constraint(

@@ -31,10 +31,8 @@ from reach.systems.arrays import TORCH, Backend, Column
 from reach.systems.base import ControlAffineSystem, InputMatrix
 from reach.systems.box import Box
 from reach.systems.deepreach_normalisation import DeepReachNormalisation
+from reach.systems.dubins import SET_MODES  # DeepReach's set_mode values, one table for every system
 from reach.validation import positive_finite
-
-#: DeepReach's ``set_mode`` values and the kind each poses
-SET_MODES = {"reach": "reach", "avoid": "avoid"}
 
 
 def _maximum(a: Column, b: Column, xp: Backend) -> Column:
