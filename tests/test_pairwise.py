@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from groundtruth.pairwise import PairwiseUnion, pair_system
-from reach.systems import Car, MultiVehicle, MultiVehicle9D
+from reach.systems import Car, MultiVehicle, MultiVehicle9D, MultiVehicle12D, MultiVehicle15D
 from safety import rollout
 from safety.sources import load_value_function
 
@@ -69,6 +69,30 @@ def test_head_on_cars_are_in_the_union(pair_grid):
     # and the union is never above l(x): the pair values start from the pair margins
     y = MultiVehicle9D().sample_states(1000, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
     assert (union.value(y, 1.0) <= MultiVehicle9D().failure_margin(y) + 0.02).all()
+
+
+@pytest.mark.parametrize("system", [MultiVehicle12D(), MultiVehicle15D()], ids=lambda s: s.name)
+def test_one_pair_grid_bounds_every_pair_of_the_larger_fleets(pair_grid, system):
+    """The 12D and 15D fleets share the 9D pair problem: one pair grid serves their 6 and 10 pairs, and
+    the union is the minimum over all of them (two cars head-on make it negative wherever they are)."""
+    union = PairwiseUnion(system, pair_grid)
+    n = system.num_cars
+    assert len(system.failure_pairs) == n * (n - 1) // 2
+    assert all(pair_system(system, i, j) == pair_system(MultiVehicle9D(), 0, 1) for i, j in system.failure_pairs)
+    x = system.sample_states(500, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    pairs = union.pair_values(x, 1.0)
+    assert pairs.shape == (500, len(system.failure_pairs))
+    assert torch.equal(union.value(x, 1.0), pairs.min(dim=-1).values)
+    assert (union.value(x, 1.0) <= system.failure_margin(x) + 0.02).all()
+    # the last two cars head-on 0.4 apart, every other car far off in a corner: only their pair is unsafe
+    far = torch.zeros(1, 3 * n, dtype=torch.float64)
+    for i in range(n - 2):
+        far[0, 2 * i], far[0, 2 * i + 1] = -0.9 + 0.6 * i, 0.9
+    a, b = n - 2, n - 1
+    far[0, 2 * a], far[0, 2 * b] = -0.2, 0.2
+    far[0, 2 * n + b] = math.pi - 1e-6
+    k = system.failure_pairs.index((a, b))
+    assert float(union.value(far, 1.0)) <= 0 and int(union.pair_values(far, 1.0).argmin()) == k
 
 
 def test_two_cars_under_pairwise_policy_do_not_collide(pair_grid):

@@ -23,6 +23,8 @@ from reach.systems import (
     MultiVehicle,
     MultiVehicle6D,
     MultiVehicle9D,
+    MultiVehicle12D,
+    MultiVehicle15D,
     make_system,
     system_from_config,
 )
@@ -31,6 +33,8 @@ SYSTEMS = [
     Air3D(),
     MultiVehicle6D(),
     MultiVehicle9D(),
+    MultiVehicle12D(),  # the N-car family: four and five cooperating cars
+    MultiVehicle15D(),
     # two pursuers with different limits and an evader: asymmetric boxes and both players present
     MultiVehicle([Car(0.5, 2.0, "control"), Car(0.7, 1.5, "disturbance"), Car(0.4, 0.5, "disturbance")]),
     # the reach kinds: the control minimises, the disturbance (the wind) maximises
@@ -272,8 +276,8 @@ def test_wrap_is_half_open_interval(dtype):
 
 @settings(max_examples=60, deadline=None)
 @given(
-    st.lists(st.floats(-5, 5, allow_nan=False), min_size=9, max_size=9),
-    st.lists(st.floats(-2, 2, allow_nan=False), min_size=3, max_size=3),
+    st.lists(st.floats(-5, 5, allow_nan=False), min_size=15, max_size=15),
+    st.lists(st.floats(-2, 2, allow_nan=False), min_size=5, max_size=5),
 )
 def test_backends_agree(state, inputs):
     for system in SYSTEMS:

@@ -14,7 +14,14 @@ from reach.systems.box import Box
 from reach.systems.deepreach_catalogue import NarrowPassage, ParameterizedVertDrone2D, Quadrotor
 from reach.systems.deepreach_normalisation import DeepReachNormalisation
 from reach.systems.dubins import Dubins3D, DubinsReachAvoid
-from reach.systems.multivehicle import Car, MultiVehicle, MultiVehicle6D, MultiVehicle9D
+from reach.systems.multivehicle import (
+    Car,
+    MultiVehicle,
+    MultiVehicle6D,
+    MultiVehicle9D,
+    MultiVehicle12D,
+    MultiVehicle15D,
+)
 from reach.systems.registry import (
     SYSTEMS,
     make_system,
@@ -31,6 +38,8 @@ for _builtin in (
     MultiVehicle,
     MultiVehicle6D,
     MultiVehicle9D,
+    MultiVehicle12D,
+    MultiVehicle15D,
     Dubins3D,
     DubinsReachAvoid,
     NarrowPassage,
@@ -55,6 +64,8 @@ __all__ = [
     "MultiVehicle",
     "MultiVehicle6D",
     "MultiVehicle9D",
+    "MultiVehicle12D",
+    "MultiVehicle15D",
     "NarrowPassage",
     "ParameterizedVertDrone2D",
     "Quadrotor",

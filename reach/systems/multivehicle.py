@@ -9,8 +9,9 @@ The failure set is any pair of cars closer than ``collision_radius`` where at le
 control car (collisions among disturbance cars are not the controller's failure):
 ``l(x) = min over such pairs of ||p_i - p_j|| - R``.
 
-Named instances: :class:`MultiVehicle6D` (the Air3D game in absolute coordinates) and
-:class:`MultiVehicle9D` (DeepReach's three cooperating cars).
+Named instances: :class:`MultiVehicle6D` (the Air3D game in absolute coordinates),
+:class:`MultiVehicle9D` (DeepReach's three cooperating cars) and its larger siblings
+:class:`MultiVehicle12D` and :class:`MultiVehicle15D` (four and five such cars).
 """
 
 from __future__ import annotations
@@ -293,3 +294,57 @@ class MultiVehicle9D(UniformCars):
             ),
             (SECOND_9D_SLICE, (0, 1), "cars 2, 3 at (0, 0.5), (0, -0.5) facing each other\ncar 1 heading 0"),
         ]
+
+
+#: A 12D slice (ours): DeepReach's 9D slice with a fourth car at (0, -0.5) heading north, at car 1's box.
+FOUR_CAR_SLICE = (0.0, 0.0, -0.4, 0.0, 0.4, 0.0, 0.0, -0.5, math.pi / 2, math.pi / 4, 3 * math.pi / 4, math.pi / 2)
+
+#: A 15D slice (ours): the 12D slice with a fifth car at (0, 0.55) heading south.
+FIVE_CAR_SLICE = (
+    0.0, 0.0, -0.4, 0.0, 0.4, 0.0, 0.0, -0.5, 0.0, 0.55,
+    math.pi / 2, math.pi / 4, 3 * math.pi / 4, math.pi / 2, -math.pi / 2,
+)  # fmt: skip
+
+
+class CooperatingCars(UniformCars):
+    """``num_cars`` identical cooperating cars (all controls) with DeepReach's 9D parameters
+    (v = 0.6, w_max = 1.1, R = 0.25, the box [-1, 1]^2 per car): the N-car family that grows
+    :class:`MultiVehicle9D` to 12D and 15D. Every pair of cars is a failure pair, so the union of
+    pairwise BRTs of one :class:`~reach.systems.RelativePair` bounds the value from above at any N."""
+
+    num_identical_cars = 3
+
+    def __init__(
+        self,
+        speed: float = 0.6,
+        max_turn_rate: float = 1.1,
+        collision_radius: float = 0.25,
+        horizon: float = 1.0,
+        half_width: float = 1.0,
+    ) -> None:
+        cars = [Car(speed, max_turn_rate, "control", f"car_{i}") for i in range(1, self.num_identical_cars + 1)]
+        super().__init__(cars, speed, max_turn_rate, collision_radius, horizon, half_width)
+
+
+class MultiVehicle12D(CooperatingCars):
+    """Four cooperating cars (12D): DeepReach's three-car system with one more car."""
+
+    name = "multivehicle12d"
+    num_identical_cars = 4
+
+    def plot_slices(self) -> list[tuple[tuple[float, ...], tuple[int, int], str]]:
+        """Car 1's (x, y) with the other three cars placed around it."""
+        title = "cars 2-4 at (-0.4, 0), (0.4, 0), (0, -0.5)\nheadings pi/2, pi/4, 3pi/4, pi/2"
+        return [(FOUR_CAR_SLICE, (0, 1), title)]
+
+
+class MultiVehicle15D(CooperatingCars):
+    """Five cooperating cars (15D): DeepReach's three-car system with two more cars."""
+
+    name = "multivehicle15d"
+    num_identical_cars = 5
+
+    def plot_slices(self) -> list[tuple[tuple[float, ...], tuple[int, int], str]]:
+        """Car 1's (x, y) with the other four cars placed around it."""
+        title = "cars 2-5 at (-0.4, 0), (0.4, 0), (0, -0.5), (0, 0.55)\nheadings pi/2, pi/4, 3pi/4, pi/2, -pi/2"
+        return [(FIVE_CAR_SLICE, (0, 1), title)]
