@@ -25,8 +25,15 @@ class DubinsAvoid(ControlAffineSystem):
     state_names = ("px", "py", "heading")
     periodic = (False, False, True)
 
-    def __init__(self, speed: float = 0.8, max_turn_rate: float = 1.5, wind: float = 0.1,
-                 centre: tuple[float, float] = (0.3, 0.2), radius: float = 0.4, horizon: float = 1.0) -> None:
+    def __init__(
+        self,
+        speed: float = 0.8,
+        max_turn_rate: float = 1.5,
+        wind: float = 0.1,
+        centre: tuple[float, float] = (0.3, 0.2),
+        radius: float = 0.4,
+        horizon: float = 1.0,
+    ) -> None:
         self.speed, self.max_turn_rate, self.wind = speed, max_turn_rate, wind
         self.centre, self.radius, self.horizon = tuple(centre), radius, horizon
         self.domain = ((-1.5, 1.5), (-1.5, 1.5), (-math.pi, math.pi))
@@ -34,8 +41,14 @@ class DubinsAvoid(ControlAffineSystem):
         self.disturbance_bounds = Box.symmetric([wind, wind])
 
     def parameters(self) -> dict:
-        return {"speed": self.speed, "max_turn_rate": self.max_turn_rate, "wind": self.wind,
-                "centre": list(self.centre), "radius": self.radius, "horizon": self.horizon}
+        return {
+            "speed": self.speed,
+            "max_turn_rate": self.max_turn_rate,
+            "wind": self.wind,
+            "centre": list(self.centre),
+            "radius": self.radius,
+            "horizon": self.horizon,
+        }
 
     def drift(self, x, xp):
         return [self.speed * xp.cos(x[2]), self.speed * xp.sin(x[2]), 0.0 * x[2]]
@@ -61,8 +74,14 @@ class DubinsAccel(ControlAffineSystem):
     state_names = ("px", "py", "heading", "speed")
     periodic = (False, False, True, False)
 
-    def __init__(self, max_turn_rate: float = 1.5, max_accel: float = 1.0, wind: float = 0.05,
-                 radius: float = 0.4, horizon: float = 1.0) -> None:
+    def __init__(
+        self,
+        max_turn_rate: float = 1.5,
+        max_accel: float = 1.0,
+        wind: float = 0.05,
+        radius: float = 0.4,
+        horizon: float = 1.0,
+    ) -> None:
         self.max_turn_rate, self.max_accel, self.wind = max_turn_rate, max_accel, wind
         self.radius, self.horizon = radius, horizon
         self.domain = ((-1.5, 1.5), (-1.5, 1.5), (-math.pi, math.pi), (0.0, 1.2))
@@ -70,8 +89,13 @@ class DubinsAccel(ControlAffineSystem):
         self.disturbance_bounds = Box.symmetric([wind, wind])
 
     def parameters(self) -> dict:
-        return {"max_turn_rate": self.max_turn_rate, "max_accel": self.max_accel, "wind": self.wind,
-                "radius": self.radius, "horizon": self.horizon}
+        return {
+            "max_turn_rate": self.max_turn_rate,
+            "max_accel": self.max_accel,
+            "wind": self.wind,
+            "radius": self.radius,
+            "horizon": self.horizon,
+        }
 
     def drift(self, x, xp):
         return [x[3] * xp.cos(x[2]), x[3] * xp.sin(x[2]), 0.0 * x[2], 0.0 * x[3]]
@@ -96,9 +120,17 @@ class DubinsGap(ControlAffineSystem):
     state_names = ("px", "py", "heading")
     periodic = (False, False, True)
 
-    def __init__(self, speed: float = 0.8, max_turn_rate: float = 1.5, wind: float = 0.1,
-                 goal: tuple[float, float] = (1.0, 0.0), goal_radius: float = 0.25,
-                 gap: float = 0.3, obstacle_radius: float = 0.3, horizon: float = 1.5) -> None:
+    def __init__(
+        self,
+        speed: float = 0.8,
+        max_turn_rate: float = 1.5,
+        wind: float = 0.1,
+        goal: tuple[float, float] = (1.0, 0.0),
+        goal_radius: float = 0.25,
+        gap: float = 0.3,
+        obstacle_radius: float = 0.3,
+        horizon: float = 1.5,
+    ) -> None:
         self.speed, self.max_turn_rate, self.wind = speed, max_turn_rate, wind
         self.goal, self.goal_radius = tuple(goal), goal_radius
         self.gap, self.obstacle_radius, self.horizon = gap, obstacle_radius, horizon
@@ -107,9 +139,16 @@ class DubinsGap(ControlAffineSystem):
         self.disturbance_bounds = Box.symmetric([wind, wind])
 
     def parameters(self) -> dict:
-        return {"speed": self.speed, "max_turn_rate": self.max_turn_rate, "wind": self.wind,
-                "goal": list(self.goal), "goal_radius": self.goal_radius, "gap": self.gap,
-                "obstacle_radius": self.obstacle_radius, "horizon": self.horizon}
+        return {
+            "speed": self.speed,
+            "max_turn_rate": self.max_turn_rate,
+            "wind": self.wind,
+            "goal": list(self.goal),
+            "goal_radius": self.goal_radius,
+            "gap": self.gap,
+            "obstacle_radius": self.obstacle_radius,
+            "horizon": self.horizon,
+        }
 
     def drift(self, x, xp):
         return [self.speed * xp.cos(x[2]), self.speed * xp.sin(x[2]), 0.0 * x[2]]

@@ -207,7 +207,10 @@ def test_user_system_through_grid_training_verification_filter_and_sweep(tmp_pat
 
     # filter evaluation with the default task (keep the nominal input) and a user policy
     study = run_filter_study(
-        _scene(system), [("grid", grid_vf)], tmp_path / "fe.csv", episodes=40,
+        _scene(system),
+        [("grid", grid_vf)],
+        tmp_path / "fe.csv",
+        episodes=40,
         kinds=("switch", "smooth"),
     )
     nominal, *filtered = study.rows
@@ -220,8 +223,15 @@ def test_user_system_through_grid_training_verification_filter_and_sweep(tmp_pat
 
     # a sweep of one layout and one seed, scored against the grid
     spec = SweepSpec(
-        system=system, layouts=["ssl"], seeds=[0], budget_s=None, steps=10, snapshots=1, width=16,
-        groundtruth=str(tmp_path / "gt.npz"), train={"points": 128},
+        system=system,
+        layouts=["ssl"],
+        seeds=[0],
+        budget_s=None,
+        steps=10,
+        snapshots=1,
+        width=16,
+        groundtruth=str(tmp_path / "gt.npz"),
+        train={"points": 128},
     )
     report, failed = run_sweep(spec, tmp_path / "sweep", progress=False, log=lambda *_: None)
     assert not failed and report.exists()
@@ -238,18 +248,65 @@ def test_cli_and_a_fresh_process_reload_a_user_system_run(tmp_path):
     reloads in a new process that names the system (and fails, naming the path, when it does not)."""
     gt, run = tmp_path / "gt.npz", tmp_path / "run"
     assert main(["groundtruth", "my_systems:DubinsAccel", "--grid", "9", "--times", "0,0.5", "--out", str(gt)]) == 0
-    assert main(["train", "--system", "my_systems:DubinsAccel", "--steps", "10", "--width", "16", "--points",
-                 "128", "--out", str(run)]) == 0
-    assert main(["filter-eval", str(gt), "--system", "my_systems:DubinsAccel", "--episodes", "8", "--time-to-go",
-                 "0.5", "--nominal", "numpy:zeros_like", "--out", str(tmp_path / "fe.csv")]) == 2  # shape (N, n)
+    assert (
+        main(
+            [
+                "train",
+                "--system",
+                "my_systems:DubinsAccel",
+                "--steps",
+                "10",
+                "--width",
+                "16",
+                "--points",
+                "128",
+                "--out",
+                str(run),
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "filter-eval",
+                str(gt),
+                "--system",
+                "my_systems:DubinsAccel",
+                "--episodes",
+                "8",
+                "--time-to-go",
+                "0.5",
+                "--nominal",
+                "numpy:zeros_like",
+                "--out",
+                str(tmp_path / "fe.csv"),
+            ]
+        )
+        == 2
+    )  # shape (N, n)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(EXAMPLES), os.environ.get("PYTHONPATH", "")])}
-    base = [sys.executable, "-m", "reach", "evaluate", str(run), "--samples", "50", "--certify-samples", "0",
-            "--robust-samples", "0", "--out", str(tmp_path / "ev.csv")]
+    base = [
+        sys.executable,
+        "-m",
+        "reach",
+        "evaluate",
+        str(run),
+        "--samples",
+        "50",
+        "--certify-samples",
+        "0",
+        "--robust-samples",
+        "0",
+        "--out",
+        str(tmp_path / "ev.csv"),
+    ]
     refused = subprocess.run(base, env=env, capture_output=True, text=True, timeout=300)
     assert refused.returncode == 2 and "my_systems:DubinsAccel" in refused.stderr
     assert len(refused.stderr.strip().splitlines()) == 1
-    done = subprocess.run([*base, "--system", "my_systems:DubinsAccel"], env=env, capture_output=True, text=True,
-                          timeout=300)
+    done = subprocess.run(
+        [*base, "--system", "my_systems:DubinsAccel"], env=env, capture_output=True, text=True, timeout=300
+    )
     assert done.returncode == 0, done.stderr
     assert "dubinsaccel" in (tmp_path / "ev.json").read_text().lower()
     assert my_systems.DubinsAccel  # the module stays importable here too
@@ -281,7 +338,5 @@ def test_hamiltonian_at_prunes_zero_columns_and_folds_single_entry_inputs():
     pruned = system.hamiltonian_at(x, TORCH, prune=True)
     assert pruned.linear[2] is None and pruned.linear[3] is None  # heading and speed have no drift
     assert pruned.switches == []  # every input drives one component with a number gain
-    assert pruned.absolute == pytest.approx(
-        [-system.wind, -system.wind, system.max_turn_rate, system.max_accel]
-    )
+    assert pruned.absolute == pytest.approx([-system.wind, -system.wind, system.max_turn_rate, system.max_accel])
     assert system.hamiltonian_at(x, TORCH).linear[2] is not None  # unpruned: kept, as per call it must be

@@ -187,8 +187,9 @@ def test_network_capped_by_the_union_misses_none_of_it_and_follows_the_active_gr
         capped.value(x, 1.5)
 
     run = tmp_path / "run"
-    Trainer(TrainConfig(system="multivehicle9d", width=16, points=64, steps=2, checkpoint_every_s=0.0), run,
-            progress=False).train()
+    Trainer(
+        TrainConfig(system="multivehicle9d", width=16, points=64, steps=2, checkpoint_every_s=0.0), run, progress=False
+    ).train()
     pair = tmp_path / "pair.npz"
     pair_grid.save(pair)
     loaded = load_value_function(f"min:{run},{pair}")
