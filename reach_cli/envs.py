@@ -1,4 +1,4 @@
-"""``reach envs``: the registered environments and named scenes."""
+"""``reach envs``: the registered environments, the named scenes and the PettingZoo (multi-agent) envs."""
 
 from __future__ import annotations
 
@@ -13,21 +13,48 @@ def add_parser(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
+def _agents(agents: dict[str, tuple[int, ...]] | None) -> str:
+    return str(len(agents)) if agents else "-"
+
+
+def _line(env_id: str, source: str, scene: Any, agents: dict[str, tuple[int, ...]] | None) -> str:
+    """One environment: its scene or system, the system's kind and sizes, disturbance, step and horizon."""
+    s = scene.system
+    d = scene.disturbance
+    disturbance = "none" if d is None else (d if isinstance(d, str) else "custom")
+    state = f"{s.state_dim}D"
+    return (
+        f"  {env_id:<28} {source:<31} kind={s.kind:<12} state={state:<4} action={s.control_dim} "
+        f"agents={_agents(agents)} disturbance={disturbance} dt={scene.dt:g} horizon={scene.episode_horizon:g}"
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     # lazy: gymnasium and the envs only when this command runs
     import reach_envs
-    from reach_envs.scenes import SCENES
+    from reach_envs.agents import agent_inputs
+    from reach_envs.scenes import SCENES, env_scene
 
-    print("Gymnasium environments:")
+    print("Gymnasium environments with a shipped value network (named scenes):")
     for env_id, scene_name in reach_envs.ENV_SCENES.items():
         scene = SCENES[scene_name]()
-        s = scene.system
-        print(
-            f"  {env_id:<20} scene={scene_name:<20} state={s.state_dim}D action={s.control_dim} "
-            f"disturbance={scene.disturbance or 'none'} dt={scene.dt} horizon={scene.episode_horizon}"
-        )
-    print("Named scenes (gym.make(id, scene=NAME) or reach_envs.parallel.parallel_env(NAME)):")
+        print(_line(env_id, f"scene={scene_name}", scene, agent_inputs(scene.system)))
+    print("Gymnasium environments of the other built-in systems (no value network shipped yet):")
+    teams = []
+    for env_id, fields in reach_envs.SYSTEM_ENVS.items():
+        scene = env_scene(**fields)
+        agents = agent_inputs(scene.system)
+        source = f"scene={fields['scene']}" if "scene" in fields else f"system={fields['system']}"
+        print(_line(env_id, source, scene, agents))
+        if agents and "system" in fields:
+            teams.append((fields["system"], agents))
+    print(f'  {reach_envs.SYSTEM_ENV_ID:<28} any system: gym.make("{reach_envs.SYSTEM_ENV_ID}", system=...)')
+    print("Named scenes (gym.make(id, scene=NAME); reach_envs.parallel.parallel_env(NAME) where agents > 0):")
     for name, factory in SCENES.items():
         scene = factory()
-        print(f"  {name:<20} system={scene.system.name:<15} cars={len(scene.system.car_names)}")
+        print(f"  {name:<20} system={scene.system.name:<25} agents={_agents(agent_inputs(scene.system))}")
+    print("PettingZoo environments of systems (reach_envs.parallel.parallel_env(system=NAME), one team outcome):")
+    for name, agents in teams:
+        acts = ", ".join(f"{agent} acts inputs {list(inputs)}" for agent, inputs in agents.items())
+        print(f"  {name:<20} {acts}")
     return 0

@@ -1,12 +1,19 @@
 """reach_envs: scenes and Gymnasium / PettingZoo environments for the systems of :mod:`reach.systems`.
 
-Importing the package registers ``Air3D-v0``, ``MultiVehicle6D-v0`` and ``MultiVehicle9D-v0`` (named
-scenes), ``DubinsReachAvoid-v0`` (the built-in reach-avoid car, :data:`SYSTEM_ENVS`) and ``Reach-v0``
-(any system: ``gym.make("Reach-v0", system=DubinsAvoid(), dt=0.02)``, or ``system="dubins3d"`` for
-DeepReach's reach problem) with Gymnasium (also reachable as ``gym.make("reach_envs:Air3D-v0")``).
+Importing the package registers with Gymnasium (also reachable as ``gym.make("reach_envs:Air3D-v0")``):
+
+* :data:`ENV_SCENES`, named scenes that ship a pretrained value network for safety filters:
+  ``Air3D-v0``, ``MultiVehicle6D-v0`` and ``MultiVehicle9D-v0``;
+* :data:`SYSTEM_ENVS`, every other built-in system, no value network shipped yet:
+  ``DubinsReachAvoid-v0``, ``Dubins3D-v0`` (DeepReach's reach problem), ``NarrowPassage-v0``,
+  ``Quadrotor-v0``, ``ParameterizedVertDrone2D-v0``, ``MultiVehicle12D-v0`` and ``MultiVehicle15D-v0``;
+* ``Reach-v0``, any system: ``gym.make("Reach-v0", system=DubinsAvoid(), dt=0.02)``.
+
 Environments of reach and reach-avoid systems end on reaching the goal or on a collision, and report
-which in ``info["outcome"]`` (:mod:`reach_envs.env`). Registration is by entry-point
-string, so importing this package loads no environment module until an env is made.
+which in ``info["outcome"]`` (:mod:`reach_envs.env`). The multi-agent systems (the car scenes, the
+N-car family, NarrowPassage's two cars) also have a PettingZoo env, :func:`reach_envs.parallel.parallel_env`.
+Registration is by entry-point string, so importing this package loads no environment module until an
+env is made.
 
 :func:`make_env` and :func:`make_vector_env` build the environments of any system directly: an
 instance, a registered name or an import path ``"pkg.mod:Class"``, with :class:`~reach_envs.scenes.Scene`
@@ -32,10 +39,18 @@ ENV_SCENES = {
     "MultiVehicle9D-v0": "three-car-9d",
 }
 
-#: Gymnasium id -> the system and scene fields of a built-in system's env. Not named scenes: every id
-#: of :data:`ENV_SCENES` ships a value network for safety filters, which handle avoid problems only.
+#: Gymnasium id -> the system (or named scene) and scene fields of a built-in system's env. Kept apart
+#: from :data:`ENV_SCENES`: every id there ships a value network for safety filters, these do not (yet).
+#: None of DeepReach's catalogue has a disturbance input; the quadrotor's step and initial attitudes are
+#: its named scene's (``"quadrotor"``, :mod:`reach_envs.scenes`).
 SYSTEM_ENVS: dict[str, dict[str, Any]] = {
     "DubinsReachAvoid-v0": {"system": "dubinsreachavoid", "disturbance": "pursue"},
+    "Dubins3D-v0": {"system": "dubins3d"},
+    "NarrowPassage-v0": {"system": "narrowpassage"},
+    "Quadrotor-v0": {"scene": "quadrotor"},
+    "ParameterizedVertDrone2D-v0": {"system": "parameterizedvertdrone2d"},
+    "MultiVehicle12D-v0": {"scene": "four-car-12d"},
+    "MultiVehicle15D-v0": {"scene": "five-car-15d"},
 }
 
 #: Gymnasium id of the environment of any system, given as ``system=``.

@@ -1,14 +1,31 @@
-"""PettingZoo parallel environment for multi-vehicle scenes: one agent per control car.
+"""PettingZoo parallel environment for multi-agent systems: agents are groups of control inputs.
 
-Each agent acts its own turn rate, normalised to [-1, 1] as a ``(1,)`` action, and observes the full
-float32 state. Disturbance cars are driven by the scene's policy. An agent terminates when its car
-collides (comes within the collision radius of another live car) if the scene terminates on
-collision, or when any car leaves the arena; a crashed car stops where it is and no longer takes
-part in collision checks. All remaining agents are truncated at the horizon. Reward: -1 on the step
-an agent's car collides, 0 otherwise.
+The agents come from :func:`reach_envs.agents.agent_inputs`: one per control car of a
+:class:`~reach.systems.multivehicle.MultiVehicle` (its turn rate), ``car_1`` and ``car_2`` of
+:class:`~reach.systems.deepreach_catalogue.NarrowPassage` (each car's acceleration and steering
+rate), or whatever a system declares in ``agent_inputs``. Each agent acts its inputs normalised to
+[-1, 1] as a ``(number of its inputs,)`` action (values outside are clipped) and observes the full
+float32 state. Disturbance inputs are driven by the scene's policy.
 
-Only avoid problems: a scene of a reach or reach-avoid system raises ``ValueError`` naming its kind
-(its goal is the whole system's, not one car's; use :class:`~reach_envs.env.ReachEnv`).
+What ends an agent's episode depends on whose outcome it is:
+
+* **Per car**, for a :class:`MultiVehicle` avoid scene (the car scenes, the N-car family): an agent
+  terminates when its car collides (comes within the collision radius of another live car) if the
+  scene terminates on collision, or when any car leaves the arena; a crashed car stops where it is
+  and no longer takes part in collision checks. Reward: -1 on the step an agent's car collides, else 0.
+* **As a team**, for every other system (NarrowPassage, reach and reach-avoid kinds, whose goal is
+  the whole system's, not one car's): all agents share the system's outcome and end together, as
+  :class:`~reach_envs.env.ReachEnv` ends its one episode. A reach kind terminates every agent on
+  reaching the goal (reward +1 each) or on a collision (reward -1 each), and reports
+  ``info["outcome"]`` (``"reached"``, ``"collided"``, ``"out_of_arena"``, ``"timeout"``; ``None``
+  before) with ``target_margin``, ``constraint_margin`` and ``reached``; an avoid system terminates
+  every agent on a collision (if the scene says so), reward -1 each on a collision step.
+
+All remaining agents are truncated at the horizon. ``info`` holds ``margin`` (per car: the car's
+closest live pair; as a team: as in :class:`~reach_envs.env.ReachEnv`), ``collision``,
+``out_of_arena``, ``control`` (the agent's inputs as applied, physical units: a float for an agent of
+one input, else an array) and ``time``. A system without agents raises ``ValueError`` naming it and
+its kind (use :class:`~reach_envs.env.ReachEnv`).
 """
 
 from __future__ import annotations
@@ -23,44 +40,70 @@ from pettingzoo import ParallelEnv
 
 from reach.systems.arrays import FLOAT
 from reach.systems.multivehicle import MultiVehicle
-from reach_envs.scenes import Scene, make_scene
+from reach_envs.agents import agent_inputs
+from reach_envs.regions import OUTCOME_REWARDS, episode_outcome
+from reach_envs.scenes import Scene, env_scene
 from reach_envs.simulator import SceneSimulator
 from reach_envs.spaces import action_space, check_action, check_reset_options, check_state, observation_space
-from reach_envs.views import make_renderer
+from reach_envs.views import make_renderer, render_frame, trail_points
+
+#: the scene of ``parallel_env()`` without a scene or a system
+DEFAULT_SCENE = "three-car-9d"
 
 
 class MultiVehicleParallelEnv(ParallelEnv):
-    """Parallel multi-agent env over a :class:`MultiVehicle` scene (``"three-car-9d"`` by default)."""
+    """Parallel multi-agent env over a scene of a multi-agent system (``"three-car-9d"`` by default).
+
+    Args:
+        scene: a :class:`Scene` or a named scene (``"three-car-9d"``, ``"head-on"``, ``"four-car-12d"``, ...).
+        render_mode: ``None`` or ``"rgb_array"``.
+        system: instead of ``scene``, a system with agents: an instance, a registered name
+            (``"narrowpassage"``) or an import path ``"pkg.mod:Class"``; not both.
+        **overrides: scene fields to set, e.g. ``dt=0.01, process_noise=0.02``.
+    """
 
     metadata = {"render_modes": ["rgb_array"], "name": "reach_multivehicle_v0", "is_parallelizable": True}
 
-    def __init__(self, scene: str | Scene = "three-car-9d", render_mode: str | None = None, **overrides: Any) -> None:
-        self.scene = make_scene(scene, **overrides)
+    def __init__(
+        self, scene: str | Scene | None = None, render_mode: str | None = None, *, system: Any = None, **overrides: Any
+    ) -> None:
+        if scene is None and system is None:
+            scene = DEFAULT_SCENE
+        self.scene = env_scene(scene, system, **overrides)
         system = self.system = self.scene.system
-        if system.kind != "avoid":  # per-car collision margins and rewards are an avoid game's
+        inputs = agent_inputs(system)
+        if inputs is None:
+            article = "an" if system.kind == "avoid" else "a"
             raise ValueError(
-                f"MultiVehicleParallelEnv handles avoid problems only (per-car collisions); {system.name} is a "
-                f"{system.kind} problem: use ReachEnv (gym.make('Reach-v0', system=...))"
+                f"MultiVehicleParallelEnv needs a multi-agent system (a MultiVehicle, NarrowPassage, or one "
+                f"declaring agent_inputs); {system.name} is {article} {system.kind} problem without agents: "
+                "use ReachEnv (gym.make('Reach-v0', system=...))"
             )
-        if not isinstance(system, MultiVehicle):
-            raise ValueError(f"MultiVehicleParallelEnv needs a MultiVehicle scene, got system {system.name}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         self.render_mode = render_mode
         self.sim = SceneSimulator(self.scene, FLOAT)
-        self.possible_agents = [system.cars[i].name for i in system.control_cars]
+        #: per-car outcomes (a MultiVehicle avoid scene), else one outcome shared by the team
+        self.per_car = isinstance(system, MultiVehicle) and not system.problem.reaches
+        self.possible_agents = list(inputs)
         self.agents: list[str] = []
-        self._agent_car = {name: i for i, name in zip(system.control_cars, self.possible_agents)}
-        self._agent_input = {name: k for k, name in enumerate(self.possible_agents)}
+        self._inputs = inputs
+        self._agent_car = (
+            {name: i for i, name in zip(system.control_cars, self.possible_agents)} if self.per_car else {}
+        )
         self._obs_space = observation_space(system)
-        self._act_space = action_space(1)
+        self._act_spaces = {name: action_space(len(k)) for name, k in inputs.items()}
+        self._centre = system.control_bounds.center
         self._half = system.control_bounds.half_width
+        self._reaches = system.problem.reaches
         self._sampler = self.scene.sampler()
         self._record_trails = self.scene.trails and render_mode is not None
+        self._trail_points = trail_points(self.scene) if self._record_trails and not self.per_car else None
         self._rng, _ = seeding.np_random(None)
         self._renderer = None
         self._state: list[float] = []
-        self._crashed = [False] * system.num_cars
+        self._crashed = [False] * system.num_cars if self.per_car else []
+        self._collided = False
         self._steps = 0
         self._trails: list[list[tuple[float, float]]] = []
 
@@ -70,7 +113,7 @@ class MultiVehicleParallelEnv(ParallelEnv):
 
     @functools.cache  # noqa: B019
     def action_space(self, agent: str) -> spaces.Box:
-        return self._act_space
+        return self._act_spaces[agent]
 
     # ------------------------------------------------------------------ helpers
     def _observations(self) -> dict[str, np.ndarray]:
@@ -88,6 +131,25 @@ class MultiVehicleParallelEnv(ParallelEnv):
             margins[j] = min(margins[j], m)
         return margins
 
+    def _team_status(self) -> dict[str, Any]:
+        """The system's margins at the current state, as :class:`ReachEnv` reports them at reset."""
+        if not self._reaches:
+            margin = self.sim.margin(self._state)
+            return {"margin": margin, "collision": margin <= 0.0}
+        target, constraint, collision, reached = self.sim.reach_status(self._state)
+        return {
+            "margin": constraint,
+            "collision": bool(collision),
+            "target_margin": target,
+            "constraint_margin": constraint,
+            "reached": bool(reached),
+        }
+
+    def _control(self, agent: str, u: list[float]) -> float | np.ndarray:
+        """``info["control"]``: the agent's inputs as applied (a float for one input)."""
+        indices = self._inputs[agent]
+        return u[indices[0]] if len(indices) == 1 else np.array([u[k] for k in indices])
+
     # ------------------------------------------------------------------ PettingZoo API
     def reset(self, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[dict, dict]:
         if seed is not None:
@@ -99,8 +161,16 @@ class MultiVehicleParallelEnv(ParallelEnv):
             x = check_state(self._sampler.sample(self.system, self._rng), self.system)
         self._state = self.system.wrap_columns(x.tolist(), FLOAT)
         self.agents = list(self.possible_agents)
-        self._crashed = [False] * self.system.num_cars
         self._steps = 0
+        if not self.per_car:
+            status = self._team_status()
+            self._collided = status["collision"]
+            if self._record_trails:
+                self._trails = [[p] for p in self._trail_points(self._state)]
+            if self._reaches:
+                status["outcome"] = None
+            return self._observations(), {a: {**status, "time": 0.0} for a in self.agents}
+        self._crashed = [False] * self.system.num_cars
         if self._record_trails:
             self._trails = [[(px, py)] for px, py, _ in self.system.car_poses(self._state, FLOAT)]
         margins = self._car_margins()
@@ -117,20 +187,30 @@ class MultiVehicleParallelEnv(ParallelEnv):
             raise ValueError(
                 f"actions must have one entry per live agent {self.agents}; missing {missing}, unknown {unknown}"
             )
-        u = [0.0] * self.system.control_dim
+        u = list(self._centre)  # inputs of agents that are no longer live stay at their box centre
         for agent in self.agents:
-            v = float(check_action(actions[agent], (1,))[0])
-            k = self._agent_input[agent]
-            u[k] = self._half[k] * (-1.0 if v < -1.0 else (1.0 if v > 1.0 else v))
+            indices = self._inputs[agent]
+            for k, v in zip(indices, check_action(actions[agent], (len(indices),)).tolist()):
+                u[k] = self._centre[k] + self._half[k] * (-1.0 if v < -1.0 else (1.0 if v > 1.0 else v))
         previous = self._state
         d = self.sim.disturbance(previous, self._rng)
         x = self.sim.advance(previous, u, d, self._rng)
-        n = self.system.num_cars
-        for i, crashed in enumerate(self._crashed):
-            if crashed:  # a crashed car stays where it stopped
-                x[2 * i], x[2 * i + 1], x[2 * n + i] = previous[2 * i], previous[2 * i + 1], previous[2 * n + i]
+        if self.per_car:
+            n = self.system.num_cars
+            for i, crashed in enumerate(self._crashed):
+                if crashed:  # a crashed car stays where it stopped
+                    x[2 * i], x[2 * i + 1], x[2 * n + i] = previous[2 * i], previous[2 * i + 1], previous[2 * n + i]
         self._state = x
         self._steps += 1
+        step = self._per_car_step if self.per_car else self._team_step
+        rewards, terminations, truncations, infos = step(u)
+        observations = self._observations()
+        self.agents = [a for a in self.agents if not (terminations[a] or truncations[a])]
+        return observations, rewards, terminations, truncations, infos
+
+    def _per_car_step(self, u: list[float]) -> tuple[dict, dict, dict, dict]:
+        """Rewards, terminations, truncations and infos of each car's own collisions."""
+        x = self._state
         time = self._steps * self.scene.dt
         margins = self._car_margins()
         hit = [m <= 0.0 for m in margins]
@@ -147,7 +227,7 @@ class MultiVehicleParallelEnv(ParallelEnv):
                 "margin": margins[car],
                 "collision": collided,
                 "out_of_arena": out,
-                "control": u[self._agent_input[agent]],
+                "control": self._control(agent, u),
                 "time": time,
             }
         if self.scene.terminate_on_collision:
@@ -157,18 +237,51 @@ class MultiVehicleParallelEnv(ParallelEnv):
             for i, (trail, (px, py, _)) in enumerate(zip(self._trails, self.system.car_poses(x, FLOAT))):
                 if not self._crashed[i] or trail[-1] != (px, py):
                     trail.append((px, py))
-        observations = self._observations()
-        self.agents = [a for a in self.agents if not (terminations[a] or truncations[a])]
-        return observations, rewards, terminations, truncations, infos
+        return rewards, terminations, truncations, infos
+
+    def _team_step(self, u: list[float]) -> tuple[dict, dict, dict, dict]:
+        """Rewards, terminations, truncations and infos of the system's one outcome, shared by every agent."""
+        x = self._state
+        status = self._team_status()
+        collision = self._collided = status["collision"]
+        out = bool(self.sim.out_of_arena(x))
+        if self._reaches:
+            terminated = bool(collision or status["reached"] or out)
+        else:
+            terminated = bool((collision and self.scene.terminate_on_collision) or out)
+        truncated = not terminated and self._steps >= self.scene.max_steps
+        common = {"margin": status["margin"], "collision": collision, "out_of_arena": out}
+        if self._reaches:
+            outcome = episode_outcome(collision, status["reached"], out, truncated)
+            reward = OUTCOME_REWARDS[outcome] if outcome is not None else 0.0
+            reach_keys = {k: status[k] for k in ("target_margin", "constraint_margin", "reached")}
+            reach_keys["outcome"] = outcome
+        else:
+            reward = -1.0 if collision else 0.0
+            reach_keys = {}
+        if self._record_trails:
+            for trail, p in zip(self._trails, self._trail_points(x)):
+                trail.append(p)
+        time = self._steps * self.scene.dt
+        infos = {a: {**common, "control": self._control(a, u), "time": time, **reach_keys} for a in self.agents}
+        return (
+            dict.fromkeys(self.agents, reward),
+            dict.fromkeys(self.agents, terminated),
+            dict.fromkeys(self.agents, truncated),
+            infos,
+        )
 
     def render(self) -> np.ndarray | None:
         if self.render_mode is None:
             return None
         if self._renderer is None:
             self._renderer = make_renderer(self.scene)
-        poses = self.system.car_poses(self._state, FLOAT)
         trails = self._trails if self._record_trails else None
-        return self._renderer.render(poses, self._steps * self.scene.dt, trails, self._crashed)
+        time = self._steps * self.scene.dt
+        if not self.per_car:
+            return render_frame(self._renderer, self.system, self._state, time, trails, self._collided)
+        poses = self.system.car_poses(self._state, FLOAT)
+        return self._renderer.render(poses, time, trails, self._crashed)
 
     def close(self) -> None:
         if self._renderer is not None:
@@ -189,11 +302,19 @@ class MultiVehicleParallelEnv(ParallelEnv):
         """Seconds since the last reset."""
         return self._steps * self.scene.dt
 
-    def control_index(self, agent: str) -> int:
-        """The index of ``agent``'s turn rate in the system's control vector."""
-        if agent not in self._agent_input:
+    def control_indices(self, agent: str) -> tuple[int, ...]:
+        """The indices of ``agent``'s inputs in the system's control vector."""
+        if agent not in self._inputs:
             raise ValueError(f"unknown agent {agent!r}; agents are {self.possible_agents}")
-        return self._agent_input[agent]
+        return self._inputs[agent]
+
+    def control_index(self, agent: str) -> int:
+        """The index of the one input (a car's turn rate) ``agent`` acts in the system's control vector;
+        ``ValueError`` for an agent of several inputs (use :meth:`control_indices`)."""
+        indices = self.control_indices(agent)
+        if len(indices) != 1:
+            raise ValueError(f"agent {agent!r} acts inputs {indices} of {self.system.name}; use control_indices")
+        return indices[0]
 
     @property
     def state_space(self) -> spaces.Box:
@@ -201,7 +322,8 @@ class MultiVehicleParallelEnv(ParallelEnv):
 
 
 def parallel_env(
-    scene: str | Scene = "three-car-9d", render_mode: str | None = None, **overrides: Any
+    scene: str | Scene | None = None, render_mode: str | None = None, *, system: Any = None, **overrides: Any
 ) -> MultiVehicleParallelEnv:
-    """PettingZoo-style constructor: ``reach_envs.parallel.parallel_env("head-on")``."""
-    return MultiVehicleParallelEnv(scene, render_mode=render_mode, **overrides)
+    """PettingZoo-style constructor: ``parallel_env("head-on")``, ``parallel_env("four-car-12d")``, or
+    a system with agents, ``parallel_env(system="narrowpassage")``; ``parallel_env()`` is ``"three-car-9d"``."""
+    return MultiVehicleParallelEnv(scene, render_mode=render_mode, system=system, **overrides)

@@ -12,7 +12,8 @@ A scene of a reach or reach-avoid system carries its goal and obstacles (:attr:`
 margins (:mod:`reach_envs.regions`), never declared a second time.
 
 Named scenes (:data:`SCENES`, :func:`make_scene`): ``air3d``, ``pursuit-evasion-6d``,
-``three-car-9d``, ``head-on``, ``crossing``, ``three-car-merge`` and ``three-car-crossing``. A scene
+``three-car-9d``, ``four-car-12d``, ``five-car-15d``, ``quadrotor``, ``head-on``, ``crossing``,
+``three-car-merge`` and ``three-car-crossing``. A scene
 of any other system (an instance, a registered name or an import path ``pkg.mod:Class``):
 :func:`system_scene`.
 """
@@ -36,6 +37,9 @@ from reach.systems import (
     MultiVehicle,
     MultiVehicle6D,
     MultiVehicle9D,
+    MultiVehicle12D,
+    MultiVehicle15D,
+    Quadrotor,
     make_system,
 )
 from reach.validation import check_known_fields
@@ -48,15 +52,34 @@ from reach_envs.regions import Region, goal_region, obstacle_region, system_regi
 class UniformSafe:
     """States uniform over the system's domain, redrawn while the episode would already be decided:
     avoid, while ``l(x) <= margin`` (in collision); reach kinds, while in the goal (``l(x) <= 0``) or,
-    reach-avoid, while ``g(x) <= margin`` (in an obstacle)."""
+    reach-avoid, while ``g(x) <= margin`` (in an obstacle).
+
+    ``unit_norm``: state dimensions rescaled to a unit vector after each draw, before it is judged:
+    a quaternion's, ``(3, 4, 5, 6)`` of the quadrotor (a draw from its domain box is an attitude only
+    once normalised)."""
 
     margin: float = 0.0
     max_tries: int = 10_000
+    unit_norm: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        dims = tuple(self.unit_norm)
+        if len(dims) == 1 or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in dims):
+            raise ValueError(f"UniformSafe: unit_norm must be two or more state dimensions, got {self.unit_norm!r}")
+        object.__setattr__(self, "unit_norm", dims)
 
     def sample(self, system: ControlAffineSystem, rng: np.random.Generator) -> np.ndarray:
         accept = _undecided(system, self.margin)
+        dims = list(self.unit_norm)
+        if dims and max(dims) >= system.state_dim:
+            raise ValueError(f"UniformSafe: unit_norm {self.unit_norm} names a dimension {system.name} does not have")
         for _ in range(self.max_tries):
             x = system.sample_states_numpy(rng)
+            if dims:
+                norm = float(np.linalg.norm(x[dims]))
+                if norm == 0.0:
+                    continue
+                x[dims] = x[dims] / norm
             if accept(x.tolist()):
                 return x
         wanted = {"avoid": f"l(x) > {self.margin}", "reach": "l(x) > 0"}.get(
@@ -329,6 +352,20 @@ def _scene_three_car_9d() -> Scene:
     return Scene(system=MultiVehicle9D(), name="three-car-9d")
 
 
+def _scene_four_car_12d() -> Scene:
+    return Scene(system=MultiVehicle12D(), name="four-car-12d")
+
+
+def _scene_five_car_15d() -> Scene:
+    return Scene(system=MultiVehicle15D(), name="five-car-15d")
+
+
+def _scene_quadrotor() -> Scene:
+    """Steps of 0.01 s (its body rates turn fast: at 0.02 s RK4 lets the quaternion's norm drift by a
+    few per cent over a random episode, at 0.01 s by 1e-4) from unit quaternions."""
+    return Scene(system=Quadrotor(), name="quadrotor", dt=0.01, initial_state=UniformSafe(unit_norm=(3, 4, 5, 6)))
+
+
 def _scene_head_on() -> Scene:
     state = _poses_state([(-0.8, 0.0, 0.0), (0.8, 0.0, math.pi)])
     return Scene.from_cars(
@@ -373,6 +410,9 @@ SCENES: dict[str, Callable[[], Scene]] = {
     "air3d": _scene_air3d,
     "pursuit-evasion-6d": _scene_pursuit_evasion_6d,
     "three-car-9d": _scene_three_car_9d,
+    "four-car-12d": _scene_four_car_12d,
+    "five-car-15d": _scene_five_car_15d,
+    "quadrotor": _scene_quadrotor,
     "head-on": _scene_head_on,
     "crossing": _scene_crossing,
     "three-car-merge": _scene_three_car_merge,

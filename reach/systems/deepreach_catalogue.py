@@ -77,6 +77,8 @@ class NarrowPassage(ControlAffineSystem):
     steer_rate = 3.0 * math.pi
     curbs = (-2.8, 2.8)
     stranded_car = (0.0, -1.8)
+    #: the two drivers of a multi-agent env (:mod:`reach_envs.agents`): each acts its car's (a, psi)
+    agent_inputs = {"car_1": (0, 1), "car_2": (2, 3)}
 
     def __init__(self, avoid_fn_weight: float = 1.0, avoid_only: bool = False, horizon: float = 1.0) -> None:
         self.avoid_fn_weight = positive_finite("NarrowPassage: avoid_fn_weight", avoid_fn_weight)
