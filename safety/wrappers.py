@@ -248,8 +248,9 @@ class SafetyFilterVectorWrapper(_FilterAdapterMixin, VectorWrapper):
 class SafetyFilterParallelWrapper(_FilterAdapterMixin, BaseParallelWrapper):
     """The filter over a PettingZoo parallel env: the joint nominal action is filtered as one input.
 
-    Agents that are no longer live contribute the centre of their box (zero turn rate) to the joint
-    nominal input, as the environment applies for them.
+    Each agent's action holds the inputs it acts (a car's turn rate; NarrowPassage's drivers, their
+    acceleration and steering rate). Agents that are no longer live contribute the centre of their
+    box (zero turn rate) to the joint nominal input, as the environment applies for them.
     """
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
@@ -257,19 +258,21 @@ class SafetyFilterParallelWrapper(_FilterAdapterMixin, BaseParallelWrapper):
         joint = np.zeros(base.system.control_dim)
         for agent, action in actions.items():
             a = np.asarray(action, dtype=np.float64)
-            if a.shape != (1,):
-                raise ValueError(f"action of {agent!r} must have shape (1,), got {a.shape}")
-            joint[base.control_index(agent)] = a[0]
+            k = list(base.control_indices(agent))
+            if a.shape != (len(k),):
+                raise ValueError(f"action of {agent!r} must have shape ({len(k)},), got {a.shape}")
+            joint[k] = a
         applied, info = self._adapter.apply(base.full_state, base.elapsed, joint)
-        filtered = {agent: np.array([applied[base.control_index(agent)]], dtype=np.float32) for agent in actions}
+        filtered = {agent: applied[list(base.control_indices(agent))].astype(np.float32) for agent in actions}
         obs, rewards, terminations, truncations, infos = self.env.step(filtered)
         for agent in infos:
-            k = base.control_index(agent)
+            k = list(base.control_indices(agent))
+            one = len(k) == 1  # a car's turn rate reads as a number, an agent of several inputs as an array
             infos[agent] = {
                 **infos[agent],
                 "filter_value": float(info.value),
                 "filter_intervened": bool(info.intervened),
-                "nominal_action": float(joint[k]),
-                "applied_action": float(applied[k]),
+                "nominal_action": float(joint[k[0]]) if one else joint[k].copy(),
+                "applied_action": float(applied[k[0]]) if one else applied[k].copy(),
             }
         return obs, rewards, terminations, truncations, infos

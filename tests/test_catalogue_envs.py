@@ -154,3 +154,25 @@ def test_reach_envs_names_every_id_and_scene(capsys):
     line = next(row for row in out.splitlines() if "NarrowPassage-v0" in row)
     assert "kind=reach-avoid" in line and "state=10D" in line and "action=4" in line and "agents=2" in line
     assert "car_1 acts inputs [0, 1], car_2 acts inputs [2, 3]" in out
+
+
+def test_safety_filter_wraps_the_team_env_with_each_driver_acting_two_inputs():
+    """The PettingZoo filter wrapper assembles the joint input from each agent's inputs (NarrowPassage's
+    drivers act (a, psi) each), filters it as one input, and hands each driver back its two inputs."""
+    import torch
+
+    from safety.wrappers import SafetyFilterParallelWrapper
+    from training.network import NeuralValueFunction, ValueNetwork
+
+    torch.manual_seed(0)
+    vf = NeuralValueFunction(ValueNetwork(NarrowPassage(), "ssssl", width=16))
+    penv = SafetyFilterParallelWrapper(parallel_env(system="narrowpassage"), vf, threshold=0.0)
+    penv.reset(seed=0)
+    _, _, _, _, infos = penv.step({a: np.array([0.5, -0.25], dtype=np.float32) for a in penv.agents})
+    assert set(infos) == {"car_1", "car_2"}
+    for info in infos.values():
+        assert info["nominal_action"].shape == (2,) and info["applied_action"].shape == (2,)
+        if not info["filter_intervened"]:
+            np.testing.assert_allclose(info["applied_action"], [0.5, -0.25], rtol=1e-6)
+    with pytest.raises(ValueError, match=r"action of 'car_1' must have shape \(2,\)"):
+        penv.step({a: np.zeros(1, dtype=np.float32) for a in penv.agents})
