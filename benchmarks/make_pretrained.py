@@ -15,6 +15,16 @@ Two steps, each rerunnable:
        python benchmarks/make_pretrained.py evaluate air3d --samples 100000 --certify-samples 100000 \\
            --ground-truth runs/air3d_gt.npz
 
+   A grid ships the same way (``export-grid``): a grid solution, resampled to a compact grid,
+   becomes ``NAME.npz`` with a card of format ``grid``::
+
+       python benchmarks/make_pretrained.py export-grid runs/pair_gt.npz --name relativepair --resample 51 \
+           --summary "..." --command "reach groundtruth relativepair --grid 101 --out runs/pair_gt.npz" \
+           --commit 0abc123 --hardware "2 CPU cores (shared VM), torch 2.13.0+cpu"
+
+   and ``filter-source multivehicle9d "cap:pretrained:multivehicle9d,pretrained:relativepair"`` sets
+   what the filters of a card's env ids load instead of the bare model.
+
 3. ``record`` adds a ``reach evaluate`` run of the shipped file used another way (capped by the
    pairwise union, rolled out under the greedy policy, ...) to the card's ``also_evaluated``, from
    the JSON that run wrote (its settings and row), with the command that made it::
@@ -109,6 +119,50 @@ def export(args: argparse.Namespace) -> int:
     )
     write_card(card)
     print(f"wrote {target} ({target.stat().st_size / 1024:.0f} KB) and its card; now run: evaluate {args.name}")
+    return 0
+
+
+def export_grid(args: argparse.Namespace) -> int:
+    from groundtruth.solution import GridSolution
+
+    solution = GridSolution.load(args.grid)
+    compact = solution.resampled(args.resample) if args.resample else solution
+    target = pretrained.DIRECTORY / f"{args.name}.npz"
+    compact.save(target)
+    card = pretrained.ModelCard(
+        name=args.name,
+        system=compact.system.reference(),
+        env_ids=tuple(e for e in args.env_ids.split(",") if e),
+        summary=args.summary,
+        training={
+            "command": args.command,
+            "commit": args.commit,
+            "hardware": args.hardware,
+            "layout": "grid",
+            "grid": list(compact.grid.shape),
+            "solved_on": list(solution.grid.shape),
+            "times": compact.times.tolist(),
+            "versions": solution.metadata.get("versions"),
+        },
+        evaluation={},
+        sha256=pretrained.file_sha256(target),
+        format="grid",
+    )
+    write_card(card)
+    print(f"wrote {target} ({target.stat().st_size / 1024:.0f} KB) and its card; now run: evaluate {args.name}")
+    return 0
+
+
+def filter_source(args: argparse.Namespace) -> int:
+    from safety.sources import load_value_function, member_sources
+
+    card = pretrained.card(args.name)
+    if args.source and pretrained.PREFIX + args.name not in member_sources(args.source):
+        raise SystemExit(f"filter source {args.source!r} does not use {pretrained.PREFIX}{args.name}")
+    if args.source:
+        load_value_function(args.source, system=card.system)  # refuses what cannot load, before writing
+    write_card(dataclasses.replace(card, filter_source=args.source))
+    print(f"{args.name}: filters of {', '.join(card.env_ids) or 'no env'} load {args.source or 'the model itself'}")
     return 0
 
 
@@ -218,6 +272,20 @@ def main() -> int:
     e.add_argument("--commit", required=True)
     e.add_argument("--hardware", required=True)
     e.set_defaults(func=export)
+    g = sub.add_parser("export-grid", help="copy a grid solution (resampled) into the package and write its card")
+    g.add_argument("grid", help="a grid solution .npz (reach groundtruth)")
+    g.add_argument("--name", required=True)
+    g.add_argument("--resample", type=positive_int_arg, default=None, help="nodes per dimension of the shipped grid")
+    g.add_argument("--env-ids", default="", help="comma-separated Gymnasium ids this grid filters by default")
+    g.add_argument("--summary", required=True)
+    g.add_argument("--command", required=True, help="the command that solved it")
+    g.add_argument("--commit", required=True)
+    g.add_argument("--hardware", required=True)
+    g.set_defaults(func=export_grid)
+    f = sub.add_parser("filter-source", help="what the filters of a card's env ids load (empty: the model)")
+    f.add_argument("name")
+    f.add_argument("source", help='e.g. "cap:pretrained:multivehicle9d,pretrained:relativepair"; "" resets')
+    f.set_defaults(func=filter_source)
     v = sub.add_parser("evaluate", help="score the shipped file with reach evaluate and record it in the card")
     v.add_argument("name")
     v.add_argument("--samples", type=int, default=100_000)

@@ -73,8 +73,8 @@ TRAIN_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
         "--upper-bound",
         "upper_bound",
         {},
-        "multi-vehicle systems: a pair grid solution (.npz) whose union of pairwise values V may not exceed "
-        "(penalised where a pair's grid covers the state)",
+        "multi-vehicle systems: a pair grid solution (.npz, or the shipped pretrained:relativepair) whose union "
+        "of pairwise values V may not exceed (penalised where a pair's grid covers the state)",
     ),
     ("--upper-bound-weight", "upper_bound_weight", {"type": nonnegative_float_arg}, "weight of that penalty"),
     (

@@ -129,8 +129,8 @@ def load_value_function(
     if is_composition(path):
         return _load_minimum(str(path), format, system, layout, device, label)
     p = resolve_checkpoint(path)
-    if pretrained.is_pretrained(path):
-        format, label = "reach", label or str(path)
+    if pretrained.is_pretrained(path):  # a shipped network (.pt) or grid (.npz), by its card's format
+        format, label = detect_format(p), label or str(path)
     try:
         return _load(p, format, system, layout, device, label)
     except (OSError, EOFError, KeyError, TypeError, RuntimeError, zipfile.BadZipFile) as err:

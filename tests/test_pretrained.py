@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import shutil
 
@@ -28,16 +29,24 @@ def test_every_registered_env_has_a_shipped_model() -> None:
     for env_id, scene in reach_envs.ENV_SCENES.items():
         system = gym.make(env_id).unwrapped.system
         source = pretrained.for_env(env_id, system)
-        assert env_id in pretrained.card(source[len(pretrained.PREFIX) :]).env_ids, (env_id, scene)
+        (card,) = [c for c in pretrained.cards() if env_id in c.env_ids]
+        assert source == (card.filter_source or pretrained.PREFIX + card.name), (env_id, scene)
 
 
 @pytest.mark.parametrize("name", NAMES)
 def test_model_loads_and_fits_its_envs(name: str) -> None:
     card = pretrained.card(name)
     loaded = load_value_function(pretrained.PREFIX + name, system=card.system)
-    assert loaded.label == pretrained.PREFIX + name and loaded.kind == "reach"
+    assert loaded.label == pretrained.PREFIX + name
+    assert loaded.kind == {"network": "reach", "grid": "grid"}[card.format]
     assert loaded.layout == card.training["layout"]
-    assert pretrained.checkpoint_path(name).stat().st_size < 1_000_000  # package data of a few hundred KB
+    # package data: networks of a few hundred KB, a compact grid of a few MB
+    assert pretrained.checkpoint_path(name).stat().st_size < {"network": 1_000_000, "grid": 8_000_000}[card.format]
+    if card.filter_source:  # what the card's envs filter with loads, and is built on the model
+        assert pretrained.PREFIX + name in card.filter_source
+        assert load_value_function(card.filter_source, system=card.system).value_function.system.same_physics(
+            loaded.value_function.system
+        )
     for env_id in card.env_ids:
         env = gym.make(env_id)
         assert env.unwrapped.system.same_physics(loaded.value_function.system), env_id
@@ -113,12 +122,15 @@ def test_unknown_and_tampered_models_are_refused(tmp_path, monkeypatch) -> None:
     (tmp_path / "air3d.pt").unlink()
     with pytest.raises(ValueError, match="missing"):
         load_value_function("pretrained:air3d")
+    card = json.loads((tmp_path / "air3d.card.json").read_text())
+    (tmp_path / "air3d.card.json").write_text(json.dumps({**card, "format": "pickle"}))
+    with pytest.raises(ValueError, match=r"format must be one of \['grid', 'network'\], got 'pickle'"):
+        load_value_function("pretrained:air3d")
 
 
 def test_env_without_a_shipped_model_needs_a_value_function() -> None:
-    env = reach_envs.make_env("relativepair", dt=0.02)
-    if any(c.system == "relativepair" for c in pretrained.cards()):
-        pytest.skip("a relativepair model ships")
+    env = reach_envs.make_env("parameterizedvertdrone2d", dt=0.02)
+    assert not any(c.system == "parameterizedvertdrone2d" for c in pretrained.cards())
     with pytest.raises(ValueError, match=r"no pretrained value function for env .*pass a value function"):
         SafetyFilterWrapper(env)
 
@@ -162,7 +174,6 @@ def test_maintainers_record_another_evaluation_in_a_card(tmp_path, monkeypatch) 
     and metrics from the run's JSON. Recording the same label again replaces it; a run that did not
     score the shipped model is refused by name."""
     import importlib.util
-    import json
     import sys
     from pathlib import Path
 

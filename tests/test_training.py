@@ -464,11 +464,17 @@ def test_upper_bound_term_charges_only_values_above_a_known_bound(tmp_path, pair
         Trainer(TrainConfig(steps=1, upper_bound=str(path), **TINY), tmp_path / "a", progress=False)
     with pytest.raises(ValueError, match=r"no such file 'missing\.npz'"):
         Trainer(TrainConfig(system="multivehicle9d", steps=1, upper_bound="missing.npz"), tmp_path / "b")
+    with pytest.raises(ValueError, match="no pretrained model 'pairs'"):
+        Trainer(TrainConfig(system="multivehicle9d", steps=1, upper_bound="pretrained:pairs"), tmp_path / "e")
     foreign = air3d_grid.save(tmp_path / "air3d.npz")  # a two-player grid, but not this system's pair problem
     with pytest.raises(ValueError, match="no pair solution for cars"):
         Trainer(TrainConfig(system="multivehicle9d", steps=1, upper_bound=str(foreign)), tmp_path / "c")
     with pytest.raises(ValueError, match="upper_bound_weight"):
         TrainConfig(steps=1, upper_bound_weight=-1.0).validate()
+    # the shipped compact pair grid bounds the larger fleets too, by name
+    shipped = TrainConfig(system="multivehicle12d", steps=1, upper_bound="pretrained:relativepair", **TINY)
+    union = Trainer(shipped, tmp_path / "d", progress=False).upper_bound
+    assert union is not None and len(union.system.failure_pairs) == 6
     assert not (tmp_path / "a").exists() or not any((tmp_path / "a").iterdir())
 
 

@@ -14,6 +14,7 @@ from typing import Any
 import torch
 
 from reach.systems import ControlAffineSystem, MultiVehicle
+from training import pretrained
 from training.config import TrainConfig
 from training.labels import check_lower_bound_system
 from training.loss import LossWeights, residual_function, training_loss
@@ -22,16 +23,20 @@ from training.sampling import Labels
 
 
 def load_upper_bound(config: TrainConfig, system: ControlAffineSystem) -> Any:
-    """The union of pairwise BRTs that ``config.upper_bound`` names, loaded (and refused) before training."""
+    """The union of pairwise BRTs that ``config.upper_bound`` names (a pair grid ``.npz``, or the shipped
+    compact one, ``"pretrained:relativepair"``), loaded (and refused) before training."""
     if config.upper_bound is None:
         return None
     from groundtruth.pairwise import PairwiseUnion  # lazy: the grid solver loads only for runs that use it
 
     if not isinstance(system, MultiVehicle):
         raise ValueError(f"upper_bound: a pairwise union bounds multi-vehicle systems only, not {system.name}")
-    if not Path(config.upper_bound).is_file():
+    path = config.upper_bound
+    if pretrained.is_pretrained(path):
+        path = pretrained.checkpoint_path(path)  # checked against its card's digest
+    elif not Path(path).is_file():
         raise ValueError(f"upper_bound: no such file {config.upper_bound!r}")
-    union = PairwiseUnion.load(system, config.upper_bound)
+    union = PairwiseUnion.load(system, path)
     if union.system.horizon < system.horizon:
         raise ValueError(
             f"upper_bound {config.upper_bound}: its pair solution reaches t = {union.system.horizon:g}, "

@@ -68,7 +68,10 @@ def _pretrained_cards() -> str:
     commands = []
     for card in pretrained.cards():
         t = card.training
-        trained = f"{t.get('steps')} steps, {t.get('wall_time_s', 0) / 60:.0f} min"
+        if card.format == "grid":
+            trained = "solved, " + "x".join(str(n) for n in t.get("grid", ())) + " grid"
+        else:
+            trained = f"{t.get('steps')} steps, {t.get('wall_time_s', 0) / 60:.0f} min"
         rows.append(_card_row(f"`pretrained:{card.name}`", f"{card.system}; {', '.join(card.env_ids) or '-'}", trained,
                               card.metrics))  # fmt: skip
         for other in card.also_evaluated:

@@ -1,11 +1,15 @@
 """Value networks that ship with the package, each with a model card.
 
-A pretrained model is two package-data files in this directory: ``NAME.pt``, a reach checkpoint
-without optimizer state (read with ``weights_only=True`` and checked against its SHA-256 digest like
-any checkpoint), and ``NAME.card.json``, its model card:
+A pretrained model is two package-data files in this directory: the model, and ``NAME.card.json``,
+its model card. The model is ``NAME.pt``, a reach checkpoint without optimizer state (read with
+``weights_only=True`` and checked against its SHA-256 digest like any checkpoint), or, for a card
+whose ``format`` is ``"grid"``, ``NAME.npz``, a grid solution (read without pickle, checked the
+same way): ``pretrained:relativepair`` is DeepReach's two-car pair problem on a compact grid, whose
+union of pairwise BRTs caps the N-car networks. The card:
 
-- ``system``: the registered system it was trained for; ``env_ids``: the Gymnasium ids whose
-  filter uses it when no value function is given;
+- ``system``: the registered system it was trained (or solved) for; ``env_ids``: the Gymnasium ids
+  whose filter uses it when no value function is given; ``filter_source``: what those filters load
+  instead of the bare model, if anything (the 9D model's is the model capped by the pair grid's union);
 - ``training``: the command that trained it, the commit, wall time, steps and hardware;
 - ``evaluation``: the ``reach evaluate`` command, its sample sizes and the metrics it printed;
 - ``also_evaluated``: the same file scored other ways, each a labelled evaluation with its
@@ -47,6 +51,8 @@ class ModelCard:
     evaluation: dict[str, Any] = field(default_factory=dict)
     also_evaluated: tuple[dict[str, Any], ...] = ()
     sha256: str = ""
+    format: str = "network"
+    filter_source: str = ""
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], where: str) -> ModelCard:
@@ -60,6 +66,8 @@ class ModelCard:
                 evaluation=dict(data.get("evaluation", {})),
                 also_evaluated=tuple(dict(e) for e in data.get("also_evaluated", ())),
                 sha256=str(data["sha256"]),
+                format=_check_format(str(data.get("format", "network")), where),
+                filter_source=str(data.get("filter_source", "")),
             )
         except (KeyError, TypeError, ValueError) as err:
             raise ValueError(f"{where}: not a model card ({type(err).__name__}: {err})") from err
@@ -76,7 +84,10 @@ class ModelCard:
         """A few lines for ``reach pretrained``: what, how trained, how it scored."""
         t, e, m = self.training, self.evaluation, self.metrics
         lines = [f"{PREFIX}{self.name}  ({self.system}; envs: {', '.join(self.env_ids) or '-'})", f"  {self.summary}"]
-        if t:
+        if t and self.format == "grid":
+            shape = "x".join(str(n) for n in t.get("grid", ())) or "?"
+            lines.append(f"  solved: on a {shape} grid, {t.get('hardware', '?')}")
+        elif t:
             lines.append(
                 f"  trained: {t.get('steps', '?')} steps, {_minutes(t.get('wall_time_s'))} on {t.get('hardware', '?')}"
             )  # the commit stays in the card (and in --json), not in what users read
@@ -124,6 +135,16 @@ def _number(value: Any, scale: float) -> str:
     return f"{value * scale:.3g}" if isinstance(value, (int, float)) else str(value)
 
 
+#: card ``format`` -> the model file's suffix
+MODEL_SUFFIXES = {"network": ".pt", "grid": ".npz"}
+
+
+def _check_format(value: str, where: str) -> str:
+    if value not in MODEL_SUFFIXES:
+        raise ValueError(f"{where}: format must be one of {sorted(MODEL_SUFFIXES)}, got {value!r}")
+    return value
+
+
 def names() -> list[str]:
     """The shipped models' names, sorted."""
     return sorted(p.name[: -len(CARD_SUFFIX)] for p in DIRECTORY.glob(f"*{CARD_SUFFIX}"))
@@ -160,20 +181,22 @@ def file_sha256(path: Path) -> str:
 
 
 def checkpoint_path(source: str) -> Path:
-    """The checkpoint file of ``"pretrained:NAME"`` (or ``NAME``), after checking it is the file its
-    card describes: a replaced or damaged file raises ``ValueError`` instead of loading."""
+    """The model file of ``"pretrained:NAME"`` (or ``NAME``): its checkpoint ``.pt``, or its grid
+    ``.npz`` for a grid card, after checking it is the file its card describes: a replaced or
+    damaged file raises ``ValueError`` instead of loading."""
     name = source[len(PREFIX) :] if is_pretrained(source) else source
     c = card(name)
-    path = DIRECTORY / f"{name}.pt"
+    path = DIRECTORY / f"{name}{MODEL_SUFFIXES[c.format]}"
     if not path.is_file():
-        raise ValueError(f"{PREFIX}{name}: its checkpoint {path} is missing from the installed package")
+        raise ValueError(f"{PREFIX}{name}: its model file {path} is missing from the installed package")
     if file_sha256(path) != c.sha256:
         raise ValueError(f"{PREFIX}{name}: {path} is not the file its model card describes (SHA-256 mismatch)")
     return path
 
 
 def for_env(env_id: str | None, system: Any) -> str:
-    """The ``"pretrained:NAME"`` source a filter on env ``env_id`` uses when given no value function.
+    """The source a filter on env ``env_id`` uses when given no value function: ``"pretrained:NAME"``,
+    or the card's ``filter_source`` where it names one (``"cap:pretrained:multivehicle9d,..."``).
 
     A card listing ``env_id`` wins; otherwise a model trained for a system of the same physics as
     ``system`` (:meth:`~reach.systems.base.ControlAffineSystem.same_physics`). None raises
@@ -181,11 +204,11 @@ def for_env(env_id: str | None, system: Any) -> str:
     all_cards = cards()
     for c in all_cards:
         if env_id is not None and env_id in c.env_ids:
-            return PREFIX + c.name
+            return c.filter_source or PREFIX + c.name
     wanted = make_system(system)
     for c in all_cards:
         if wanted.same_physics(make_system(c.system)):
-            return PREFIX + c.name
+            return c.filter_source or PREFIX + c.name
     raise ValueError(
         f"no pretrained value function for env {env_id or '(no id)'} ({wanted.name}); shipped: "
         f"{', '.join(f'{c.name} ({c.system})' for c in all_cards) or 'none'}; pass a value function"
