@@ -204,7 +204,8 @@ class TrainConfig(SystemSpecified):
             raise ValueError("compile needs gradients='fused' (torch.compile does not take double backward)")
         if self.upper_bound is not None and (not isinstance(self.upper_bound, str) or not self.upper_bound):
             raise ValueError(
-                f"upper_bound must be the path of a pair grid solution or pretrained:relativepair, got {self.upper_bound!r}"
+                "upper_bound must be the path of a pair grid solution or pretrained:relativepair, "
+                f"got {self.upper_bound!r}"
             )
         if self.lower_bound is not None and self.lower_bound not in LOWER_BOUNDS:
             raise ValueError(f"lower_bound must be one of {LOWER_BOUNDS} or null (none), got {self.lower_bound!r}")

@@ -3,7 +3,8 @@
 ``<!-- generated: environment table -->`` becomes one row per registered environment (spaces,
 dynamics summary, horizon) built from its scene and system; ``<!-- generated: cli reference -->``
 becomes every subcommand's ``--help``, defaults included (they come from the library's dataclasses);
-``<!-- generated: pretrained cards -->`` becomes the shipped models' card table (package data).
+``<!-- generated: pretrained cards -->`` becomes the shipped models' card table (package data);
+``<!-- generated: system gallery -->`` becomes one section per built-in system (:mod:`studies.gallery`).
 """
 
 from __future__ import annotations
@@ -106,10 +107,19 @@ def _card_row(model: str, what: str, trained: str, m: dict) -> str:
     )
 
 
+def _system_gallery() -> str:
+    from pathlib import Path
+
+    from studies.gallery import gallery_markdown
+
+    return gallery_markdown(Path(__file__).resolve().parents[1])
+
+
 GENERATORS = {
     "<!-- generated: environment table -->": _environment_table,
     "<!-- generated: cli reference -->": _cli_reference,
     "<!-- generated: pretrained cards -->": _pretrained_cards,
+    "<!-- generated: system gallery -->": _system_gallery,
 }
 
 
