@@ -6,7 +6,9 @@ Importing the package registers with Gymnasium (also reachable as ``gym.make("re
   ``Air3D-v0``, ``MultiVehicle6D-v0`` and ``MultiVehicle9D-v0``;
 * :data:`SYSTEM_ENVS`, every other built-in system, no value network shipped yet:
   ``DubinsReachAvoid-v0``, ``Dubins3D-v0`` (DeepReach's reach problem), ``NarrowPassage-v0``,
-  ``Quadrotor-v0``, ``ParameterizedVertDrone2D-v0``, ``MultiVehicle12D-v0`` and ``MultiVehicle15D-v0``;
+  ``Quadrotor-v0``, ``ParameterizedVertDrone2D-v0``, ``MultiVehicle12D-v0``, ``MultiVehicle15D-v0``,
+  ``RocketLanding-v0`` and ``ReachAvoidRocketLanding-v0`` (thrust in a disc: an action outside the
+  unit disc is scaled back onto it, :func:`reach_envs.spaces.inputs_of_actions`);
 * ``Reach-v0``, any system: ``gym.make("Reach-v0", system=DubinsAvoid(), dt=0.02)``.
 
 Environments of reach and reach-avoid systems end on reaching the goal or on a collision, and report
@@ -51,6 +53,8 @@ SYSTEM_ENVS: dict[str, dict[str, Any]] = {
     "ParameterizedVertDrone2D-v0": {"system": "parameterizedvertdrone2d"},
     "MultiVehicle12D-v0": {"scene": "four-car-12d"},
     "MultiVehicle15D-v0": {"scene": "five-car-15d"},
+    "RocketLanding-v0": {"system": "rocketlanding", "dt": 0.01},
+    "ReachAvoidRocketLanding-v0": {"system": "reachavoidrocketlanding", "dt": 0.01},
 }
 
 #: Gymnasium id of the environment of any system, given as ``system=``.

@@ -51,6 +51,7 @@ import gymnasium as gym
 import numpy as np
 
 from reach.systems.arrays import FLOAT
+from reach.systems.box import Ball
 from reach_envs.regions import OUTCOME_REWARDS, episode_outcome
 from reach_envs.scenes import Scene, env_scene
 from reach_envs.simulator import SceneSimulator
@@ -60,6 +61,7 @@ from reach_envs.spaces import (
     check_action,
     check_reset_options,
     check_state,
+    inputs_of_actions,
     observation_space,
 )
 from reach_envs.views import make_renderer, render_frame, trail_points
@@ -104,6 +106,7 @@ class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
         self._action_shape = (system.control_dim,)
         self._u_centre = system.control_bounds.center
         self._u_half = system.control_bounds.half_width
+        self._u_ball = isinstance(system.control_bounds, Ball)
         self._sampler = self.scene.sampler()
         self._dt = self.scene.dt
         self._max_steps = self.scene.max_steps
@@ -152,9 +155,13 @@ class ReachEnv(gym.Env[np.ndarray, np.ndarray]):
                 "inside the failure set or past the horizon)"
             )
         a = check_action(action, self._action_shape).tolist()
-        u = [
-            c + h * (-1.0 if v < -1.0 else (1.0 if v > 1.0 else v)) for v, c, h in zip(a, self._u_centre, self._u_half)
-        ]
+        if self._u_ball:
+            u = inputs_of_actions(np.asarray(a), self.system.control_bounds).tolist()
+        else:  # per-input clip in Python floats: the fast path of one env step
+            u = [
+                c + h * (-1.0 if v < -1.0 else (1.0 if v > 1.0 else v))
+                for v, c, h in zip(a, self._u_centre, self._u_half)
+            ]
         sim = self.sim
         x = self._state
         d = sim.disturbance(x, self.np_random)

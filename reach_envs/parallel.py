@@ -39,6 +39,7 @@ from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
 from reach.systems.arrays import FLOAT
+from reach.systems.box import require_box
 from reach.systems.multivehicle import MultiVehicle
 from reach_envs.agents import agent_inputs
 from reach_envs.regions import OUTCOME_REWARDS, episode_outcome
@@ -93,6 +94,8 @@ class MultiVehicleParallelEnv(ParallelEnv):
         )
         self._obs_space = observation_space(system)
         self._act_spaces = {name: action_space(len(k)) for name, k in inputs.items()}
+        # each agent's inputs are clipped on their own: a ball couples them (no built-in agent has one)
+        require_box(system.control_bounds, "the PettingZoo env")
         self._centre = system.control_bounds.center
         self._half = system.control_bounds.half_width
         self._reaches = system.problem.reaches

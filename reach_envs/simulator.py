@@ -19,6 +19,7 @@ import numpy as np
 
 from reach.integrators import make_stepper
 from reach.systems.arrays import FLOAT, Backend, Column
+from reach.systems.box import require_box
 from reach_envs.policies import make_disturbance_policy
 from reach_envs.scenes import Scene
 
@@ -33,6 +34,8 @@ class SceneSimulator:
         self.calls: Counter[str] = Counter()
         self._step = make_stepper(self.system, scene.dt, scene.integrator, xp)
         self._policy = make_disturbance_policy(self.system, scene.disturbance)
+        # disturbance policies clip to (and sample) the box: a ball of disturbances is refused by name
+        require_box(self.system.disturbance_bounds, "an env's disturbance policy")
         self._d_low = self.system.disturbance_bounds.low
         self._d_high = self.system.disturbance_bounds.high
         self._d_centre = list(self.system.disturbance_bounds.center)

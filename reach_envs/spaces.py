@@ -14,6 +14,7 @@ import numpy as np
 from gymnasium import spaces
 
 from reach.systems.base import ControlAffineSystem
+from reach.systems.box import Ball, InputSet
 
 
 def observation_space(system: ControlAffineSystem) -> spaces.Box:
@@ -24,8 +25,20 @@ def observation_space(system: ControlAffineSystem) -> spaces.Box:
 
 
 def action_space(dim: int) -> spaces.Box:
-    """Controls (turn rates, ...) normalised to [-1, 1]: -1 and 1 are the ends of each control's box."""
+    """Controls (turn rates, ...) normalised to [-1, 1]: -1 and 1 are the ends of each control's box
+    (of a ball of controls' bounding box: :func:`inputs_of_actions` keeps them in the ball)."""
     return spaces.Box(low=-1.0, high=1.0, shape=(dim,), dtype=np.float32)
+
+
+def inputs_of_actions(actions: np.ndarray, bounds: InputSet) -> np.ndarray:
+    """Normalised actions ``(..., m)`` as inputs: each clipped to [-1, 1], then ``c + hw a``. For a
+    ball of inputs (centre ``c``, radius ``r``) an action outside the unit ball is scaled back onto
+    it, ``u = c + r a / max(1, |a|_2)``: the nearest input the system can take, as clipping is for a
+    box (documented behaviour, like the clip)."""
+    a = np.clip(np.asarray(actions, dtype=np.float64), -1.0, 1.0)
+    if isinstance(bounds, Ball):
+        a = a / np.maximum(1.0, np.linalg.norm(a, axis=-1, keepdims=True))
+    return np.asarray(bounds.center) + np.asarray(bounds.half_width) * a
 
 
 def check_action(action: object, shape: tuple[int, ...]) -> np.ndarray:

@@ -30,7 +30,14 @@ from reach.systems.arrays import NUMPY
 from reach_envs.regions import COLLIDED, OUT_OF_ARENA, OUTCOME_REWARDS, REACHED, TIMEOUT
 from reach_envs.scenes import Scene, env_scene
 from reach_envs.simulator import SceneSimulator
-from reach_envs.spaces import action_space, check_action, check_reset_options, check_state, observation_space
+from reach_envs.spaces import (
+    action_space,
+    check_action,
+    check_reset_options,
+    check_state,
+    inputs_of_actions,
+    observation_space,
+)
 from reach_envs.views import make_renderer, render_frame
 
 
@@ -67,8 +74,6 @@ class ReachVectorEnv(VectorEnv):
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self._action_shape = (num_envs, system.control_dim)
-        self._u_centre = system.control_bounds.center
-        self._u_half = system.control_bounds.half_width
         self._sampler = self.scene.sampler()
         self._rngs = [seeding.np_random(None)[0] for _ in range(num_envs)]
         self._seeded = [False] * num_envs
@@ -159,8 +164,7 @@ class ReachVectorEnv(VectorEnv):
         return self._observation(), info
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
-        a = np.clip(check_action(actions, self._action_shape), -1.0, 1.0)
-        u = [c + h * a[:, j] for j, (c, h) in enumerate(zip(self._u_centre, self._u_half))]
+        u = list(inputs_of_actions(check_action(actions, self._action_shape), self.system.control_bounds).T)
         sim = self.sim
         d = sim.disturbance(self._state, self._step_rng)
         self._state = sim.advance(self._state, u, d, self._step_rng)

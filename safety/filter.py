@@ -93,6 +93,7 @@ import torch
 from reach.integrators import check_integrator, make_stepper
 from reach.systems.arrays import TORCH
 from reach.systems.base import ControlAffineSystem
+from reach.systems.box import Ball, InputSet, require_box
 from reach.validation import positive_finite
 from reach.value_function import ValueFunction
 from safety.filter_settings import (
@@ -167,6 +168,15 @@ class FilterInfo:
     infeasible: torch.Tensor | None = None
 
 
+def project_inputs(u: torch.Tensor, bounds: InputSet) -> torch.Tensor:
+    """``u`` moved into the input set: clipped to a box, scaled back onto a ball along ``u - c``."""
+    if isinstance(bounds, Ball):
+        c = u.new_tensor(bounds.center)
+        norm = torch.linalg.vector_norm(u - c, dim=-1, keepdim=True)
+        return c + (u - c) * torch.clamp(bounds.radius / norm.clamp_min(1e-300), max=1.0)
+    return torch.minimum(torch.maximum(u, u.new_tensor(bounds.low)), u.new_tensor(bounds.high))
+
+
 class SafetyFilter:
     """A safety filter around a value function (see the module docstring).
 
@@ -210,6 +220,8 @@ class SafetyFilter:
             make_filter_settings(settings, threshold=threshold, **options), value_function.system
         )
         kind = settings.kind
+        if kind == "smooth":  # refused now, before any decision, not at the first one
+            require_box(value_function.system.control_bounds, "the smooth filter (its projection is over a box)")
         if dt is not None:
             dt = positive_finite("the filter's step dt", dt)
         if kind == "lookahead":
@@ -272,10 +284,10 @@ class SafetyFilter:
             raise ValueError(f"u_nominal must be a floating-point tensor, got {u_nominal.dtype}")
         if not bool(torch.isfinite(u_nominal).all()):
             raise ValueError(f"u_nominal contains NaN or inf: {u_nominal[~torch.isfinite(u_nominal)][:4].tolist()}")
-        # an input outside the control box cannot be applied: every kind decides on (and keeps) the
-        # input the system would get, the nominal one clipped to the box (unchanged where inside)
-        box = system.control_bounds
-        given = torch.minimum(torch.maximum(u_nominal, u_nominal.new_tensor(box.low)), u_nominal.new_tensor(box.high))
+        # an input outside the control set cannot be applied: every kind decides on (and keeps) the
+        # input the system would get, the nominal one clipped to the box or scaled into the ball
+        # (unchanged where inside)
+        given = project_inputs(u_nominal, system.control_bounds)
         value, p, u_star, d_star = self._evaluate(x, t)
         u_nominal = given.to(u_star.dtype)
         infeasible = None
@@ -456,7 +468,7 @@ class SafetyFilter:
         if d is None or not bool(greedy.any()):
             return y
         system = self.system
-        box = system.disturbance_bounds
+        box = require_box(system.disturbance_bounds, "the lookahead filter's greedy disturbance corners")
         xg, ug = x[greedy], u[greedy]
         corners = torch.cartesian_prod(
             *[torch.tensor([lo, hi], dtype=d.dtype, device=d.device) for lo, hi in zip(box.low, box.high)]
@@ -553,7 +565,7 @@ class SafetyFilter:
         is piecewise linear and non-decreasing in ``lam``, so it is solved exactly between two kinks.
         Infeasible where even ``u*`` (the box corner along ``a``) falls short."""
         system = self.system
-        box = system.control_bounds
+        box = require_box(system.control_bounds, "the smooth filter (its projection is over a box)")
         dtype = torch.float64
         lo = torch.tensor(box.low, dtype=dtype, device=x.device)
         hi = torch.tensor(box.high, dtype=dtype, device=x.device)

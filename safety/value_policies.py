@@ -19,6 +19,7 @@ import torch
 
 from reach.integrators import check_integrator, make_stepper
 from reach.systems.arrays import TORCH
+from reach.systems.box import require_box
 from reach.validation import is_positive_finite
 from reach.value_function import ValueFunction, value_and_gradient
 
@@ -131,7 +132,8 @@ class GreedyPolicy:
         self.step = float(step)
         self.substeps = max(1, math.ceil(self.step / float(dt) - 1e-9))
         self._advance = make_stepper(system, self.step / self.substeps, check_integrator(integrator), TORCH)
-        box = system.control_bounds
+        box = require_box(system.control_bounds, "the greedy policy")
+        require_box(system.disturbance_bounds, "the greedy policy")
         self._controls = torch.tensor([box.center, *itertools.product(*zip(box.low, box.high))], dtype=torch.float64)
         self._disturbances = (
             torch.tensor(list(itertools.product(*zip(system.disturbance_bounds.low, system.disturbance_bounds.high))))

@@ -51,6 +51,7 @@ from gymnasium.vector import VectorWrapper
 from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from reach.value_function import ValueFunction, check_time_coverage
+from reach_envs.spaces import inputs_of_actions
 from safety.filter import FilterInfo, SafetyFilter, require_served_kind
 from safety.filter_settings import DEFAULT_GAMMA, REMAINING, FilterSettings, default_threshold, make_filter_settings
 from safety.sources import as_value_function
@@ -99,6 +100,7 @@ class _Adapter:
         self.settings = settings
         self.time_to_go = time_to_go
         self.episode_horizon = episode_horizon
+        self.bounds = system.control_bounds
         self.centre = np.array(system.control_bounds.center)
         self.half = np.array(system.control_bounds.half_width)
 
@@ -118,7 +120,7 @@ class _Adapter:
         if not np.isfinite(a).all():
             raise ValueError(f"action contains a non-finite value (NaN or inf): {action!r}")
         x = torch.as_tensor(state, dtype=torch.float64)
-        u_nominal = torch.as_tensor(self.centre + self.half * np.clip(a, -1.0, 1.0))
+        u_nominal = torch.as_tensor(inputs_of_actions(a, self.bounds))
         t = self.times(elapsed)
         _, info = self.filter(x, t, u_nominal)
         star = (info.applied.numpy() - self.centre) / self.half

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from reach.systems import make_system
 from reach.systems.base import ControlAffineSystem
+from reach.systems.box import Ball
 
 #: (registered name, where it comes from), in the gallery's order: DeepReach's public release first
 GALLERY: tuple[tuple[str, str], ...] = (
@@ -24,6 +25,8 @@ GALLERY: tuple[tuple[str, str], ...] = (
     ("multivehicle9d", "DeepReach `MultiVehicleCollision`"),
     ("narrowpassage", "DeepReach `NarrowPassage` (reach-avoid; `avoid_only=True` for its avoid variant)"),
     ("quadrotor", "DeepReach `Quadrotor` (avoid; `set_mode='reach'` for its reach variant)"),
+    ("rocketlanding", "DeepReach `RocketLanding`: thrust in a disc of radius 250"),
+    ("reachavoidrocketlanding", "DeepReach `ReachAvoidRocketLanding`: land past a wall, above the floor"),
     ("air3d", "the seed paper's pursuit-evasion game in relative coordinates"),
     ("relativepair", "the two-car problem whose pairwise union bounds the N-car family"),
     ("multivehicle6d", "Air3D in absolute coordinates"),
@@ -34,7 +37,6 @@ GALLERY: tuple[tuple[str, str], ...] = (
 
 #: DeepReach systems not yet here, and why
 MISSING: tuple[tuple[str, str], ...] = (
-    ("RocketLanding, ReachAvoidRocketLanding (6D)", "their thrust lies in a disc, and reach input sets are boxes"),
     ("Dubins4D", "DeepReach's public release declares it without dynamics"),
 )
 
@@ -56,6 +58,10 @@ def _spaces(system: ControlAffineSystem) -> list[str]:
     rows.append("")
     for what, box in (("control", system.control_bounds), ("disturbance", system.disturbance_bounds)):
         if box.dim:
+            if isinstance(box, Ball):
+                centre = ", ".join(_number(c) for c in box.center)
+                rows.append(f"- {what} inputs ({box.dim}): the disc |u - ({centre})| <= {_number(box.radius)}")
+                continue
             bounds = ", ".join(f"[{_number(lo)}, {_number(hi)}]" for lo, hi in zip(box.low, box.high))
             rows.append(f"- {what} inputs ({box.dim}): {bounds}")
         else:

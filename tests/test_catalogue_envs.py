@@ -29,6 +29,8 @@ NEW_IDS = [
     "ParameterizedVertDrone2D-v0",
     "MultiVehicle12D-v0",
     "MultiVehicle15D-v0",
+    "RocketLanding-v0",
+    "ReachAvoidRocketLanding-v0",
 ]
 
 
@@ -176,3 +178,47 @@ def test_safety_filter_wraps_the_team_env_with_each_driver_acting_two_inputs():
             np.testing.assert_allclose(info["applied_action"], [0.5, -0.25], rtol=1e-6)
     with pytest.raises(ValueError, match=r"action of 'car_1' must have shape \(2,\)"):
         penv.step({a: np.zeros(1, dtype=np.float32) for a in penv.agents})
+
+
+def test_a_disc_of_thrust_takes_actions_inside_the_disc_and_scales_the_rest_onto_it():
+    """The rocket's action space is the unit square over the disc's bounding box: an action inside the
+    unit disc is the thrust c + r a, one outside is scaled back onto the disc (never an input the
+    system cannot take); the vector env maps the same way; the filter projects a nominal thrust the
+    same way; what needs box inputs refuses the disc by name."""
+    import torch
+
+    from reach.systems import RocketLanding
+    from reach_envs.spaces import inputs_of_actions
+    from safety.filter import project_inputs
+    from safety.value_policies import GreedyPolicy
+    from training.network import NeuralValueFunction, ValueNetwork
+
+    disc = RocketLanding().control_bounds
+    np.testing.assert_allclose(inputs_of_actions(np.array([0.3, -0.4]), disc), [75.0, -100.0])
+    np.testing.assert_allclose(inputs_of_actions(np.array([1.0, 1.0]), disc), [250 / math.sqrt(2)] * 2)
+    np.testing.assert_allclose(inputs_of_actions(np.array([[3.0, 0.0]]), disc), [[250.0, 0.0]])  # clipped first
+    u = torch.tensor([[300.0, 400.0], [10.0, 20.0]], dtype=torch.float64)
+    torch.testing.assert_close(
+        project_inputs(u, disc), torch.tensor([[150.0, 200.0], [10.0, 20.0]], dtype=torch.float64)
+    )
+    env = gym.make("RocketLanding-v0").unwrapped
+    env.reset(seed=0, options={"state": [0.0, 100.0, 0.0, 0.0, 0.0, 0.0]})
+    env.step(np.array([1.0, 1.0], dtype=np.float32))  # the thrust at 45 degrees on the disc's edge
+    from reach.integrators import make_stepper
+    from reach.systems import FLOAT
+
+    step = make_stepper(env.system, 0.01, env.scene.integrator, FLOAT)
+    expected = step([0.0, 100.0, 0.0, 0.0, 0.0, 0.0], [250 / math.sqrt(2)] * 2, [])
+    np.testing.assert_allclose(env.state, expected, rtol=1e-6)
+    venv = reach_envs.make_vector_env("rocketlanding", 2, dt=0.01)
+    venv.reset(seed=0, options={"state": np.array([[0.0, 100.0, 0.0, 0.0, 0.0, 0.0]] * 2)})
+    venv.step(np.array([[1.0, 1.0], [0.0, 0.0]], dtype=np.float32))
+    assert venv.state[0, 4] == pytest.approx(env.state[4], rel=1e-9)
+    vf = NeuralValueFunction(ValueNetwork(RocketLanding(), "ssl", width=8))
+    with pytest.raises(ValueError, match=r"the greedy policy needs box inputs.*ball of radius 250"):
+        GreedyPolicy(vf, step=0.01, dt=0.01)
+    class TwoPilots(RocketLanding):  # one pilot per thrust component: agents whose inputs a disc couples
+        agent_inputs = {"pilot_1": (0,), "pilot_2": (1,)}
+
+    with pytest.raises(ValueError, match="the PettingZoo env needs box inputs"):
+        MultiVehicleParallelEnv(system=TwoPilots())

@@ -20,6 +20,8 @@ from reach.systems import (
     NarrowPassage,
     ParameterizedVertDrone2D,
     Quadrotor,
+    ReachAvoidRocketLanding,
+    RocketLanding,
     make_system,
 )
 
@@ -34,6 +36,8 @@ CASES = [
     ("quadrotor", {"set_mode": "reach", "collisionR": 0.3, "thrust_max": 5.0}, "reach"),
     ("parameterizedvertdrone2d", {}, "avoid"),
     ("parameterizedvertdrone2d", {"gravity": 9.81, "input_multiplier_max": 20.0, "input_magnitude_max": 2.0}, "avoid"),
+    ("rocketlanding", {}, "reach"),
+    ("reachavoidrocketlanding", {"horizon": 2.0}, "reach-avoid"),
 ]
 
 
@@ -270,3 +274,72 @@ def test_vert_drone_matches_deepreach():
     dsdt = torch.stack([k * u[..., 0] - 9.81, v, torch.zeros_like(v)], dim=-1)
     torch.testing.assert_close(system.dynamics(x, u), dsdt, **TOL)
     torch.testing.assert_close(system.failure_margin(x), 1.5 - (x[..., 1] - 1.5).abs(), **TOL)
+
+
+# ---------------------------------------------------------------- the rockets (a disc of thrust)
+def _rocket_coefficients(x, p):
+    """DeepReach's two thrust coefficients, restated: the costate seen through the rocket's heading."""
+    c, s = torch.cos(x[:, 2]), torch.sin(x[:, 2])
+    return p[:, 3] * c + p[:, 4] * s + 0.3 * p[:, 5], -p[:, 3] * s + p[:, 4] * c
+
+
+def _rocket_hamiltonian(x, p):
+    a, b = _rocket_coefficients(x, p)
+    drift = p[:, 0] * x[:, 3] + p[:, 1] * x[:, 4] + p[:, 2] * x[:, 5] - 9.81 * p[:, 4]
+    return drift - 250.0 * torch.sqrt(a * a + b * b)
+
+
+def _rocket_thrust(x, p):
+    a, b = _rocket_coefficients(x, p)
+    angle = torch.atan2(b, a) + math.pi  # against the coefficients, at full thrust
+    return torch.stack([250.0 * torch.cos(angle), 250.0 * torch.sin(angle)], -1)
+
+
+def _rocket_target(x):
+    m = torch.maximum(x[:, 0].abs() - 20.0, x[:, 1] - 20.0)
+    return torch.where(m >= 0, m / 150.0, m / 10.0)
+
+
+def _rocket_wall(x):
+    dx = torch.maximum(-30.0 - x[:, 0], x[:, 0] + 20.0)
+    dy = torch.maximum(0.0 - x[:, 1], x[:, 1] - 100.0)
+    outside = torch.sqrt(dx.clamp_min(0) ** 2 + dy.clamp_min(0) ** 2)
+    return torch.minimum(x[:, 1], outside + torch.maximum(dx, dy).clamp_max(0))
+
+
+@pytest.mark.parametrize("system", [RocketLanding(), ReachAvoidRocketLanding()], ids=lambda s: s.name)
+def test_rockets_match_deepreach_with_a_disc_of_thrust(system):
+    x, p = _batch(system)
+    torch.testing.assert_close(system.hamiltonian(x, p), _rocket_hamiltonian(x, p), **TOL)
+    torch.testing.assert_close(system.optimal_control(x, p), _rocket_thrust(x, p), **TOL)
+    torch.testing.assert_close(system.target_margin(x), _rocket_target(x), **TOL)
+    if system.kind == "reach-avoid":
+        torch.testing.assert_close(system.constraint_margin(x), _rocket_wall(x), **TOL)
+        torch.testing.assert_close(system.boundary_value(x), torch.maximum(_rocket_target(x), -_rocket_wall(x)), **TOL)
+    # H is the minimum over the disc: no thrust on a fine ring of the boundary does better
+    angles = torch.linspace(0, 2 * math.pi, 721, dtype=F64)[:-1]
+    ring = 250.0 * torch.stack([torch.cos(angles), torch.sin(angles)], -1)
+    xs, ps = x[:50], p[:50]
+    xdot = system.dynamics(xs.repeat_interleave(len(ring), 0), ring.repeat(50, 1)).reshape(50, len(ring), 6)
+    brute = (ps.unsqueeze(1) * xdot).sum(-1).min(-1).values
+    assert (system.hamiltonian(xs, ps) <= brute + 1e-9).all()
+    assert (brute - system.hamiltonian(xs, ps)).max() < 250.0 * 3.0 * 20 * (1 - math.cos(math.pi / 720))
+    # every backend derives the same H and thrust
+    for k in range(3):
+        xs, ps = x[k].tolist(), p[k].tolist()
+        assert system.hamiltonian_columns(xs, ps, FLOAT) == pytest.approx(float(system.hamiltonian(x[k], p[k])), 1e-12)
+    h_np = system.hamiltonian_columns(NUMPY.unbind(x.numpy()), NUMPY.unbind(p.numpy()), NUMPY)
+    np.testing.assert_allclose(h_np, system.hamiltonian(x, p).numpy(), rtol=1e-12, atol=1e-9)
+
+
+def test_zero_costate_gives_the_disc_centre_and_a_finite_gradient():
+    """Where the thrust coefficients vanish the optimal thrust is the centre (no NaN from 0/0), and
+    autograd through H (training differentiates the residual) gives finite gradients there."""
+    system = RocketLanding()
+    x = system.sample_states(4, torch.Generator().manual_seed(0), dtype=F64)
+    p = torch.zeros(4, 6, dtype=F64)
+    p[:, 0] = 1.0  # no component on the velocities or the rate: coefficients 0
+    assert torch.equal(system.optimal_control(x, p), torch.zeros(4, 2, dtype=F64))
+    p.requires_grad_(True)
+    (grad,) = torch.autograd.grad(system.hamiltonian(x, p).sum(), p)
+    assert torch.isfinite(grad).all()

@@ -33,6 +33,7 @@ import torch
 from reach.integrators import make_stepper
 from reach.systems.arrays import TORCH
 from reach.systems.base import ControlAffineSystem
+from reach.systems.box import require_box
 from reach.validation import check_float, positive_finite
 from training.network import NeuralValueFunction, ValueNetwork
 
@@ -76,7 +77,7 @@ def _closed_loop(
     _check_dt(dt)
     value_function = NeuralValueFunction(network)
     advance = make_stepper(system, dt, "rk4", TORCH)
-    box = system.control_bounds
+    box = require_box(system.control_bounds, "policy lower-bound labels (their noisy inputs are clipped to the box)")
     centre, half = (torch.tensor(v, dtype=x.dtype, device=x.device) for v in (box.center, box.half_width))
     x = x.detach().clone()
     t, duration = t.detach(), duration.detach()

@@ -10,8 +10,14 @@ from __future__ import annotations
 from reach.systems.air3d import Air3D, RelativePair
 from reach.systems.arrays import FLOAT, NUMPY, TORCH
 from reach.systems.base import ControlAffineSystem
-from reach.systems.box import Box
-from reach.systems.deepreach_catalogue import NarrowPassage, ParameterizedVertDrone2D, Quadrotor
+from reach.systems.box import Ball, Box
+from reach.systems.deepreach_catalogue import (
+    NarrowPassage,
+    ParameterizedVertDrone2D,
+    Quadrotor,
+    ReachAvoidRocketLanding,
+    RocketLanding,
+)
 from reach.systems.deepreach_normalisation import DeepReachNormalisation
 from reach.systems.dubins import Dubins3D, DubinsReachAvoid
 from reach.systems.multivehicle import (
@@ -45,6 +51,8 @@ for _builtin in (
     NarrowPassage,
     Quadrotor,
     ParameterizedVertDrone2D,
+    RocketLanding,
+    ReachAvoidRocketLanding,
 ):
     register_system(_builtin)
 
@@ -55,6 +63,7 @@ __all__ = [
     "SYSTEMS",
     "TORCH",
     "Air3D",
+    "Ball",
     "Box",
     "Car",
     "ControlAffineSystem",
@@ -69,7 +78,9 @@ __all__ = [
     "NarrowPassage",
     "ParameterizedVertDrone2D",
     "Quadrotor",
+    "ReachAvoidRocketLanding",
     "RelativePair",
+    "RocketLanding",
     "ValueFunction",
     "make_system",
     "register_system",

@@ -77,6 +77,11 @@ class FloatBackend:
         return math.hypot(dx, dy)
 
     @staticmethod
+    def norm(columns: Sequence[float]) -> float:
+        """The Euclidean norm across columns (a ball of inputs' support function)."""
+        return math.sqrt(sum(c * c for c in columns))
+
+    @staticmethod
     def wrap_angle(a: float) -> float:
         # math.remainder is exact (IEEE remainder), so the result lies in [-pi, pi] without
         # rounding; the single value +pi is moved to -pi to make the interval half-open.
@@ -103,6 +108,11 @@ class NumpyBackend:
     where = staticmethod(np.where)
     clip = staticmethod(np.clip)
     hypot = staticmethod(np.hypot)
+
+    @staticmethod
+    def norm(columns: Sequence[Column]) -> np.ndarray:
+        """The Euclidean norm across columns."""
+        return np.sqrt(sum(np.square(c) for c in columns))
 
     @staticmethod
     def unbind(x: np.ndarray) -> list[np.ndarray]:
@@ -161,6 +171,13 @@ class TorchBackend:
     @staticmethod
     def clip(a: torch.Tensor, lo: float, hi: float) -> torch.Tensor:
         return torch.clamp(a, lo, hi)
+
+    @staticmethod
+    def norm(columns: Sequence[Column]) -> torch.Tensor:
+        """The Euclidean norm across columns, with a zero (sub)gradient where it is 0."""
+        ref = next(c for c in columns if isinstance(c, torch.Tensor))
+        cols = [c if isinstance(c, torch.Tensor) else torch.full_like(ref, float(c)) for c in columns]
+        return torch.linalg.vector_norm(torch.stack(torch.broadcast_tensors(*cols)), dim=0)
 
     @staticmethod
     def hypot(dx: torch.Tensor, dy: torch.Tensor) -> torch.Tensor:

@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from reach.systems.arrays import FLOAT, TORCH, Backend, Column, is_number
-from reach.systems.box import NO_INPUT, Box  # also importable from here, as before the split
+from reach.systems.box import NO_INPUT, Ball, Box, InputSet  # also importable from here, as before the split
 from reach.systems.deepreach_normalisation import DeepReachNormalisation  # likewise
 from reach.systems.hamiltonian import FixedStateHamiltonian
 from reach.systems.problem import Objective, ProblemKind, problem_kind
@@ -58,6 +58,11 @@ class _CheckedOnConstruction(ABCMeta):
         return system
 
 
+def _radius(bounds: InputSet) -> float | None:
+    """A ball's radius, ``None`` for a box (the Hamiltonian's side descriptor)."""
+    return float(bounds.radius) if isinstance(bounds, Ball) else None
+
+
 class ControlAffineSystem(metaclass=_CheckedOnConstruction):
     """Base class of every dynamical system; subclasses declare physics only.
 
@@ -73,8 +78,8 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
     #: (low, high) per state dimension; periodic dimensions span one period [-pi, pi)
     domain: tuple[tuple[float, float], ...]
     periodic: tuple[bool, ...]
-    control_bounds: Box
-    disturbance_bounds: Box = NO_INPUT
+    control_bounds: InputSet
+    disturbance_bounds: InputSet = NO_INPUT
     #: the kind of problem (:mod:`reach.systems.problem`): ``"avoid"`` (write
     #: :meth:`failure_margin_columns`), ``"reach"`` (write :meth:`target_margin_columns`) or
     #: ``"reach-avoid"`` (both :meth:`target_margin_columns` and :meth:`constraint_margin_columns`).
@@ -209,7 +214,12 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
         if self.disturbance_dim:
             sides.append((self.disturbance_matrix(cols, TORCH), self.disturbance_bounds))
         for matrix, box in sides:
-            for sj, hw in zip(self._switching(matrix, pc, box.dim), box.half_width):
+            switching = self._switching(matrix, pc, box.dim)
+            if isinstance(box, Ball):  # max over the ball of |s . (u - c)| is r |s|_2
+                if any(isinstance(sj, torch.Tensor) for sj in switching):
+                    rate = rate + box.radius * TORCH.norm(switching)
+                continue
+            for sj, hw in zip(switching, box.half_width):
                 rate = rate + hw * (sj.abs() if isinstance(sj, torch.Tensor) else abs(sj))
         rate = rate[torch.isfinite(rate)]
         return float(rate.max()) if rate.numel() else 0.0
@@ -303,8 +313,8 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
             if periodic and not (abs(lo + math.pi) < 1e-6 and abs(hi - math.pi) < 1e-6):
                 raise ValueError(f"{what}: periodic dimension {name} must span [-pi, pi), got [{lo}, {hi}]")
         for side in ("control_bounds", "disturbance_bounds"):
-            if not isinstance(getattr(self, side), Box):
-                raise ValueError(f"{what}: {side} must be a Box, got {getattr(self, side)!r}")
+            if not isinstance(getattr(self, side), (Box, Ball)):
+                raise ValueError(f"{what}: {side} must be a Box or a Ball, got {getattr(self, side)!r}")
         problem = problem_kind(self.kind, what)
         for attr in ("control_objective", "disturbance_objective"):
             if any(attr in vars(cls) for cls in type(self).__mro__ if cls is not ControlAffineSystem):
@@ -368,8 +378,15 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
             s[j] = term if s[j] is None else s[j] + term  # solver runs these on every node, every stage)
         return [0.0 if sj is None else sj for sj in s]
 
-    def _optimal(self, s: Sequence[Column], box: Box, objective: Objective, xp: Backend) -> list[Column]:
+    def _optimal(self, s: Sequence[Column], box: InputSet, objective: Objective, xp: Backend) -> list[Column]:
         sigma = 1.0 if objective == "max" else -1.0
+        if isinstance(box, Ball):  # c + sigma r s / |s|_2; the centre where s = 0
+            numbers = all(isinstance(sj, (int, float)) for sj in s)
+            norm = math.sqrt(sum(sj * sj for sj in s)) if numbers else xp.norm(list(s))
+            if numbers:
+                return [c + (sigma * box.radius * sj / norm if norm > 0 else 0.0) for sj, c in zip(s, box.center)]
+            safe = xp.where(norm > 0, norm, 1.0)
+            return [c + sigma * box.radius * sj / safe for sj, c in zip(s, box.center)]
         return [c + sigma * h * xp.sign(sj) for sj, c, h in zip(s, box.center, box.half_width)]
 
     def optimal_inputs_columns(
@@ -402,14 +419,18 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
             sides.append((self.disturbance_matrix(x, xp), self.disturbance_bounds, self.disturbance_objective))
         return FixedStateHamiltonian(
             self.drift(x, xp),
-            [(m, box.center, box.half_width, 1.0 if objective == "max" else -1.0) for m, box, objective in sides],
+            [
+                (m, box.center, box.half_width, 1.0 if objective == "max" else -1.0, _radius(box))
+                for m, box, objective in sides
+            ],
             xp,
             scale=scale,
             prune=prune,
         )
 
     def dissipation_columns(self, x: Sequence[Column], xp: Backend) -> list[Column]:
-        """``max over the input boxes of |xdot_i|`` per state dimension: bounds ``|dH/dp_i|``."""
+        """``max over the input boxes of |xdot_i|`` per state dimension: bounds ``|dH/dp_i|``. A ball of
+        inputs counts as its bounding box, which contains it: still a bound, if not the tightest."""
         centre_u = self.control_bounds.center
         centre_d = self.disturbance_bounds.center
         out = list(self.xdot_columns(x, centre_u, centre_d, xp))

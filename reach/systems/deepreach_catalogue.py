@@ -1,4 +1,4 @@
-"""DeepReach's public-release systems that fit a control-affine, box-input definition.
+"""DeepReach's public-release systems, restated as control-affine systems with box or ball inputs.
 
 Restated from the physics of DeepReach's ``dynamics/dynamics.py`` (branch ``public_release``,
 commit ``2c3bf67``); each class declares physics only, and the Hamiltonian and optimal inputs are
@@ -14,9 +14,14 @@ the defaults here are ours and are said so where they appear.
 * :class:`ParameterizedVertDrone2D`: a vertical drone whose input gain ``k`` is part of the state,
   avoiding the floor and the ceiling.
 
-Not restated: ``RocketLanding`` and ``ReachAvoidRocketLanding`` take their thrust from a disc of
-radius 250 (their Hamiltonian has ``-250 |(s1, s2)|_2``), not from a box; ``Dubins4D`` defines no
-dynamics (its ``dsdt`` and ``hamiltonian`` raise ``NotImplementedError``).
+* :class:`RocketLanding` and :class:`ReachAvoidRocketLanding`: a planar rocket (6D) whose thrust
+  lies in a disc (a :class:`~reach.systems.box.Ball` of inputs), landing (reach), or landing past a
+  wall and above the floor (reach-avoid).
+
+Not restated: ``Dubins4D`` defines no dynamics (its ``dsdt`` and ``hamiltonian`` raise
+``NotImplementedError``). DeepReach's rockets and quadrotor train with ``diff_model=True``
+(``V = l(x) + scale * o``), a parameterisation reach does not implement, so their checkpoints do
+not import yet (:func:`training.deepreach.load_deepreach` takes vanilla models).
 """
 
 from __future__ import annotations
@@ -29,7 +34,7 @@ import torch
 
 from reach.systems.arrays import TORCH, Backend, Column
 from reach.systems.base import ControlAffineSystem, InputMatrix
-from reach.systems.box import Box
+from reach.systems.box import Ball, Box
 from reach.systems.deepreach_normalisation import DeepReachNormalisation
 from reach.systems.dubins import SET_MODES  # DeepReach's set_mode values, one table for every system
 from reach.validation import positive_finite
@@ -296,4 +301,77 @@ class ParameterizedVertDrone2D(ControlAffineSystem):
         return 1.5 - xp.abs(x[1] - 1.5)
 
 
-__all__ = ["NarrowPassage", "ParameterizedVertDrone2D", "Quadrotor"]
+class RocketLanding(ControlAffineSystem):
+    """DeepReach's rocket landing (6D, reach): state ``(x, y, th, vx, vy, w)``, a planar rocket of
+    heading ``th`` whose thrust ``u`` lies in a disc of radius 250 (a :class:`Ball` of inputs):
+    ``x' = vx``, ``y' = vy``, ``th' = w``, ``vx' = u1 cos th - u2 sin th``,
+    ``vy' = u1 sin th + u2 cos th - 9.81``, ``w' = 0.3 u1``. The target is the landing zone
+    ``|x| <= 20``, ``y <= 20``, with DeepReach's scaling of the margin: ``m = max(|x| - 20, y - 20)``,
+    ``l = m / 150`` outside and ``m / 10`` inside.
+
+    DeepReach's Hamiltonian, ``-250 |(s1, s2)|_2 + p . f``, and its optimal thrust, ``-250 s / |s|``,
+    are what the ball's support function derives (``tests/test_deepreach_catalogue.py``).
+    """
+
+    name = "rocketlanding"
+    kind = "reach"
+    state_names = ("x", "y", "th", "vx", "vy", "w")
+    periodic = (False, False, True, False, False, False)
+    thrust = 250.0
+    gravity = 9.81
+    torque_arm = 0.3
+    landing_half_width = 20.0
+    landing_height = 20.0
+
+    def __init__(self, horizon: float = 1.0) -> None:
+        self.horizon = positive_finite(f"{type(self).__name__}: horizon", horizon)
+        self.domain = (
+            (-150.0, 150.0),
+            (10.0, 150.0),
+            (-math.pi, math.pi),
+            (-200.0, 200.0),
+            (-200.0, 200.0),
+            (-10.0, 10.0),
+        )
+        self.control_bounds = Ball.centred(2, self.thrust)
+        self.deepreach = DeepReachNormalisation(
+            state_offset=(0.0, 80.0, 0.0, 0.0, 0.0, 0.0),
+            state_scale=(150.0, 70.0, 1.2 * math.pi, 200.0, 200.0, 10.0),
+            value_scale=1.0 / 0.02,
+            value_offset=0.0,
+        )
+
+    def parameters(self) -> dict[str, Any]:
+        return {"horizon": self.horizon}
+
+    def drift(self, x: Sequence[Column], xp: Backend) -> list[Column]:
+        return [x[3], x[4], x[5], 0.0 * x[3], 0.0 * x[4] - self.gravity, 0.0 * x[5]]
+
+    def control_matrix(self, x: Sequence[Column], xp: Backend) -> InputMatrix:
+        c, s = xp.cos(x[2]), xp.sin(x[2])
+        return {(3, 0): c, (3, 1): -s, (4, 0): s, (4, 1): c, (5, 0): self.torque_arm}
+
+    def target_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
+        m = _maximum(xp.abs(x[0]) - self.landing_half_width, x[1] - self.landing_height, xp)
+        return xp.where(m >= 0, m / 150.0, m / 10.0)
+
+
+class ReachAvoidRocketLanding(RocketLanding):
+    """:class:`RocketLanding` as a reach-avoid problem (DeepReach's ``ReachAvoidRocketLanding``): land
+    without touching the floor ``y = 0`` or a wall, the box ``x`` in [-30, -20], ``y`` in [0, 100].
+    ``g = min(y, d_wall)`` with ``d_wall`` the signed distance to the wall (unscaled, as in DeepReach)."""
+
+    name = "reachavoidrocketlanding"
+    kind = "reach-avoid"
+    wall = ((-30.0, -20.0), (0.0, 100.0))
+
+    def constraint_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
+        (left, right), (bottom, top) = self.wall
+        dx = _maximum(left - x[0], x[0] - right, xp)
+        dy = _maximum(bottom - x[1], x[1] - top, xp)
+        outside = xp.hypot(_maximum(dx, 0.0 * dx, xp), _maximum(dy, 0.0 * dy, xp))
+        inside = xp.minimum(_maximum(dx, dy, xp), 0.0 * dx)
+        return xp.minimum(x[1], outside + inside)
+
+
+__all__ = ["NarrowPassage", "ParameterizedVertDrone2D", "Quadrotor", "ReachAvoidRocketLanding", "RocketLanding"]

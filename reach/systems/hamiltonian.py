@@ -6,7 +6,8 @@ has a closed form (``docs/concepts.md``)::
     H = p . f(x) + sum_j (c_j s_j + sigma hw_j |s_j|),    s = G(x)^T p
 
 over the control's and the disturbance's input dimensions ``j`` (centre ``c``, half width ``hw``,
-``sigma = +1`` for the maximising player, ``-1`` for the minimising one).
+``sigma = +1`` for the maximising player, ``-1`` for the minimising one). A side whose inputs lie
+in a ball of radius ``r`` adds ``c . s + sigma r |s|_2`` instead.
 
 :class:`FixedStateHamiltonian` evaluates ``f(x)`` and ``G(x)`` once and keeps the costate as the
 only argument. That is the grid solver's situation: the states are the grid, fixed for the whole
@@ -33,8 +34,9 @@ import torch
 
 from reach.systems.arrays import Backend, Column, is_number
 
-#: one side's inputs: (matrix ``{(state i, input j): G_ij}``, centres, half widths, sigma)
-Side = tuple[dict[tuple[int, int], Column], Sequence[float], Sequence[float], float]
+#: one side's inputs: (matrix ``{(state i, input j): G_ij}``, centres, half widths, sigma, and the
+#: radius of a ball of inputs or ``None`` for a box)
+Side = tuple[dict[tuple[int, int], Column], Sequence[float], Sequence[float], float, float | None]
 
 
 def _is_zero(value: Column, prune: bool) -> bool:
@@ -89,14 +91,19 @@ class FixedStateHamiltonian:
         self.linear: list[Column | None] = [None] * n
         self.absolute: list[float] = [0.0] * n
         self.switches: list[tuple[float, float, list[tuple[int, Column]]]] = []
+        #: ball sides: (centres, sigma r, per input the terms of its switching function)
+        self.balls: list[tuple[Sequence[float], float, list[list[tuple[int, Column]]]]] = []
         for i, f in enumerate(drift):
             if not _is_zero(f, prune):
                 self.linear[i] = f if scale[i] == 1.0 else f * scale[i]
-        for matrix, centres, half_widths, sigma in sides:
+        for matrix, centres, half_widths, sigma, radius in sides:
             entries: list[list[tuple[int, Column]]] = [[] for _ in centres]
             for (i, j), g in matrix.items():
                 if not _is_zero(g, prune):
                     entries[j].append((i, g if scale[i] == 1.0 else g * scale[i]))
+            if radius is not None:  # a ball: the norm of the whole switching vector, not one input at a time
+                self.balls.append((tuple(centres), sigma * radius, entries))
+                continue
             for c, hw, terms in zip(centres, half_widths, entries):
                 if not terms or (c == 0.0 and hw == 0.0):
                     continue  # s_j = 0, or an input fixed at zero: nothing to add
@@ -128,4 +135,24 @@ class FixedStateHamiltonian:
                 h = _axpy(h, c, s)
             if weight != 0.0:
                 h = _axpy(h, weight, abs_(s))
+        for centres, weight, entries in self.balls:
+            switches = []
+            for c, terms in zip(centres, entries):
+                if not terms:
+                    continue
+                s = self._switch(terms, p)
+                if c != 0.0:
+                    h = _axpy(h, c, s)
+                switches.append(s)
+            if switches:  # |s|_2 with a zero subgradient at s = 0 (autograd flows through H in training)
+                h = _axpy(h, weight, self._xp.norm(switches))
         return 0.0 if h is None else h
+
+    @staticmethod
+    def _switch(terms: list[tuple[int, Column]], p: Sequence[Column]) -> Column:
+        """``s_j = sum g p_i`` over an input's terms (a new array: the caller may write to it)."""
+        (i, g), rest = terms[0], terms[1:]
+        s = g * p[i]
+        for i, g in rest:
+            s = s + g * p[i]
+        return s

@@ -63,6 +63,10 @@ class SympyBackend:
         return sympy.sqrt(dx**2 + dy**2)
 
     @staticmethod
+    def norm(columns: Sequence[Any]) -> Any:
+        return sympy.sqrt(sum(c**2 for c in columns))
+
+    @staticmethod
     def wrap_angle(a: Any) -> Any:
         return a  # display: the angle as written; the numeric backends wrap it to [-pi, pi)
 
@@ -151,9 +155,7 @@ def equations(system: ControlAffineSystem, display: bool = True) -> Equations:
     drift = [sympy.sympify(f) for f in system.drift(x, SYMPY)]
     control = _entries(system.control_matrix(x, SYMPY), len(x), controls)
     disturbance = (
-        _entries(system.disturbance_matrix(x, SYMPY), len(x), disturbances)
-        if system.disturbance_dim
-        else [0] * len(x)
+        _entries(system.disturbance_matrix(x, SYMPY), len(x), disturbances) if system.disturbance_dim else [0] * len(x)
     )
     shown = (lambda e: tidy(sympy.simplify(tidy(e)))) if display else sympy.sympify
     dynamics = tuple(shown(f + g + h) for f, g, h in zip(drift, control, disturbance))
