@@ -1,0 +1,161 @@
+"""The CPU recipes of the catalogue's models of 6D and above (issue 42, point 4), as one resumable queue.
+
+Run::
+
+    python benchmarks/catalogue_recipes.py status                 # each recipe's command and progress
+    python benchmarks/catalogue_recipes.py measure [--seconds 60]  # the quiet 2-core rate of each system
+    python benchmarks/catalogue_recipes.py run [--threads 2]       # train them in turn, resuming any
+
+Each recipe trains for two hours of the quiet 2-core rate, given as steps (``minutes x steps per
+minute``, the rate ``measure`` printed on a quiet machine), so a run that shares the cores or is
+stopped and resumed trains exactly what a quiet, uninterrupted two hours trains: the cosine learning
+rate schedule depends on the step count, not on the wall clock. ``run`` works through the queue in
+order; a finished run is skipped, an interrupted one continues with ``reach train --resume`` (its
+checkpoint is at most 30 s old), and a run directory that another process owns stops the queue
+with the owner's error. The N-car fleets train under the union of pairwise BRTs of the 101^3 pair
+grid (``--upper-bound runs/pair_gt.npz``, which ``run`` solves first if it is missing:
+``reach groundtruth relativepair --grid 101 --out runs/pair_gt.npz``, 20 s), as the shipped 9D model
+does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import shlex
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = Path("runs/catalogue")
+MINUTES = 120
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """One model's training: the system, its quiet 2-core rate, and any arguments beyond the defaults."""
+
+    name: str
+    system: str
+    steps_per_minute: int  # measured by ``measure`` on a quiet machine (see ``rate_from``)
+    rate_from: str
+    extra: tuple[str, ...] = ()
+
+    @property
+    def steps(self) -> int:
+        return MINUTES * self.steps_per_minute
+
+    @property
+    def out(self) -> Path:
+        return OUT / self.name
+
+    def command(self, threads: int) -> list[str]:
+        return [
+            "reach", "--threads", str(threads), "train", "--system", self.system, "--steps", str(self.steps),
+            "--seed", "0", *self.extra, "--out", str(self.out),
+        ]  # fmt: skip
+
+
+PAIR_GRID = Path("runs/pair_gt.npz")
+UNION = ("--upper-bound", str(PAIR_GRID))
+MEASURED = "2026-11-26, `measure --seconds 60`, quiet (other runs paused): "
+#: the queue, in the order ``run`` trains it
+RECIPES = (
+    Recipe("multivehicle12d", "multivehicle12d", 660, "2026-11-26, 11.0 steps/s over 70 s, quiet", UNION),
+    Recipe("multivehicle15d", "multivehicle15d", 630, MEASURED + "10.5 steps/s", UNION),
+    Recipe("narrowpassage", "narrowpassage", 1241, MEASURED + "20.7 steps/s"),
+    Recipe("quadrotor", "quadrotor", 1278, MEASURED + "21.3 steps/s"),
+    Recipe("reachavoidrocketlanding", "reachavoidrocketlanding", 785, MEASURED + "13.1 steps/s"),
+)
+
+
+def _progress(recipe: Recipe) -> tuple[int, float]:
+    """Steps and wall seconds of the run's last checkpoint (0, 0 before the first)."""
+    meta = recipe.out / "checkpoint.json"
+    if not meta.is_file():
+        return 0, 0.0
+    data = json.loads(meta.read_text())
+    return int(data.get("steps", 0)), float(data.get("wall_time_s") or 0.0)
+
+
+def status(args: argparse.Namespace) -> int:
+    for recipe in RECIPES:
+        steps, wall = _progress(recipe)
+        target = recipe.steps or "?"
+        print(f"{recipe.name:<26} {steps:>6} / {target} steps, {wall / 60:.0f} min so far")
+        if recipe.steps_per_minute:
+            print(f"    {shlex.join(recipe.command(args.threads))}   # {recipe.rate_from}")
+        else:
+            print("    (no measured rate yet: run `measure` on a quiet machine)")
+    return 0
+
+
+def measure(args: argparse.Namespace) -> int:
+    """Each system's steps per minute over ``--seconds`` of training, one system at a time."""
+    _pair_grid(args.threads)
+    for recipe in RECIPES:
+        if args.names and recipe.name not in args.names.split(","):
+            continue
+        out = ROOT / "runs" / "catalogue-rate" / recipe.name
+        command = ["reach", "--threads", str(args.threads), "train", "--system", recipe.system, "--steps", "1000000"]
+        command += [*recipe.extra, "--out", str(out), "--log-every", "25"]
+        subprocess.run(["rm", "-rf", str(out)], check=True)
+        start = time.perf_counter()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            subprocess.run(command, timeout=args.seconds, capture_output=True, cwd=ROOT)
+        rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines() if line.strip()]
+        steps = [r for r in rows if "steps_per_s" in r]
+        rate = sum(r["steps_per_s"] for r in steps[len(steps) // 2 :]) / max(1, len(steps) - len(steps) // 2)
+        print(
+            f"{recipe.name:<26} {rate:.2f} steps/s = {60 * rate:.0f} steps/min (second half of "
+            f"{time.perf_counter() - start:.0f} s, {args.threads} threads)"
+        )
+    return 0
+
+
+def _pair_grid(threads: int) -> None:
+    if not (ROOT / PAIR_GRID).is_file():
+        command = ["reach", "--threads", str(threads), "groundtruth", "relativepair", "--grid", "101"]
+        subprocess.run([*command, "--out", str(PAIR_GRID)], cwd=ROOT, check=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    _pair_grid(args.threads)
+    for recipe in RECIPES:
+        if not recipe.steps_per_minute:
+            print(f"{recipe.name}: no measured rate; the queue stops here (run `measure`)")
+            return 1
+        steps, _ = _progress(recipe)
+        if steps >= recipe.steps:
+            print(f"{recipe.name}: done ({steps} steps)")
+            continue
+        if (recipe.out / "config.json").is_file():
+            command = ["reach", "--threads", str(args.threads), "train", "--resume", str(recipe.out)]
+        else:
+            command = recipe.command(args.threads)
+        print(f"{recipe.name}: {shlex.join(command)}", flush=True)
+        if subprocess.run(command, cwd=ROOT).returncode != 0:
+            return 1
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    sub = p.add_subparsers(dest="stage", required=True)
+    for name, func in (("status", status), ("measure", measure), ("run", run)):
+        s = sub.add_parser(name)
+        s.add_argument("--threads", type=int, default=2)
+        if name == "measure":
+            s.add_argument("--seconds", type=float, default=60.0)
+            s.add_argument("--names", default=None, help="comma-separated recipes (default: all)")
+        s.set_defaults(func=func)
+    args = p.parse_args(argv)
+    return int(args.func(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
