@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import shlex
 import subprocess
 import sys
@@ -31,6 +32,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+#: the CLI of this interpreter's reach (no PATH lookup)
+REACH = (sys.executable, "-m", "reach")
 OUT = Path("runs/catalogue")
 MINUTES = 120
 
@@ -55,7 +58,7 @@ class Recipe:
 
     def command(self, threads: int) -> list[str]:
         return [
-            "reach", "--threads", str(threads), "train", "--system", self.system, "--steps", str(self.steps),
+            *REACH, "--threads", str(threads), "train", "--system", self.system, "--steps", str(self.steps),
             "--seed", "0", *self.extra, "--out", str(self.out),
         ]  # fmt: skip
 
@@ -75,7 +78,7 @@ RECIPES = (
 
 def _progress(recipe: Recipe) -> tuple[int, float]:
     """Steps and wall seconds of the run's last checkpoint (0, 0 before the first)."""
-    meta = recipe.out / "checkpoint.json"
+    meta = ROOT / recipe.out / "checkpoint.json"
     if not meta.is_file():
         return 0, 0.0
     data = json.loads(meta.read_text())
@@ -88,7 +91,8 @@ def status(args: argparse.Namespace) -> int:
         target = recipe.steps or "?"
         print(f"{recipe.name:<26} {steps:>6} / {target} steps, {wall / 60:.0f} min so far")
         if recipe.steps_per_minute:
-            print(f"    {shlex.join(recipe.command(args.threads))}   # {recipe.rate_from}")
+            shown = shlex.join(["reach", *recipe.command(args.threads)[len(REACH) :]])
+            print(f"    {shown}   # {recipe.rate_from}")
         else:
             print("    (no measured rate yet: run `measure` on a quiet machine)")
     return 0
@@ -101,7 +105,7 @@ def measure(args: argparse.Namespace) -> int:
         if args.names and recipe.name not in args.names.split(","):
             continue
         out = ROOT / "runs" / "catalogue-rate" / recipe.name
-        command = ["reach", "--threads", str(args.threads), "train", "--system", recipe.system, "--steps", "1000000"]
+        command = [*REACH, "--threads", str(args.threads), "train", "--system", recipe.system, "--steps", "1000000"]
         command += [*recipe.extra, "--out", str(out), "--log-every", "25"]
         subprocess.run(["rm", "-rf", str(out)], check=True)
         start = time.perf_counter()
@@ -119,7 +123,7 @@ def measure(args: argparse.Namespace) -> int:
 
 def _pair_grid(threads: int) -> None:
     if not (ROOT / PAIR_GRID).is_file():
-        command = ["reach", "--threads", str(threads), "groundtruth", "relativepair", "--grid", "101"]
+        command = [*REACH, "--threads", str(threads), "groundtruth", "relativepair", "--grid", "101"]
         subprocess.run([*command, "--out", str(PAIR_GRID)], cwd=ROOT, check=True)
 
 
@@ -133,12 +137,13 @@ def run(args: argparse.Namespace) -> int:
         if steps >= recipe.steps:
             print(f"{recipe.name}: done ({steps} steps)")
             continue
-        if (recipe.out / "config.json").is_file():
-            command = ["reach", "--threads", str(args.threads), "train", "--resume", str(recipe.out)]
+        if (ROOT / recipe.out / "config.json").is_file():
+            command = [*REACH, "--threads", str(args.threads), "train", "--resume", str(recipe.out)]
+            command += ["--steps", str(recipe.steps)]
         else:
             command = recipe.command(args.threads)
         print(f"{recipe.name}: {shlex.join(command)}", flush=True)
-        if subprocess.run(command, cwd=ROOT).returncode != 0:
+        if subprocess.run(command, cwd=ROOT, env={**os.environ, "TQDM_DISABLE": "1"}).returncode != 0:
             return 1
     return 0
 

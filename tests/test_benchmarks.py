@@ -254,3 +254,35 @@ def test_rows_trained_against_the_union_solve_the_pair_grid_first(tmp_path: Path
     [(name, grid, times, options)] = solved
     assert (name, grid, options) == ("relativepair", 101, {"dtype": torch.float32})
     assert times[0] == 0 and all(0 < b - a <= 0.1 + 1e-9 for a, b in itertools.pairwise(times))
+
+
+def test_catalogue_recipe_queue_trains_skips_what_is_done_and_resumes(tmp_path: Path, monkeypatch, capsys):
+    """``benchmarks/catalogue_recipes.py run`` trains each recipe to its steps (minutes x measured rate),
+    skips a finished run, and continues an unfinished one with ``reach train --resume``."""
+    import importlib.util
+    import json
+
+    spec = importlib.util.spec_from_file_location("catalogue_recipes", ROOT / "benchmarks" / "catalogue_recipes.py")
+    recipes = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "catalogue_recipes", recipes)  # its dataclass looks itself up there
+    spec.loader.exec_module(recipes)
+    from reach.systems import make_system
+
+    for recipe in recipes.RECIPES:  # the shipped queue: registered systems, two hours of steps each
+        assert recipe.steps == 120 * recipe.steps_per_minute > 0 and make_system(recipe.system).state_dim >= 6
+    tiny = ("--width", "8", "--points", "64", "--layout", "ssl")
+    monkeypatch.setattr(recipes, "ROOT", tmp_path)
+    monkeypatch.setattr(recipes, "MINUTES", 2)
+    monkeypatch.setattr(recipes, "RECIPES", (recipes.Recipe("tiny", "air3d", 5, "test", tiny),))
+    (tmp_path / "runs").mkdir()
+    (tmp_path / "runs" / "pair_gt.npz").write_bytes(b"")  # present: the queue does not solve it
+    assert recipes.main(["run", "--threads", "1"]) == 0
+    meta = tmp_path / "runs" / "catalogue" / "tiny" / "checkpoint.json"
+    assert json.loads(meta.read_text())["steps"] == 10
+    assert recipes.main(["run", "--threads", "1"]) == 0
+    assert "tiny: done (10 steps)" in capsys.readouterr().out
+    monkeypatch.setattr(recipes, "MINUTES", 3)  # a longer budget: the run resumes to 15 steps
+    assert recipes.main(["run", "--threads", "1"]) == 0
+    assert "train --resume" in capsys.readouterr().out
+    assert json.loads(meta.read_text())["steps"] == 15
+    assert recipes.main(["status"]) == 0 and "15 / 15 steps" in capsys.readouterr().out
