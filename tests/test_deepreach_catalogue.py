@@ -8,6 +8,7 @@ agreement checks both.
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -343,3 +344,50 @@ def test_zero_costate_gives_the_disc_centre_and_a_finite_gradient():
     p.requires_grad_(True)
     (grad,) = torch.autograd.grad(system.hamiltonian(x, p).sum(), p)
     assert torch.isfinite(grad).all()
+
+
+# ---------------------------------------------------------------- importing DeepReach's public release
+def _deepreach_forward(state_dict, inputs, layout):
+    """DeepReach's sine MLP, restated: sin(30 (W h + b)) per activated layer, then a linear output."""
+    h = inputs
+    for i, letter in enumerate(layout[:-1]):
+        z = h @ state_dict[f"net.net.{i}.0.weight"].T + state_dict[f"net.net.{i}.0.bias"]
+        h = torch.sin(30.0 * z) if letter == "s" else torch.relu(z)
+    k = len(layout) - 1
+    return (h @ state_dict[f"net.net.{k}.0.weight"].T + state_dict[f"net.net.{k}.0.bias"]).squeeze(-1)
+
+
+@pytest.mark.parametrize("system", [RocketLanding(), ReachAvoidRocketLanding(), NarrowPassage()], ids=lambda s: s.name)
+def test_a_public_release_checkpoint_imports_as_deepreach_evaluates_it(system, tmp_path):
+    """A state dict shaped as DeepReach's public release trains it (``diff_model``; RocketLanding's one
+    extra zero input) loads, and its values are DeepReach's: the raw output scaled by
+    ``value_var / value_normto`` plus the boundary function, on the normalised input ``(t, x, [0])``."""
+    from training.deepreach import load_deepreach
+
+    layout, width = "ssl", 16
+    n, extra = system.state_dim, system.deepreach.extra_inputs
+    g = torch.Generator().manual_seed(0)
+    sizes = [1 + n + extra, width, width, 1]
+    state = {}
+    for i, (a, b) in enumerate(itertools.pairwise(sizes)):
+        bound = 1 / a if i == 0 else math.sqrt(6 / a) / 30  # SIREN's initialisation, DeepReach's
+        state[f"net.net.{i}.0.weight"] = (torch.rand(b, a, generator=g) * 2 - 1) * bound
+        state[f"net.net.{i}.0.bias"] = (torch.rand(b, generator=g) * 2 - 1) * bound
+    path = tmp_path / "model_final.pth"
+    torch.save(state, path)
+    net = load_deepreach(path, system, layout, check_boundary=False)
+    assert net.parameterisation == "diff"
+    x = system.sample_states(256, g, dtype=torch.float32)
+    t = torch.rand(256, generator=g)
+    n_ = system.deepreach
+    inputs = torch.cat(
+        [t[:, None], (x - torch.tensor(n_.state_offset)) / torch.tensor(n_.state_scale), torch.zeros(256, extra)], -1
+    )
+    expected = _deepreach_forward(state, inputs, layout) * n_.value_scale + system.boundary_value(x)
+    with torch.no_grad():
+        torch.testing.assert_close(net(x, t), expected, rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match=r"model must be 'vanilla' or 'diff'"):
+        load_deepreach(path, system, layout, check_boundary=False, model="exact")
+    # an untrained network is far from the boundary condition: refused unless asked not to check
+    with pytest.raises(ValueError, match="away from the boundary value"):
+        load_deepreach(path, system, layout)

@@ -12,7 +12,7 @@ from typing import Any
 from reach.systems import ControlAffineSystem
 from reach.systems.registry import SystemSpecified
 from reach.validation import check_device, check_float, check_int, check_known_fields, check_seed
-from training.network import check_parameterisation, parse_layout
+from training.network import LEARNED_BOUNDARY, check_parameterisation, parse_layout
 
 
 def parse_duration(text: str | float | int) -> float:
@@ -188,7 +188,7 @@ class TrainConfig(SystemSpecified):
         system = self.build_system()  # an unknown system or parameter fails here
         if self.snapshots and self.steps is None and self.budget_s is None:
             raise ValueError("snapshots are spaced over steps or budget_s; give one of them")
-        if self.parameterisation == "vanilla" and self.boundary_fraction + self.zero_level_fraction >= 1:
+        if self.parameterisation in LEARNED_BOUNDARY and self.boundary_fraction + self.zero_level_fraction >= 1:
             raise ValueError(
                 f"boundary_fraction + zero_level_fraction must stay below 1 (the rest are the PDE's uniform points), "
                 f"got {self.boundary_fraction} + {self.zero_level_fraction}"

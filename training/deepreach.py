@@ -1,8 +1,12 @@
 """Import DeepReach checkpoints (state dicts with keys ``net.net.{i}.0.weight`` / ``.bias``).
 
 DeepReach stores no layout: the caller names it (the seed authors encode it in file names). The
-encoding is DeepReach's (raw t, headings / 1.2 pi, ``V = 25 o + 0.25``), the parameterisation
-vanilla, the sine frequency 30.
+encoding is DeepReach's as the system declares it (:class:`~reach.systems.DeepReachNormalisation`:
+raw t, states scaled by its mean and variance, headings / 1.2 pi), the sine frequency 30, and the
+output either DeepReach 2021's vanilla ``V = 25 o + 0.25`` (the seed authors' Air3D and 9D
+checkpoints) or the public release's ``diff_model``, ``V = b(x) + scale * o`` (every system of
+its catalogue; the ``diff`` parameterisation). A system whose DeepReach network takes extra zero
+inputs (``RocketLanding``) has those weight columns dropped on import: they multiply zeros.
 
 Neither the layout nor the system can be read from the file, and a wrong guess of equal shapes
 (``rrrrl`` weights loaded as ``ssssl``, Air3D weights loaded as another 3D system) would load
@@ -29,12 +33,17 @@ _KEY = re.compile(r"^net\.net\.(\d+)\.0\.(weight|bias)$")
 
 
 def load_deepreach(
-    path: str | os.PathLike, system: ControlAffineSystem, layout: str = "ssssl", check_boundary: bool = True
+    path: str | os.PathLike,
+    system: ControlAffineSystem,
+    layout: str = "ssssl",
+    check_boundary: bool = True,
+    model: str | None = None,
 ) -> ValueNetwork:
     """A :class:`ValueNetwork` holding a DeepReach state dict; mismatches raise ``ValueError``.
 
-    ``check_boundary=False`` skips the ``V(x, 0) = l(x)`` check (see the module docstring), for a
-    model that was never trained to its boundary condition."""
+    ``model`` is ``"vanilla"`` or ``"diff"`` (DeepReach's ``diff_model``); ``None`` takes the one the
+    system declares. ``check_boundary=False`` skips the ``V(x, 0) = b(x)`` check (see the module
+    docstring), for a model that was never trained to its boundary condition."""
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:
@@ -58,9 +67,15 @@ def load_deepreach(
             f"({len(letters)} activated + output)"
         )
     width = layers[0]["weight"].shape[0]
-    net = ValueNetwork(
-        system, layout, width=width, parameterisation="vanilla", w0=30.0, encoding=Encoding.deepreach(system)
-    )
+    encoding = Encoding.deepreach(system)  # refuses a system without a DeepReach normalisation, by name
+    model = system.deepreach.model if model is None else model
+    if model not in ("vanilla", "diff"):
+        raise ValueError(f"model must be 'vanilla' or 'diff' (DeepReach's diff_model), got {model!r}")
+    net = ValueNetwork(system, layout, width=width, parameterisation=model, w0=30.0, encoding=encoding)
+    extra = system.deepreach.extra_inputs
+    first = layers[0].get("weight")
+    if extra and first is not None and first.ndim == 2 and first.shape[1] == net.layers[0].weight.shape[1] + extra:
+        layers[0]["weight"] = first[:, : first.shape[1] - extra]  # the columns of DeepReach's zero inputs
     targets = [*net.layers, net.output]
     for i, target in enumerate(targets):
         for name in ("weight", "bias"):
@@ -83,16 +98,17 @@ def load_deepreach(
 
 @torch.no_grad()
 def check_boundary_condition(net: ValueNetwork, path: str | os.PathLike, layout: str, samples: int = 2000) -> float:
-    """Raise unless ``V(x, 0)`` of ``net`` matches ``l(x)`` (see the module docstring); returns the relative error."""
+    """Raise unless ``V(x, 0)`` of ``net`` matches ``b(x)`` (``l``; ``max(l, -g)`` for reach-avoid; see the
+    module docstring); returns the relative error."""
     system = net.system
     x = system.sample_states(samples, generator=torch.Generator().manual_seed(0), dtype=torch.float32)
-    margin = system.failure_margin(x)
+    margin = system.boundary_value(x)
     value = net(x, torch.zeros(samples))
     error = float((value - margin).abs().mean() / margin.abs().mean().clamp_min(1e-12))
     if not error < BOUNDARY_TOLERANCE:  # NaN fails too
         raise ValueError(
             f"{path}: as {system.name} with layout {layout!r}, V(x, 0) is {error:.2f} (relative mean error) "
-            f"away from the failure margin l(x) (a trained model is within {BOUNDARY_TOLERANCE}); wrong system or "
+            f"away from the boundary value b(x) (a trained model is within {BOUNDARY_TOLERANCE}); wrong system or "
             "layout? (check_boundary=False loads it anyway)"
         )
     return error

@@ -28,7 +28,7 @@ import torch
 
 from reach.compiling import maybe_compile
 from reach.validation import check_float
-from training.network import Margins, ValueNetwork
+from training.network import LEARNED_BOUNDARY, Margins, ValueNetwork
 
 GRADIENTS = ("fused", "autograd")
 Terms = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
@@ -187,7 +187,7 @@ def training_loss(
         shortfall = torch.relu(floor - network(x_label, t_label)).mean()
         total = total + weights.lower_bound * shortfall
         terms["lower_bound"] = float(shortfall.detach())
-    if network.parameterisation == "vanilla" and boundary_mask is not None and boundary_mask.any():
+    if network.parameterisation in LEARNED_BOUNDARY and boundary_mask is not None and boundary_mask.any():
         gap = v[boundary_mask] - network.system.boundary_value(x[boundary_mask])
         boundary = gap.abs().mean() if weights.norm == "l1" else gap.square().mean()
         total = total + weights.boundary * boundary

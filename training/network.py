@@ -40,9 +40,13 @@ from reach.value_function import check_time
 
 #: Activation letters and their names.
 ACTIVATIONS = {"s": "sine", "r": "relu", "t": "tanh"}
-Parameterisation = Literal["exact", "vanilla", "exact-constraint"]
-#: the output parameterisations (:class:`ValueNetwork`); ``exact-constraint`` is for reach-avoid systems
-PARAMETERISATIONS = ("exact", "vanilla", "exact-constraint")
+Parameterisation = Literal["exact", "vanilla", "exact-constraint", "diff"]
+#: the output parameterisations (:class:`ValueNetwork`); ``exact-constraint`` is for reach-avoid systems;
+#: ``diff`` is DeepReach's ``diff_model`` (``V = b(x) + scale * o``), kept for its checkpoints
+PARAMETERISATIONS = ("exact", "vanilla", "exact-constraint", "diff")
+#: the parameterisations whose ``V(x, 0)`` is learned, not built in: they train with boundary points
+#: and a boundary loss (and may pretrain on it)
+LEARNED_BOUNDARY = ("vanilla", "diff")
 
 
 class Margins(NamedTuple):
@@ -200,7 +204,8 @@ class ValueNetwork(nn.Module):
         system: the system whose value this is (gives ``l(x)``, dimensions and default encoding).
         layout: e.g. ``"ssssl"`` (DeepReach's 4 sine layers + linear output) or ``"ssrsl"``.
         width: neurons per hidden layer.
-        parameterisation: ``"exact"``, ``"vanilla"`` or (reach-avoid) ``"exact-constraint"``.
+        parameterisation: ``"exact"``, ``"vanilla"``, (reach-avoid) ``"exact-constraint"`` or
+            ``"diff"`` (DeepReach's ``diff_model``: ``V = b(x) + value_scale * o``, no time factor).
         w0: sine frequency.
         encoding: input/output encoding (default: :meth:`Encoding.for_system`).
     """
@@ -426,7 +431,7 @@ class ValueNetwork(nn.Module):
             return offset + scale * o
         # the margins stay differentiable in x here: autograd's double-backward training path needs them
         system = self.system
-        scale, _ = self._exact_scale(t)
+        scale = self.encoding.value_scale if self.parameterisation == "diff" else self._exact_scale(t)[0]
         v = system.boundary_value(x) + scale * o
         return torch.maximum(v, -system.constraint_margin(x)) if self.parameterisation == "exact-constraint" else v
 
@@ -444,6 +449,8 @@ class ValueNetwork(nn.Module):
             return enc.value_offset, 0.0, enc.value_scale, 0.0
         if margins is None:
             margins = self.margins(x)
+        if self.parameterisation == "diff":  # DeepReach's diff_model: the boundary plus a constant scale
+            return margins.boundary, margins.boundary_gradient, enc.value_scale, 0.0
         return margins.boundary, margins.boundary_gradient, *self._exact_scale(t)
 
     def _exact_scale(self, t: torch.Tensor) -> tuple[Any, float]:

@@ -11,7 +11,7 @@ import torch
 
 from training.config import TrainConfig
 from training.labels import mpc_lower_bound, policy_lower_bound
-from training.network import ValueNetwork
+from training.network import LEARNED_BOUNDARY, ValueNetwork
 
 #: the lower-bound term's labelled points ``(x, t, J)``
 Labels = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
@@ -50,7 +50,7 @@ class PointSampler:
         n = c.points
         x, t = self.uniform(n, tmax)
         mask = None
-        if c.parameterisation == "vanilla":
+        if c.parameterisation in LEARNED_BOUNDARY:
             mask = torch.zeros(n, dtype=torch.bool, device=self.device)
             mask[: int(c.boundary_fraction * n)] = True
             t = torch.where(mask, torch.zeros_like(t), t)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 
 from training.config import TrainConfig
+from training.network import LEARNED_BOUNDARY
 
 
 class Schedule:
@@ -41,14 +42,14 @@ class Schedule:
         c = self.config
         if c.curriculum <= 0:
             return self.horizon
-        pre = c.pretrain if c.parameterisation == "vanilla" else 0.0
+        pre = c.pretrain if c.parameterisation in LEARNED_BOUNDARY else 0.0
         grow = (frac - pre) / c.curriculum if frac > pre else 0.0
         return self.horizon * min(1.0, max(0.0, grow))
 
     def trains_pde(self, frac: float) -> bool:
         """Whether the HJI residual counts at ``frac`` (a vanilla run pretrains on its boundary alone)."""
         c = self.config
-        return not (c.parameterisation == "vanilla" and frac < c.pretrain)
+        return not (c.parameterisation in LEARNED_BOUNDARY and frac < c.pretrain)
 
     def snapshots_due(self, frac: float) -> int:
         """How many snapshots the run's progress calls for (0 .. ``config.snapshots``)."""

@@ -19,9 +19,9 @@ the defaults here are ours and are said so where they appear.
   wall and above the floor (reach-avoid).
 
 Not restated: ``Dubins4D`` defines no dynamics (its ``dsdt`` and ``hamiltonian`` raise
-``NotImplementedError``). DeepReach's rockets and quadrotor train with ``diff_model=True``
-(``V = l(x) + scale * o``), a parameterisation reach does not implement, so their checkpoints do
-not import yet (:func:`training.deepreach.load_deepreach` takes vanilla models).
+``NotImplementedError``). Every system here declares DeepReach's
+``diff_model`` normalisation (``V = b(x) + scale * o``), so a checkpoint of DeepReach's public
+release imports (:func:`training.deepreach.load_deepreach`).
 """
 
 from __future__ import annotations
@@ -100,6 +100,7 @@ class NarrowPassage(ControlAffineSystem):
             state_scale=(8.0, 3.8, 1.2 * math.pi, 4.0, 1.2 * 0.3 * math.pi) * 2,
             value_scale=0.5 * 8.0 / 0.02,
             value_offset=0.25 * 8.0,
+            model="diff",
         )
 
     def parameters(self) -> dict[str, Any]:
@@ -195,6 +196,7 @@ class Quadrotor(ControlAffineSystem):
             state_scale=(1.5,) * 3 + (1.0,) * 4 + (10.0,) * 6,
             value_scale=reach / 0.02,
             value_offset=(reach - 2 * self.collisionR) / 2,
+            model="diff",
         )
 
     def parameters(self) -> dict[str, Any]:
@@ -281,7 +283,9 @@ class ParameterizedVertDrone2D(ControlAffineSystem):
         self.domain = ((-4.0, 4.0), (-0.5, 3.5), (0.0, self.input_multiplier_max))
         self.control_bounds = Box.symmetric([self.input_magnitude_max])
         half_k = self.input_multiplier_max / 2
-        self.deepreach = DeepReachNormalisation(state_offset=(0.0, 1.5, half_k), state_scale=(4.0, 2.0, half_k))
+        self.deepreach = DeepReachNormalisation(
+            state_offset=(0.0, 1.5, half_k), state_scale=(4.0, 2.0, half_k), model="diff"
+        )
 
     def parameters(self) -> dict[str, Any]:
         return {
@@ -322,6 +326,8 @@ class RocketLanding(ControlAffineSystem):
     torque_arm = 0.3
     landing_half_width = 20.0
     landing_height = 20.0
+    #: DeepReach's RocketLanding network takes one more (always zero) input; its reach-avoid twin none
+    deepreach_extra_inputs = 1
 
     def __init__(self, horizon: float = 1.0) -> None:
         self.horizon = positive_finite(f"{type(self).__name__}: horizon", horizon)
@@ -339,6 +345,8 @@ class RocketLanding(ControlAffineSystem):
             state_scale=(150.0, 70.0, 1.2 * math.pi, 200.0, 200.0, 10.0),
             value_scale=1.0 / 0.02,
             value_offset=0.0,
+            model="diff",
+            extra_inputs=self.deepreach_extra_inputs,
         )
 
     def parameters(self) -> dict[str, Any]:
@@ -363,6 +371,7 @@ class ReachAvoidRocketLanding(RocketLanding):
 
     name = "reachavoidrocketlanding"
     kind = "reach-avoid"
+    deepreach_extra_inputs = 0
     wall = ((-30.0, -20.0), (0.0, 100.0))
 
     def constraint_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:

@@ -61,7 +61,9 @@ class Dubins3D(ControlAffineSystem):
         self.horizon = positive_finite("Dubins3D: horizon", horizon)
         self.domain = ((-1.0, 1.0), (-1.0, 1.0), (-math.pi, math.pi))
         self.control_bounds = Box.symmetric([self.omega_max])
-        self.deepreach = DeepReachNormalisation(state_offset=(0.0, 0.0, 0.0), state_scale=(1.0, 1.0, 1.2 * math.pi))
+        self.deepreach = DeepReachNormalisation(
+            state_offset=(0.0, 0.0, 0.0), state_scale=(1.0, 1.0, 1.2 * math.pi), model="diff"
+        )
 
     def parameters(self) -> dict[str, Any]:
         return {
