@@ -12,7 +12,9 @@ stopped and resumed trains exactly what a quiet, uninterrupted two hours trains:
 rate schedule depends on the step count, not on the wall clock. ``run`` works through the queue in
 order; a finished run is skipped, an interrupted one continues with ``reach train --resume`` (its
 checkpoint is at most 30 s old), and a run directory that another process owns stops the queue
-with the owner's error. The N-car fleets train under the union of pairwise BRTs of the 101^3 pair
+with the owner's error. Each run keeps 24 snapshots of its network, one per 5 quiet minutes
+(``RUN/snapshots``), so the accuracy of every model along its training can be scored afterwards
+(the dimension study). The N-car fleets train under the union of pairwise BRTs of the 101^3 pair
 grid (``--upper-bound runs/pair_gt.npz``, which ``run`` solves first if it is missing:
 ``reach groundtruth relativepair --grid 101 --out runs/pair_gt.npz``, 20 s), as the shipped 9D model
 does.
@@ -36,6 +38,8 @@ ROOT = Path(__file__).resolve().parents[1]
 REACH = (sys.executable, "-m", "reach")
 OUT = Path("runs/catalogue")
 MINUTES = 120
+#: network snapshots over each run, one per 5 quiet minutes: the dimension study scores them afterwards
+SNAPSHOTS = 24
 
 
 @dataclass(frozen=True)
@@ -59,7 +63,7 @@ class Recipe:
     def command(self, threads: int) -> list[str]:
         return [
             *REACH, "--threads", str(threads), "train", "--system", self.system, "--steps", str(self.steps),
-            "--seed", "0", *self.extra, "--out", str(self.out),
+            "--seed", "0", "--snapshots", str(SNAPSHOTS), *self.extra, "--out", str(self.out),
         ]  # fmt: skip
 
 
