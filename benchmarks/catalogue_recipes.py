@@ -74,6 +74,8 @@ MEASURED = "2026-11-26, `measure --seconds 60`, quiet (other runs paused): "
 RECIPES = (
     Recipe("multivehicle12d", "multivehicle12d", 660, "2026-11-26, 11.0 steps/s over 70 s, quiet", UNION),
     Recipe("multivehicle15d", "multivehicle15d", 630, MEASURED + "10.5 steps/s", UNION),
+    # the shipped 9D model's recipe (its card's rate), again with snapshots: the dimension study's 3 cars
+    Recipe("multivehicle9d", "multivehicle9d", 770, "the shipped 9D card: 92,400 steps in 120 quiet minutes", UNION),
     Recipe("narrowpassage", "narrowpassage", 1241, MEASURED + "20.7 steps/s"),
     Recipe("quadrotor", "quadrotor", 1278, MEASURED + "21.3 steps/s"),
     Recipe("reachavoidrocketlanding", "reachavoidrocketlanding", 785, MEASURED + "13.1 steps/s"),

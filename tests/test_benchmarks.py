@@ -270,6 +270,7 @@ def test_catalogue_recipe_queue_trains_skips_what_is_done_and_resumes(tmp_path: 
 
     for recipe in recipes.RECIPES:  # the shipped queue: registered systems, two hours of steps each
         assert recipe.steps == 120 * recipe.steps_per_minute > 0 and make_system(recipe.system).state_dim >= 6
+    assert next(r for r in recipes.RECIPES if r.system == "multivehicle9d").steps == 92_400  # the shipped card's
     tiny = ("--width", "8", "--points", "64", "--layout", "ssl")
     monkeypatch.setattr(recipes, "ROOT", tmp_path)
     monkeypatch.setattr(recipes, "MINUTES", 2)
@@ -286,3 +287,28 @@ def test_catalogue_recipe_queue_trains_skips_what_is_done_and_resumes(tmp_path: 
     assert "train --resume" in capsys.readouterr().out
     assert json.loads(meta.read_text())["steps"] == 15
     assert recipes.main(["status"]) == 0 and "15 / 15 steps" in capsys.readouterr().out
+
+
+def test_dimension_study_scores_snapshots_and_times_the_false_safe_goal(tmp_path: Path, monkeypatch, capsys, pair_grid):
+    """``benchmarks/dimension_study.py`` scores every snapshot of a fleet's run (resumably) and reports
+    the first quiet minute its false-safe rate reaches 0.1 % and the rate at the end, with a plot."""
+    import importlib.util
+
+    from training.config import TrainConfig
+    from training.trainer import Trainer
+
+    spec = importlib.util.spec_from_file_location("dimension_study", ROOT / "benchmarks" / "dimension_study.py")
+    study = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(study)
+    run = Path("runs/catalogue/multivehicle9d")
+    config = TrainConfig(system="multivehicle9d", steps=4, snapshots=2, width=8, points=64, log_every=2)
+    Trainer(config, tmp_path / run, progress=False).train()
+    pair_grid.save(tmp_path / "pair.npz")
+    monkeypatch.setattr(study, "ROOT", tmp_path)
+    monkeypatch.setattr(study, "FLEETS", ((3, "multivehicle9d", run),))
+    args = ["score", "--samples", "40", "--pairwise", str(tmp_path / "pair.npz")]
+    assert study.main(args) == 0 and study.main(args) == 0  # the second run finds every row scored
+    assert "3 cars: 2 snapshots scored" in capsys.readouterr().out
+    assert study.main(["report", "--plot", "dim.png"]) == 0
+    table = capsys.readouterr().out
+    assert "| 3 | 9 |" in table and "at 10 min" in table and (tmp_path / "dim.png").stat().st_size > 0

@@ -1,0 +1,147 @@
+"""Accuracy against dimension (issue 42, point 5): the N-car family at 3, 4 and 5 cars (9D, 12D, 15D).
+
+Run (resumable: scored snapshots are kept and skipped)::
+
+    python benchmarks/catalogue_recipes.py run                     # trains the fleets, 24 snapshots each
+    python benchmarks/dimension_study.py score [--samples 20000]   # rolls out every snapshot
+    python benchmarks/dimension_study.py report                    # the table and docs/dimension_study.png
+
+Every fleet trains by the same recipe (:mod:`catalogue_recipes`: two hours of its quiet 2-core
+rate, under the union of pairwise BRTs), and keeps a snapshot of its network every 5 quiet minutes.
+``score`` verifies each snapshot as ``reach evaluate`` does (``--samples`` uniform states, the
+gradient policy, no certification), so its false-safe rate is a statistical estimate with a Wilson
+interval; ``report`` gives, per fleet, the first quiet minute at which the false-safe rate is at
+most 0.1 %, the rate at two hours, and the certified volume of the final model where its card-style
+evaluation (``--certified CSV``, ``reach evaluate`` of the final checkpoint) is at hand. Minutes are
+quiet minutes (snapshot index x 5), not the wall time of a shared machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+#: (cars, registered system, run directory of its recipe)
+FLEETS = (
+    (3, "multivehicle9d", Path("runs/catalogue/multivehicle9d")),
+    (4, "multivehicle12d", Path("runs/catalogue/multivehicle12d")),
+    (5, "multivehicle15d", Path("runs/catalogue/multivehicle15d")),
+)
+OUT = Path("runs/studies/dimension")
+GOAL = 1e-3  # the false-safe rate whose first crossing the study times
+MINUTES_PER_SNAPSHOT = 5.0
+
+
+def _snapshots(run: Path) -> list[Path]:
+    return sorted((ROOT / run / "snapshots").glob("*.pt"))
+
+
+def score(args: argparse.Namespace) -> int:
+    from safety.verify import VerifySettings
+    from studies.batch_verification import evaluate_many
+
+    settings = VerifySettings(samples=args.samples, certify_samples=0, robust_samples=0, seed=args.seed)
+    for cars, system, run in FLEETS:
+        snapshots = _snapshots(run)
+        if not snapshots:
+            print(f"{cars} cars: no snapshots in {run} yet")
+            continue
+        out = ROOT / OUT / f"{system}.csv"
+        rows = evaluate_many([str(p) for p in snapshots], out, settings, system=system, pairwise=args.pairwise)
+        print(f"{cars} cars: {len(rows)} snapshots scored into {out.relative_to(ROOT)}")
+    return 0
+
+
+def _curve(system: str) -> list[tuple[float, float, int]]:
+    """(quiet minutes, false-safe rate, samples) per scored snapshot, in order."""
+    from studies.batch_verification import load_results
+
+    path = ROOT / OUT / f"{system}.csv"
+    if not path.with_suffix(".json").is_file():
+        return []
+    points = []
+    for row in load_results(path):
+        if row.get("error"):
+            continue
+        index = int(Path(str(row["source"])).stem)
+        points.append((index * MINUTES_PER_SNAPSHOT, float(row["false_safe_rate"]), int(row["samples"])))
+    return sorted(points)
+
+
+def report(args: argparse.Namespace) -> int:
+    from safety.metrics import wilson_interval
+
+    certified = {}
+    if args.certified:
+        from studies.batch_verification import load_results
+
+        for row in load_results(args.certified):
+            certified[str(row["source"]).rstrip("/")] = row.get("certified_volume")
+    print("| cars | state dim | minutes to false safe <= 0.1 % | false safe % at 120 min [95 % CI] | certified vol. |")
+    print("|---:|---:|---:|---:|---:|")
+    curves = {}
+    for cars, system, run in FLEETS:
+        curve = curves[cars] = _curve(system)
+        if not curve:
+            print(f"| {cars} | {3 * cars} | (not scored) | | |")
+            continue
+        first = next((m for m, rate, _ in curve if rate <= GOAL), None)
+        minutes, rate, n = curve[-1]
+        low, high = wilson_interval(round(rate * n), n)
+        volume = certified.get(str(run))
+        print(
+            f"| {cars} | {3 * cars} | {'not reached' if first is None else f'{first:.0f}'} | "
+            f"{100 * rate:.3f} [{100 * low:.3f}, {100 * high:.3f}] at {minutes:.0f} min | "
+            f"{'-' if volume is None else f'{volume:.3f}'} |"
+        )
+    if args.plot and any(curves.values()):
+        _plot(curves, ROOT / args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def _plot(curves: dict[int, list[tuple[float, float, int]]], path: Path) -> None:
+    # lazy: matplotlib only when drawing
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(5.5, 3.8), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    for cars, curve in sorted(curves.items()):
+        if curve:
+            ax.plot(
+                [m for m, _, _ in curve],
+                [100 * max(r, 1e-5) for _, r, _ in curve],
+                marker="o",
+                label=f"{cars} cars ({3 * cars}D)",
+            )
+    ax.axhline(100 * GOAL, color="k", lw=0.8, ls="--", label="0.1 %")
+    ax.set_yscale("log")
+    ax.set_xlabel("training time (quiet 2-core minutes)")
+    ax.set_ylabel("false safe % (gradient policy)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    sub = p.add_subparsers(dest="stage", required=True)
+    s = sub.add_parser("score")
+    s.add_argument("--samples", type=int, default=20_000)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--pairwise", default="runs/pair_gt.npz", help="the pair grid whose union rows are checked against")
+    s.set_defaults(func=score)
+    r = sub.add_parser("report")
+    r.add_argument("--certified", default=None, help="a reach evaluate CSV of the final checkpoints (card protocol)")
+    r.add_argument("--plot", default="docs/dimension_study.png")
+    r.set_defaults(func=report)
+    args = p.parse_args(argv)
+    return int(args.func(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
