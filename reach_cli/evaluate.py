@@ -90,6 +90,13 @@ def add_parser(sub: Any) -> None:
         "--pairwise", default=None, help="two-car grid .npz (reach groundtruth relativepair): containment metric"
     )
     p.add_argument("--device", type=device_arg, default="cpu")
+    p.add_argument(
+        "--backend",
+        choices=["local", "ray"],
+        default="local",
+        help="where the rollout blocks run: this process, or Ray tasks (a local instance, or --address); same rows",
+    )
+    p.add_argument("--address", default=None, help="the Ray cluster to run the blocks on (--backend ray)")
     p.add_argument("--plot", action="store_true", help="also draw a bar chart of violation rates")
     p.add_argument("--out", default="results.csv", help="results path; .csv, .json and .md are written")
     p.set_defaults(func=run)
@@ -97,6 +104,7 @@ def add_parser(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     # lazy: this command's stack only when it runs
+    from safety.sharding import make_backend
     from studies.batch_verification import evaluate_many, markdown_table, report_failures
     from studies.plots import plot_violation_bars
 
@@ -104,18 +112,24 @@ def run(args: argparse.Namespace) -> int:
         **{field: getattr(args, field) for _, field, _, _ in VERIFY_OPTIONS if getattr(args, field) is not None}
     )
     out = check_output_path(args.out, "--out")
-    rows = evaluate_many(
-        args.sources,
-        out,
-        settings,
-        system=args.system,
-        format=args.format,
-        layout=args.layout,
-        ground_truth=args.ground_truth,
-        gt_time=args.gt_time,
-        pairwise=args.pairwise,
-        device=args.device,
-    )
+    backend = make_backend(args.backend, args.address)  # refuses --address without ray, before any work
+    try:
+        rows = evaluate_many(
+            args.sources,
+            out,
+            settings,
+            system=args.system,
+            format=args.format,
+            layout=args.layout,
+            ground_truth=args.ground_truth,
+            gt_time=args.gt_time,
+            pairwise=args.pairwise,
+            device=args.device,
+            backend=backend,
+        )
+    finally:
+        if backend is not None:
+            backend.close()
     print(markdown_table(rows))
     print(f"\nwrote {out.with_suffix('.csv')}, {out.with_suffix('.json')}, {out.with_suffix('.md')}")
     if args.plot and any(not r.get("error") for r in rows):

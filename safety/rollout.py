@@ -176,6 +176,25 @@ class RolloutSettings:
         return self if self.horizon is not None else replace(self, horizon=system.horizon)
 
 
+def concat_results(parts: list[RolloutResult]) -> RolloutResult:
+    """The results of consecutive blocks of one batch of states as one result: outcomes in block
+    order; ``state_steps`` and ``wall_time`` summed (each block's own simulation, wherever it ran)."""
+    kind = parts[0].kind
+    reach = kind != "avoid"
+    return RolloutResult(
+        initial_value=torch.cat([p.initial_value for p in parts]),
+        collided=torch.cat([p.collided for p in parts]),
+        collision_time=torch.cat([p.collision_time for p in parts]),
+        decided_time=torch.cat([p.decided_time for p in parts]),
+        state_steps=sum(p.state_steps for p in parts),
+        steps=parts[0].steps,
+        wall_time=sum(p.wall_time for p in parts),
+        kind=kind,
+        reached=torch.cat([p.reached for p in parts]) if reach else None,
+        reach_time=torch.cat([p.reach_time for p in parts]) if reach else None,
+    )
+
+
 def rollout(
     value_function: ValueFunction,
     states: torch.Tensor,

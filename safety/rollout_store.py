@@ -44,7 +44,7 @@ import torch
 from reach.atomic import atomic_path
 from reach.locking import exclusive_lock
 from reach.value_function import ValueFunction
-from safety.rollout import RolloutResult, RolloutSettings, rollout
+from safety.rollout import RolloutResult, RolloutSettings, concat_results, rollout
 
 MANIFEST = "manifest.json"
 #: per-state outcome tensors a block keeps, with their dtypes
@@ -154,41 +154,45 @@ class RolloutStore:
         value_function: ValueFunction,
         states: torch.Tensor,
         settings: RolloutSettings | None = None,
+        backend: Any = None,
         **run: Any,
     ) -> RolloutResult:
         """:func:`~safety.rollout.rollout` of ``states`` in blocks of ``settings.chunk_size``,
         each loaded from the store if it holds that block of these states, else simulated and saved.
         The same outcomes as one call (the engine chunks the same way); ``wall_time`` and the work
-        sum the blocks' own simulation, whenever it ran."""
+        sum the blocks' own simulation, whenever it ran. A ``backend``
+        (:class:`~safety.sharding.RayBlocks`) simulates the missing blocks on its workers; this
+        process alone writes the store."""
         if run.get("record"):
             raise ValueError("a RolloutStore keeps outcomes, not trajectories (record=True)")
         keywords = {k: run.pop(k) for k in list(run) if k in RolloutSettings.__dataclass_fields__}
         settings = RolloutSettings.of(settings, keywords)
         block = settings.chunk_size
-        parts: list[RolloutResult] = []
+        parts: list[RolloutResult | None] = []
+        missing: list[tuple[int, torch.Tensor, Path, str]] = []
         for index, lo in enumerate(range(0, states.shape[0], block)):
             part = states[lo : lo + block]
             path = self.directory / f"{name}-{index:05d}.pt"
             digest = states_digest(part)
             result = self._load(path, digest, part.shape[0], value_function.system.kind)
             if result is None:
-                result = rollout(value_function, part, settings, **run)
-                self._save(path, digest, result)
-                self.simulated_blocks += 1
+                missing.append((index, part, path, digest))
             else:
                 self.loaded_blocks += 1
             parts.append(result)
         if not parts:
             return rollout(value_function, states, settings, **run)
-        kind = parts[0].kind
-        return RolloutResult(
-            initial_value=torch.cat([p.initial_value for p in parts]),
-            **{k: torch.cat([getattr(p, k) for p in parts]) for k in outcome_fields(kind)},
-            state_steps=sum(p.state_steps for p in parts),
-            steps=parts[0].steps,
-            wall_time=sum(p.wall_time for p in parts),
-            kind=kind,
-        )
+        if backend is None:
+            done = ((index, rollout(value_function, part, settings, **run)) for index, part, _, _ in missing)
+        else:  # every missing block at once, on the backend's workers; each saved as it arrives
+            arrived = backend.map(value_function, [part for _, part, _, _ in missing], settings, **run)
+            done = ((missing[k][0], result) for k, result in arrived)
+        where = {index: (path, digest) for index, _, path, digest in missing}
+        for index, result in done:
+            self._save(*where[index], result)
+            self.simulated_blocks += 1
+            parts[index] = result
+        return concat_results(parts)
 
     def remove(self) -> None:
         """Delete the store (its results are in the table now) and release its lock."""

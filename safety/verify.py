@@ -174,23 +174,32 @@ def verify(
     device: str | torch.device = "cpu",
     progress: bool = True,
     store: RolloutStore | None = None,
+    backend: Any = None,
 ) -> dict[str, Any]:
     """Violation statistics of ``vf`` on ``states`` and, if asked, the certified delta-level.
 
     With a ``store`` (:class:`~safety.rollout_store.RolloutStore`) every rollout is saved block by
-    block and a repeated call loads what an interrupted one finished: the same row, resumed.
+    block and a repeated call loads what an interrupted one finished: the same row, resumed. With a
+    ``backend`` (:class:`~safety.sharding.RayBlocks`) the blocks run on its workers: the same row.
     Unless the caller chose a thread count, torch uses the cores other processes leave free while
     it runs (:func:`reach.threads.thread_policy`)."""
     check_for_system(vf.system, settings)
     with thread_policy():
-        return _verify(vf, states, settings, device, progress, store)
+        return _verify(vf, states, settings, device, progress, store, backend)
 
 
 def _rollout(
     store: RolloutStore | None, name: str, vf: ValueFunction, states: torch.Tensor, common: dict[str, Any]
 ) -> RolloutResult:
-    """One of a verification's rollouts (``name``: which), through the store where there is one."""
-    return rollout(vf, states, **common) if store is None else store.rollout(name, vf, states, **common)
+    """One of a verification's rollouts (``name``: which), through the store where there is one and
+    on the block backend where ``common`` names one."""
+    common = dict(common)
+    backend = common.pop("backend", None)
+    if store is not None:
+        return store.rollout(name, vf, states, backend=backend, **common)
+    if backend is not None:
+        return backend.rollout(vf, states, **common)
+    return rollout(vf, states, **common)
 
 
 def _verify(
@@ -200,11 +209,14 @@ def _verify(
     device: str | torch.device,
     progress: bool,
     store: RolloutStore | None = None,
+    backend: Any = None,
 ) -> dict[str, Any]:
     start = time.perf_counter()
     horizon = vf.system.horizon if settings.horizon is None else settings.horizon
     precision = settings.matmul_precision if hasattr(vf, "with_matmul_dtype") else "float32"
     common = {"settings": settings.rollout_settings(horizon, precision), "device": device, "progress": progress}
+    if backend is not None:
+        common["backend"] = backend
     result = _rollout(store, "samples", vf, states, common)
     kind = vf.system.kind
     row: dict[str, Any] = {"problem": kind}

@@ -223,13 +223,15 @@ def evaluate_many(
     references: References | None = None,
     device: str = "cpu",
     progress: bool = True,
+    backend: Any = None,
     **reference_fields: Any,
 ) -> list[dict[str, Any]]:
     """Evaluate every source on the same states; returns the rows (also written to ``out``).
 
     ``references`` (:class:`References`; its fields may also be given as keywords, e.g.
     ``ground_truth="gt.npz"``) adds the comparison columns; ``system``, ``format`` and ``layout``
-    say how to load the sources (:func:`~safety.sources.load_value_function`)."""
+    say how to load the sources (:func:`~safety.sources.load_value_function`). ``backend``
+    (:class:`~safety.sharding.RayBlocks`) runs the rollout blocks on its workers, with the same rows."""
     refs = settings_from(References, references, reference_fields, "reference")
     ground_truth, gt_time, gt_slice, pairwise = refs.ground_truth, refs.gt_time, refs.gt_slice, refs.pairwise
     paths = expand_sources(sources)
@@ -287,7 +289,7 @@ def evaluate_many(
             key = {"source": path, "fingerprint": fp, "device": device, **header}
             with RolloutStore(_store_directory(out, path), key) as store:
                 vf = loaded.value_function
-                row.update(verify(vf, states, settings, device=device, progress=progress, store=store))
+                row.update(verify(vf, states, settings, device=device, progress=progress, store=store, backend=backend))
                 row["rollout_blocks_resumed"] = store.loaded_blocks
             if reference is not None:
                 row.update(reference(loaded.value_function))

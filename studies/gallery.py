@@ -36,9 +36,7 @@ GALLERY: tuple[tuple[str, str], ...] = (
 )
 
 #: DeepReach systems not yet here, and why
-MISSING: tuple[tuple[str, str], ...] = (
-    ("Dubins4D", "DeepReach's public release declares it without dynamics"),
-)
+MISSING: tuple[tuple[str, str], ...] = (("Dubins4D", "DeepReach's public release declares it without dynamics"),)
 
 #: where the slices live, relative to the docs folder
 SLICE_FOLDER = "gallery"

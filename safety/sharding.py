@@ -1,0 +1,124 @@
+"""Verification sharded over Ray: the blocks of a verification's rollouts as Ray tasks.
+
+A verification rolls out its states in blocks of ``chunk_size`` (:mod:`safety.rollout_store`). With a
+:class:`RayBlocks` backend those blocks run as Ray tasks, on a local Ray instance or the cluster at
+``address``, the engine the sweeps already use (:mod:`studies.sweeps.backends`):
+
+- each block is the same states the single process would roll out in that block, so the outcomes
+  are identical, bit for bit, where the workers compute as this process does (same CPU kind and
+  torch threads: a task takes ``cpus_per_task`` cores and torch as many threads; tested on a local
+  Ray instance);
+- the value function is put in Ray's object store once and shared by every task;
+- a worker lost mid-block (killed, a node gone) has its block re-run by Ray (``max_retries``); an
+  exception in a block stops the verification with that error;
+- through a :class:`~safety.rollout_store.RolloutStore` (``reach evaluate``) each block is saved by
+  this process as it arrives, so an interrupted sharded run resumes with what was done, and no row
+  is written until every block is in.
+
+``reach evaluate ... --backend ray [--address ADDR]``; ``verify(..., backend=RayBlocks())``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+import torch
+
+from reach.validation import positive_finite
+from reach.value_function import ValueFunction
+from safety.rollout import RolloutResult, RolloutSettings, concat_results, rollout
+
+#: the backends ``reach evaluate --backend`` takes
+BACKENDS = ("local", "ray")
+
+
+def _rollout_block(value_function: ValueFunction, states: torch.Tensor, settings: RolloutSettings, run: dict) -> Any:
+    return rollout(value_function, states, settings, **run)
+
+
+class RayBlocks:
+    """Roll out blocks of states as Ray tasks (see the module docstring); a context manager that
+    starts a local Ray instance (or connects to ``address``) on entry and shuts down what it started."""
+
+    def __init__(self, address: str | None = None, cpus_per_task: float = 1.0, max_retries: int = 3) -> None:
+        self.address = address
+        self.cpus_per_task = positive_finite("cpus_per_task", cpus_per_task)
+        if isinstance(max_retries, bool) or not isinstance(max_retries, int) or max_retries < 0:
+            raise ValueError(f"max_retries must be an integer >= 0, got {max_retries!r}")
+        self.max_retries = max_retries
+        self._started = False
+        self._ray: Any = None
+
+    def __enter__(self) -> RayBlocks:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def start(self) -> None:
+        """Start (or connect to) Ray, once; ``ValueError`` if Ray is not installed."""
+        if self._ray is not None:
+            return
+        try:
+            import ray  # lazy: optional extra, only for the Ray backend
+        except ImportError as err:
+            raise ValueError("the ray backend needs Ray: pip install 'reach[ray]'") from err
+        self._ray = ray
+        if not ray.is_initialized():
+            kwargs: dict[str, Any] = {"address": self.address} if self.address else {"include_dashboard": False}
+            ray.init(log_to_driver=False, **kwargs)
+            self._started = True
+
+    def close(self) -> None:
+        if self._ray is not None and self._started:
+            self._ray.shutdown()
+        self._ray, self._started = None, False
+
+    def map(
+        self, value_function: ValueFunction, blocks: Sequence[torch.Tensor], settings: RolloutSettings, **run: Any
+    ) -> Iterator[tuple[int, RolloutResult]]:
+        """``(index, result)`` of each block's rollout, as blocks finish."""
+        self.start()
+        ray = self._ray
+        run = {**run, "progress": False}  # workers print nothing; the driver counts blocks
+        task = ray.remote(num_cpus=self.cpus_per_task, max_retries=self.max_retries)(_rollout_block)
+        shared = ray.put(value_function)
+        pending = {task.remote(shared, block, settings, run): k for k, block in enumerate(blocks)}
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            for ref in done:
+                k = pending.pop(ref)
+                try:
+                    yield k, ray.get(ref)
+                except Exception as err:  # RayTaskError wraps the block's exception: raise that one
+                    cause = getattr(err, "cause", None)
+                    raise (cause if isinstance(cause, BaseException) else err) from None
+
+    def rollout(
+        self, value_function: ValueFunction, states: torch.Tensor, settings: RolloutSettings, **run: Any
+    ) -> RolloutResult:
+        """The rollout of ``states`` in blocks of ``settings.chunk_size``, the blocks on Ray."""
+        size = settings.chunk_size
+        blocks = [states[lo : lo + size] for lo in range(0, states.shape[0], size)]
+        if not blocks:
+            return rollout(value_function, states, settings, **run)
+        parts: list[RolloutResult | None] = [None] * len(blocks)
+        for k, result in self.map(value_function, blocks, settings, **run):
+            parts[k] = result
+        return concat_results(parts)
+
+
+def make_backend(name: str | None, address: str | None = None) -> RayBlocks | None:
+    """The block backend ``name`` names: ``None`` or ``"local"`` (this process), ``"ray"``."""
+    if name in (None, "local"):
+        if address is not None:
+            raise ValueError("--address needs --backend ray")
+        return None
+    if name == "ray":
+        return RayBlocks(address=address)
+    raise ValueError(f"backend must be one of {BACKENDS}, got {name!r}")
+
+
+__all__ = ["BACKENDS", "RayBlocks", "make_backend"]
