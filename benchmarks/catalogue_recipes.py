@@ -10,14 +10,15 @@ Each recipe trains for two hours of the quiet 2-core rate, given as steps (``min
 minute``, the rate ``measure`` printed on a quiet machine), so a run that shares the cores or is
 stopped and resumed trains exactly what a quiet, uninterrupted two hours trains: the cosine learning
 rate schedule depends on the step count, not on the wall clock. ``run`` works through the queue in
-order; a finished run is skipped, an interrupted one continues with ``reach train --resume`` (its
-checkpoint is at most 30 s old), and a run directory that another process owns stops the queue
-with the owner's error. Each run keeps 24 snapshots of its network, one per 5 quiet minutes
+order, in this process (:func:`studies.step_budget_study.train_or_resume`, as the 9D studies
+train); a finished run is skipped, an interrupted one resumes (its checkpoint is at most 30 s old),
+and a run directory that another process owns stops the queue with the owner's error. Each run's
+line in the log is its ``reach train`` command. Each run keeps 24 snapshots of its network, one per 5 quiet minutes
 (``RUN/snapshots``), so the accuracy of every model along its training can be scored afterwards
 (the dimension study). The N-car fleets train under the union of pairwise BRTs of the 101^3 pair
-grid (``--upper-bound runs/pair_gt.npz``, which ``run`` solves first if it is missing:
-``reach groundtruth relativepair --grid 101 --out runs/pair_gt.npz``, 20 s), as the shipped 9D model
-does.
+grid (``--upper-bound runs/pair_gt.npz``, which ``run`` solves first if it is missing, as
+``reach groundtruth relativepair --grid 101 --out runs/pair_gt.npz`` does, 20 s), as the shipped 9D
+model does.
 """
 
 from __future__ import annotations
@@ -25,13 +26,16 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import os
 import shlex
 import subprocess
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
+
+from reach.threads import thread_policy
+from studies.step_budget_study import ensure_pairwise, train_or_resume
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the CLI of this interpreter's reach (no PATH lookup)
@@ -44,13 +48,15 @@ SNAPSHOTS = 24
 
 @dataclass(frozen=True)
 class Recipe:
-    """One model's training: the system, its quiet 2-core rate, and any arguments beyond the defaults."""
+    """One model's training: the system, its quiet 2-core rate, and its settings beyond the defaults
+    (:class:`~training.TrainConfig` fields, as ``reach train`` takes them: ``upper_bound`` is
+    ``--upper-bound``)."""
 
     name: str
     system: str
     steps_per_minute: int  # measured by ``measure`` on a quiet machine (see ``rate_from``)
     rate_from: str
-    extra: tuple[str, ...] = ()
+    settings: tuple[tuple[str, Any], ...] = ()
 
     @property
     def steps(self) -> int:
@@ -60,15 +66,19 @@ class Recipe:
     def out(self) -> Path:
         return OUT / self.name
 
+    def fields(self) -> dict[str, Any]:
+        """The run's :class:`~training.TrainConfig` fields besides steps and seed."""
+        return {"system": self.system, "snapshots": SNAPSHOTS, **dict(self.settings)}
+
     def command(self, threads: int) -> list[str]:
-        return [
-            *REACH, "--threads", str(threads), "train", "--system", self.system, "--steps", str(self.steps),
-            "--seed", "0", "--snapshots", str(SNAPSHOTS), *self.extra, "--out", str(self.out),
-        ]  # fmt: skip
+        """The ``reach train`` command line of this recipe (what ``run`` trains, in this process)."""
+        options = [item for k, v in self.fields().items() for item in (f"--{k.replace('_', '-')}", str(v))]
+        command = ["reach", "--threads", str(threads), "train", *options, "--steps", str(self.steps), "--seed", "0"]
+        return [*command, "--out", str(self.out)]
 
 
 PAIR_GRID = Path("runs/pair_gt.npz")
-UNION = ("--upper-bound", str(PAIR_GRID))
+UNION = (("upper_bound", str(PAIR_GRID)),)
 MEASURED = "2026-11-26, `measure --seconds 60`, quiet (other runs paused): "
 #: the queue, in the order ``run`` trains it
 RECIPES = (
@@ -97,8 +107,7 @@ def status(args: argparse.Namespace) -> int:
         target = recipe.steps or "?"
         print(f"{recipe.name:<26} {steps:>6} / {target} steps, {wall / 60:.0f} min so far")
         if recipe.steps_per_minute:
-            shown = shlex.join(["reach", *recipe.command(args.threads)[len(REACH) :]])
-            print(f"    {shown}   # {recipe.rate_from}")
+            print(f"    {shlex.join(recipe.command(args.threads))}   # {recipe.rate_from}")
         else:
             print("    (no measured rate yet: run `measure` on a quiet machine)")
     return 0
@@ -106,13 +115,13 @@ def status(args: argparse.Namespace) -> int:
 
 def measure(args: argparse.Namespace) -> int:
     """Each system's steps per minute over ``--seconds`` of training, one system at a time."""
-    _pair_grid(args.threads)
+    ensure_pairwise(ROOT / PAIR_GRID)
     for recipe in RECIPES:
         if args.names and recipe.name not in args.names.split(","):
             continue
         out = ROOT / "runs" / "catalogue-rate" / recipe.name
-        command = [*REACH, "--threads", str(args.threads), "train", "--system", recipe.system, "--steps", "1000000"]
-        command += [*recipe.extra, "--out", str(out), "--log-every", "25"]
+        command = [*REACH, *recipe.command(args.threads)[1:-2], "--out", str(out), "--log-every", "25"]
+        command[command.index("--steps") + 1] = "1000000"
         subprocess.run(["rm", "-rf", str(out)], check=True)
         start = time.perf_counter()
         with contextlib.suppress(subprocess.TimeoutExpired):
@@ -127,14 +136,13 @@ def measure(args: argparse.Namespace) -> int:
     return 0
 
 
-def _pair_grid(threads: int) -> None:
-    if not (ROOT / PAIR_GRID).is_file():
-        command = [*REACH, "--threads", str(threads), "groundtruth", "relativepair", "--grid", "101"]
-        subprocess.run([*command, "--out", str(PAIR_GRID)], cwd=ROOT, check=True)
-
-
 def run(args: argparse.Namespace) -> int:
-    _pair_grid(args.threads)
+    ensure_pairwise(ROOT / PAIR_GRID)
+    with thread_policy(args.threads):  # as `reach --threads`: the runs train with this many threads
+        return _train_queue(args.threads)
+
+
+def _train_queue(threads: int) -> int:
     for recipe in RECIPES:
         if not recipe.steps_per_minute:
             print(f"{recipe.name}: no measured rate; the queue stops here (run `measure`)")
@@ -143,13 +151,15 @@ def run(args: argparse.Namespace) -> int:
         if steps >= recipe.steps:
             print(f"{recipe.name}: done ({steps} steps)")
             continue
-        if (ROOT / recipe.out / "config.json").is_file():
-            command = [*REACH, "--threads", str(args.threads), "train", "--resume", str(recipe.out)]
-            command += ["--steps", str(recipe.steps)]
+        run_dir = ROOT / recipe.out
+        if (run_dir / "config.json").is_file():
+            shown = ["reach", "--threads", str(threads), "train", "--resume", str(recipe.out)]
+            shown += ["--steps", str(recipe.steps)]
         else:
-            command = recipe.command(args.threads)
-        print(f"{recipe.name}: {shlex.join(command)}", flush=True)
-        if subprocess.run(command, cwd=ROOT, env={**os.environ, "TQDM_DISABLE": "1"}).returncode != 0:
+            shown = recipe.command(threads)
+        print(f"{recipe.name}: {shlex.join(shown)}", flush=True)
+        fields = {k: str(ROOT / v) if k == "upper_bound" else v for k, v in recipe.fields().items()}
+        if train_or_resume(run_dir, recipe.steps, 0, fields):
             return 1
     return 0
 

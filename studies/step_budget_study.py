@@ -99,15 +99,17 @@ class PlannedRun:
 def train_or_resume(
     run: Path, steps: int, seed: int, settings: Mapping[str, Any] | None = None, device: str = "cpu"
 ) -> int:
-    """Train the 9D defaults (plus ``settings``, :class:`~training.TrainConfig` fields) for ``steps``
-    steps into ``run`` on ``device``, or resume the run already there (on ``device``: a run may move
+    """Train the 9D defaults (plus ``settings``, :class:`~training.TrainConfig` fields; a ``system``
+    among them trains that system instead) for ``steps`` steps into ``run`` on ``device``, or resume
+    the run already there (on ``device``: a run may move
     between a CPU and a GPU; the step count, not the machine, fixes what it trains). Returns 0, or
     :data:`EXIT_PARTIAL` where the run diverged (its last good checkpoint is kept)."""
     with thread_policy():  # as `reach train`: the cores other processes leave free, for the whole run
         if any((run / name).exists() for name in ("checkpoint.pt", "config.json")):
             trainer = Trainer.resume(run, steps=steps, device=device)
         else:
-            config = TrainConfig(system=SYSTEM, steps=steps, seed=seed, device=device, **(settings or {}))
+            fields = {"system": SYSTEM, **(settings or {})}
+            config = TrainConfig(steps=steps, seed=seed, device=device, **fields)
             trainer = Trainer(config, run)  # which validates the configuration first
         try:
             summary = trainer.train()

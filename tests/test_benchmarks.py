@@ -271,7 +271,7 @@ def test_catalogue_recipe_queue_trains_skips_what_is_done_and_resumes(tmp_path: 
     for recipe in recipes.RECIPES:  # the shipped queue: registered systems, two hours of steps each
         assert recipe.steps == 120 * recipe.steps_per_minute > 0 and make_system(recipe.system).state_dim >= 6
     assert next(r for r in recipes.RECIPES if r.system == "multivehicle9d").steps == 92_400  # the shipped card's
-    tiny = ("--width", "8", "--points", "64", "--layout", "ssl")
+    tiny = (("width", 8), ("points", 64), ("layout", "ssl"))
     monkeypatch.setattr(recipes, "ROOT", tmp_path)
     monkeypatch.setattr(recipes, "MINUTES", 2)
     monkeypatch.setattr(recipes, "RECIPES", (recipes.Recipe("tiny", "air3d", 5, "test", tiny),))
