@@ -37,6 +37,36 @@ def _rollout_block(value_function: ValueFunction, states: torch.Tensor, settings
     return rollout(value_function, states, settings, **run)
 
 
+def start_ray(address: str | None = None) -> tuple[Any, bool]:
+    """``(ray, started)``: Ray, connected to the cluster at ``address`` or to a local instance (started
+    here where none runs, without a dashboard); ``started`` says whether the caller should shut it
+    down. ``ValueError`` where Ray is not installed. The sweeps' Ray backend starts Ray the same way."""
+    try:
+        import ray  # lazy: optional extra, only for the Ray backends
+    except ImportError as err:
+        raise ValueError("the ray backend needs Ray: pip install 'reach[ray]'") from err
+    if ray.is_initialized():
+        return ray, False
+    kwargs: dict[str, Any] = {"address": address} if address else {"include_dashboard": False}
+    ray.init(log_to_driver=False, **kwargs)
+    return ray, True
+
+
+def as_completed(ray: Any, pending: dict[Any, Any]) -> Iterator[tuple[Any, Any]]:
+    """``(key, result)`` of each Ray task in ``pending`` (object ref -> key) as it finishes; a task
+    that raised gives its own exception as the result (Ray's ``RayTaskError`` unwrapped)."""
+    pending = dict(pending)
+    while pending:
+        done, _ = ray.wait(list(pending), num_returns=1)
+        for ref in done:
+            key = pending.pop(ref)
+            try:
+                yield key, ray.get(ref)
+            except Exception as err:  # RayTaskError wraps the task's exception: give that one
+                cause = getattr(err, "cause", None)
+                yield key, cause if isinstance(cause, BaseException) else err
+
+
 class RayBlocks:
     """Roll out blocks of states as Ray tasks (see the module docstring); a context manager that
     starts a local Ray instance (or connects to ``address``) on entry and shuts down what it started."""
@@ -59,17 +89,8 @@ class RayBlocks:
 
     def start(self) -> None:
         """Start (or connect to) Ray, once; ``ValueError`` if Ray is not installed."""
-        if self._ray is not None:
-            return
-        try:
-            import ray  # lazy: optional extra, only for the Ray backend
-        except ImportError as err:
-            raise ValueError("the ray backend needs Ray: pip install 'reach[ray]'") from err
-        self._ray = ray
-        if not ray.is_initialized():
-            kwargs: dict[str, Any] = {"address": self.address} if self.address else {"include_dashboard": False}
-            ray.init(log_to_driver=False, **kwargs)
-            self._started = True
+        if self._ray is None:
+            self._ray, self._started = start_ray(self.address)
 
     def close(self) -> None:
         if self._ray is not None and self._started:
@@ -86,15 +107,10 @@ class RayBlocks:
         task = ray.remote(num_cpus=self.cpus_per_task, max_retries=self.max_retries)(_rollout_block)
         shared = ray.put(value_function)
         pending = {task.remote(shared, block, settings, run): k for k, block in enumerate(blocks)}
-        while pending:
-            done, _ = ray.wait(list(pending), num_returns=1)
-            for ref in done:
-                k = pending.pop(ref)
-                try:
-                    yield k, ray.get(ref)
-                except Exception as err:  # RayTaskError wraps the block's exception: raise that one
-                    cause = getattr(err, "cause", None)
-                    raise (cause if isinstance(cause, BaseException) else err) from None
+        for k, result in as_completed(ray, pending):
+            if isinstance(result, BaseException):  # a block failed: the verification stops with its error
+                raise result
+            yield k, result
 
     def rollout(
         self, value_function: ValueFunction, states: torch.Tensor, settings: RolloutSettings, **run: Any
@@ -121,4 +137,4 @@ def make_backend(name: str | None, address: str | None = None) -> RayBlocks | No
     raise ValueError(f"backend must be one of {BACKENDS}, got {name!r}")
 
 
-__all__ = ["BACKENDS", "RayBlocks", "make_backend"]
+__all__ = ["BACKENDS", "RayBlocks", "as_completed", "make_backend", "start_ray"]

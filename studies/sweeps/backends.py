@@ -12,6 +12,7 @@ import multiprocessing
 from collections.abc import Iterator, Sequence
 from typing import Any
 
+from safety.sharding import as_completed, start_ray
 from studies.sweeps.task import run_task
 
 TaskArgs = tuple[str, dict[str, Any], str, int, "str | None", "int | None"]  # run_task's positional arguments
@@ -45,26 +46,10 @@ def run_ray(tasks: Sequence[TaskArgs], address: str | None = None, cpus_per_task
     driver writes the report). A Ray instance this function started is shut down at the end; one it
     connected to is left running.
     """
-    try:
-        import ray  # lazy: optional extra, only for the Ray backend
-    except ImportError as err:
-        raise ValueError("the ray backend needs Ray: pip install 'reach[ray]'") from err
-    started = not ray.is_initialized()
-    if started:
-        kwargs: dict[str, Any] = {"address": address} if address else {"include_dashboard": False}
-        ray.init(log_to_driver=False, **kwargs)
+    ray, started = start_ray(address)
     try:
         remote = ray.remote(num_cpus=cpus_per_task, max_retries=0)(run_task)
-        pending = {remote.remote(*args): args for args in tasks}
-        while pending:
-            done, _ = ray.wait(list(pending), num_returns=1)
-            for ref in done:
-                args = pending.pop(ref)
-                try:
-                    yield args, ray.get(ref)
-                except Exception as err:  # RayTaskError wraps the task's exception; report it as it is
-                    cause = getattr(err, "cause", None)
-                    yield args, cause if isinstance(cause, BaseException) else err
+        yield from as_completed(ray, {remote.remote(*args): args for args in tasks})
     finally:
         if started:
             ray.shutdown()
