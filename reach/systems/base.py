@@ -382,7 +382,7 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
         sigma = 1.0 if objective == "max" else -1.0
         if isinstance(box, Ball):  # c + sigma r s / |s|_2; the centre where s = 0
             numbers = all(isinstance(sj, (int, float)) for sj in s)
-            norm = math.sqrt(sum(sj * sj for sj in s)) if numbers else xp.norm(list(s))
+            norm = FLOAT.norm(s) if numbers else xp.norm(list(s))
             if numbers:
                 return [c + (sigma * box.radius * sj / norm if norm > 0 else 0.0) for sj, c in zip(s, box.center)]
             safe = xp.where(norm > 0, norm, 1.0)

@@ -313,6 +313,9 @@ class CooperatingCars(UniformCars):
     pairwise BRTs of one :class:`~reach.systems.RelativePair` bounds the value from above at any N."""
 
     num_identical_cars = 3
+    #: the plot slice of the subclasses: a base state over car 1's (x, y), and its title
+    slice_state: tuple[float, ...] = ()
+    slice_title = ""
 
     def __init__(
         self,
@@ -325,17 +328,21 @@ class CooperatingCars(UniformCars):
         cars = [Car(speed, max_turn_rate, "control", f"car_{i}") for i in range(1, self.num_identical_cars + 1)]
         super().__init__(cars, speed, max_turn_rate, collision_radius, horizon, half_width)
 
+    def plot_slices(self) -> list[tuple[tuple[float, ...], tuple[int, int], str]]:
+        """Car 1's (x, y) with the other cars placed around it (``slice_state``, ``slice_title``); the
+        domain centre where a fleet declares no slice."""
+        if not self.slice_state:
+            return super().plot_slices()
+        return [(self.slice_state, (0, 1), self.slice_title)]
+
 
 class MultiVehicle12D(CooperatingCars):
     """Four cooperating cars (12D): DeepReach's three-car system with one more car."""
 
     name = "multivehicle12d"
     num_identical_cars = 4
-
-    def plot_slices(self) -> list[tuple[tuple[float, ...], tuple[int, int], str]]:
-        """Car 1's (x, y) with the other three cars placed around it."""
-        title = "cars 2-4 at (-0.4, 0), (0.4, 0), (0, -0.5)\nheadings pi/2, pi/4, 3pi/4, pi/2"
-        return [(FOUR_CAR_SLICE, (0, 1), title)]
+    slice_state = FOUR_CAR_SLICE
+    slice_title = "cars 2-4 at (-0.4, 0), (0.4, 0), (0, -0.5)\nheadings pi/2, pi/4, 3pi/4, pi/2"
 
 
 class MultiVehicle15D(CooperatingCars):
@@ -343,8 +350,5 @@ class MultiVehicle15D(CooperatingCars):
 
     name = "multivehicle15d"
     num_identical_cars = 5
-
-    def plot_slices(self) -> list[tuple[tuple[float, ...], tuple[int, int], str]]:
-        """Car 1's (x, y) with the other four cars placed around it."""
-        title = "cars 2-5 at (-0.4, 0), (0.4, 0), (0, -0.5), (0, 0.55)\nheadings pi/2, pi/4, 3pi/4, pi/2, -pi/2"
-        return [(FIVE_CAR_SLICE, (0, 1), title)]
+    slice_state = FIVE_CAR_SLICE
+    slice_title = "cars 2-5 at (-0.4, 0), (0.4, 0), (0, -0.5), (0, 0.55)\nheadings pi/2, pi/4, 3pi/4, pi/2, -pi/2"
