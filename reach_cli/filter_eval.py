@@ -21,7 +21,7 @@ from reach.validation import (
     seed_arg,
 )
 from reach_cli.options import add_subparser, default
-from safety.filter_settings import KINDS, LOOKAHEAD_DISTURBANCES, FilterSettings
+from safety.filter_settings import KINDS, LOOKAHEAD_DISTURBANCES, OUTSIDE_DOMAIN, FilterSettings
 from safety.sources import load_value_function
 from safety.value_policies import POLICIES
 from studies.filter_configs import START_FROM, EpisodeSettings, FilterGrid, FilterStudySettings, StudyOutput
@@ -48,6 +48,13 @@ FILTER_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
         "the input a filter applies when it overrides the nominal one: the bang-bang u* of grad V "
         "(gradient), or the candidate input held for a short step that leaves the most value (greedy); "
         "None: greedy for switch, gradient for lookahead and smooth",
+    ),
+    (
+        "--outside-domain",
+        "outside_domain",
+        {"choices": list(OUTSIDE_DOMAIN)},
+        "at a state outside the value function's domain: keep no nominal input and apply the backup "
+        "input (backup, fail closed), or decide on the extrapolated V (extrapolate)",
     ),
 )
 

@@ -108,6 +108,7 @@ from safety.filter_settings import (
     resolve_policy,
     settings_for_system,
 )
+from safety.tracing import refuse_untrusted, tracing
 from safety.value_policies import GreedyPolicy, OptimalPolicy, check_states
 
 __all__ = [
@@ -157,8 +158,11 @@ class FilterInfo:
     """What the filter saw and did, per state: value, nominal and applied input, intervention.
 
     ``intervened`` is True where the filter overrode the nominal input (the switch and the lookahead
-    judged it unsafe; the smooth filter found it violating the barrier condition); ``infeasible``
-    (smooth filter) where no input of the box met the condition and ``u*`` was applied.
+    judged it unsafe; the smooth filter found it violating the barrier condition; every kind where
+    the state lies outside the value function's domain); ``infeasible`` (smooth filter) where no
+    input of the box met the condition and ``u*`` was applied; ``outside_domain`` where the state
+    lay outside the system's domain, where ``V`` is extrapolated and trusted for nothing; ``gradient``
+    is ``grad V`` at the state.
     """
 
     value: torch.Tensor
@@ -166,6 +170,8 @@ class FilterInfo:
     applied: torch.Tensor
     intervened: torch.Tensor
     infeasible: torch.Tensor | None = None
+    outside_domain: torch.Tensor | None = None
+    gradient: torch.Tensor | None = None
 
 
 def project_inputs(u: torch.Tensor, bounds: InputSet) -> torch.Tensor:
@@ -252,6 +258,7 @@ class SafetyFilter:
         self.kind = kind
         self.dt = dt
         self.gamma = float(settings.gamma)
+        self.outside_domain = settings.outside_domain
         self._settings = make_filter_settings(settings, threshold=self.threshold)  # the rule resolved
 
     @property
@@ -284,32 +291,51 @@ class SafetyFilter:
             raise ValueError(f"u_nominal must be a floating-point tensor, got {u_nominal.dtype}")
         if not bool(torch.isfinite(u_nominal).all()):
             raise ValueError(f"u_nominal contains NaN or inf: {u_nominal[~torch.isfinite(u_nominal)][:4].tolist()}")
+        return self.decide(x, t, u_nominal)
+
+    def decide(
+        self, x: torch.Tensor, t: float | torch.Tensor, u_nominal: torch.Tensor
+    ) -> tuple[torch.Tensor, FilterInfo]:
+        """The decision itself, on inputs :meth:`__call__` has checked (the exported graph traces
+        this method: :mod:`safety.export`, :mod:`safety.tracing`).
+
+        A state outside the system's domain (headings wrapped first) keeps no nominal input, in every
+        kind: a network there extrapolates beyond the states it was trained on, and its ``V`` is
+        trusted for nothing; the backup input is applied (``info.outside_domain`` says where;
+        ``FilterSettings(outside_domain="extrapolate")`` decides there as inside).
+        """
+        system = self.system
         # an input outside the control set cannot be applied: every kind decides on (and keeps) the
         # input the system would get, the nominal one clipped to the box or scaled into the ball
         # (unchanged where inside)
         given = project_inputs(u_nominal, system.control_bounds)
         value, p, u_star, d_star = self._evaluate(x, t)
         u_nominal = given.to(u_star.dtype)
+        inside = self._inside(system.wrap(x), system.domain_tensor(x.dtype, x.device))
+        trusted = inside | (self.outside_domain == "extrapolate")
         infeasible = None
         if self.kind == "switch":
             # a NaN value compares False with everything: "not above" (never "at or below") decides;
             # oriented, "> threshold" is the good side of every kind (V > thr avoid, V < -thr reach)
-            keep = (self.problem.orient(value) > self.threshold) & self._time_left(t, 0.0, value)
+            keep = (self.problem.orient(value) > self.threshold) & self._time_left(t, 0.0, value) & trusted
             applied = torch.where(keep.unsqueeze(-1), u_nominal, self._backup_input(x, t, u_star, d_star, ~keep))
+        elif self.kind == "lookahead" and tracing():
+            keep, applied = self._lookahead_every_row(x, t, u_nominal, u_star, d_star, trusted)
         elif self.kind == "lookahead":
-            keep = self._backup_holds(x, t, u_nominal, d_star)
+            keep = self._backup_holds(x, t, u_nominal, d_star) & trusted
             u_back = self._backup_input(x, t, u_star, d_star, ~keep)
             applied = torch.where(keep.unsqueeze(-1), u_nominal, self._fallback(x, t, u_back, d_star, ~keep))
         else:
             applied, infeasible, keep = self._project(x, value, p, u_nominal, u_star, d_star)
-            applied = torch.where(
-                infeasible.unsqueeze(-1), self._backup_input(x, t, applied, d_star, infeasible), applied
-            )
+            infeasible = infeasible & trusted
+            keep = keep & trusted
+            backup = ~trusted | infeasible
+            applied = torch.where(backup.unsqueeze(-1), self._backup_input(x, t, u_star, d_star, backup), applied)
         # kept inputs come back as given (bit for bit, in their own dtype); the others in that dtype too
         applied = torch.where(keep.unsqueeze(-1), given, applied.to(given.dtype))
         # intervened = the filter overrode the nominal input (its decision; the applied input can
         # still equal the nominal one, e.g. where u* is the box centre and the nominal input is 0)
-        return applied, FilterInfo(value, given, applied, ~keep, infeasible)
+        return applied, FilterInfo(value, given, applied, ~keep, infeasible, ~inside, p)
 
     def _check_time(self, t: object, batch: torch.Size) -> None:
         """Refuse a time-to-go that is not a number or a tensor of one per state, naming it."""
@@ -341,7 +367,12 @@ class SafetyFilter:
     ) -> torch.Tensor:
         """The backup input: ``u_star``, with the greedy policy's input on ``rows`` (a mask of the
         batch) when ``policy="greedy"``; only those rows pay for it."""
-        if self.greedy is None or not bool(rows.any()):
+        if self.greedy is None:
+            return u_star
+        if tracing():  # a graph computes every row (no value-dependent indexing)
+            greedy = self.greedy.control(x, t, d_star).to(u_star.dtype)
+            return torch.where(rows.unsqueeze(-1), greedy, u_star)
+        if not bool(rows.any()):
             return u_star
         index = torch.nonzero(rows.reshape(-1)).squeeze(-1)
         xs, ts, ds = self._rows(index, x, t, d_star)
@@ -387,15 +418,15 @@ class SafetyFilter:
         enough = self._time_left(t, self.dt, x[:, 0])  # reach kinds: a whole step before the deadline
         paths = 2 if self.backup_disturbance == "robust" and system.disturbance_dim > 0 else 1
         start = x.repeat(paths, 1)
-        greedy = torch.arange(len(start), device=x.device) >= len(x)  # the second half of the batch
+        greedy = x.shape[0] if paths == 2 else None  # the second half of the batch takes the greedy worst case
         d = None if d_star is None else d_star.reshape(-1, system.disturbance_dim).repeat(paths, 1)
         domain = system.domain_tensor(x.dtype, x.device)
         if isinstance(t, torch.Tensor) and t.ndim:  # per-state times-to-go follow their states
-            t = t.reshape(-1).expand(len(x)).repeat(paths)
+            t = t.reshape(-1).expand(x.shape[0]).repeat(paths)
         u_start = u_nominal.reshape(-1, system.control_dim).repeat(paths, 1)
         y = self._predict(start, u_start, d, greedy, domain, self._after(t, 1))
-        low = torch.full((len(start),), math.inf, dtype=x.dtype, device=x.device)
-        stopped = torch.zeros(len(start), dtype=torch.bool, device=x.device)
+        low = torch.full((start.shape[0],), math.inf, dtype=x.dtype, device=x.device)
+        stopped = torch.zeros(start.shape[0], dtype=torch.bool, device=x.device)
         for k in range(self.backup_steps + 1):
             tk = self._after(t, k + 1)  # the predicted state's time-to-go (held for avoid)
             inside = self._inside(y, domain)
@@ -410,8 +441,8 @@ class SafetyFilter:
             # a state fails once any of its paths has: its verdict is decided, its rollouts stop
             failed = (low <= self.threshold).reshape(paths, -1).any(0).repeat(paths)
             stopped = stopped | ~inside | self._finished(y, tk) | failed
-            if k == self.backup_steps or bool(stopped.all()):
-                break
+            if k == self.backup_steps or (not tracing() and bool(stopped.all())):
+                break  # a graph rolls every step (stopped paths idle: their verdict is kept)
             y = torch.where(
                 inside.unsqueeze(-1), self._predict(y_in, u_back, d_back, greedy, domain, self._after(t, k + 2)), y
             )
@@ -435,9 +466,10 @@ class SafetyFilter:
         candidate that does not chatter. Only the states that need a fallback are checked again.
         """
         fallback = u_star.clone()
+        m = self.system.control_dim
+        centre = torch.tensor(self.system.control_bounds.center, dtype=u_star.dtype, device=u_star.device)
         if not bool(needed.any()):
             return fallback
-        m = self.system.control_dim
         rows = torch.nonzero(needed.reshape(-1)).squeeze(-1)
         xs, ts, ds = self._rows(rows, x, t, d_star)
         us = u_star.reshape(-1, m)[rows]
@@ -447,47 +479,74 @@ class SafetyFilter:
         rows, xs, us = rows[failing], xs[failing], us[failing]  # only where u* fails is the centre checked
         ts = ts[failing] if isinstance(ts, torch.Tensor) and ts.ndim else ts
         ds = None if ds is None else ds[failing]
-        centre = torch.tensor(self.system.control_bounds.center, dtype=us.dtype, device=us.device).expand_as(us)
+        centre = centre.expand_as(us)
         use_centre = self._backup_holds(xs, ts, centre, ds)
         flat = fallback.reshape(-1, m)
         flat[rows[use_centre]] = centre[use_centre]
         return flat.reshape(u_star.shape)
+
+    def _lookahead_every_row(
+        self,
+        x: torch.Tensor,
+        t: float | torch.Tensor,
+        u_nominal: torch.Tensor,
+        u_star: torch.Tensor,
+        d_star: torch.Tensor | None,
+        trusted: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The lookahead's decision as a graph computes it (:mod:`safety.tracing`): the nominal input,
+        the backup input and the control box's centre are checked for every row in one batched
+        backup rollout, where the eager path checks the backup input and then the centre only on
+        the rows that need them (:meth:`_fallback`). The same verdict per row: ``(keep, applied)``."""
+        flat_x = x.reshape(-1, self.system.state_dim)
+        rows = flat_x.shape[0]
+        every = torch.ones(x.shape[:-1], dtype=torch.bool, device=x.device)
+        u_back = self._backup_input(x, t, u_star, d_star, every)
+        centre = torch.tensor(self.system.control_bounds.center, dtype=u_star.dtype, device=u_star.device)
+        m = self.system.control_dim
+        candidates = torch.cat([u_nominal.reshape(-1, m), u_back.reshape(-1, m), centre.expand(rows, m)])
+        tt = t.reshape(-1).expand(rows).repeat(3) if isinstance(t, torch.Tensor) and t.ndim else t
+        dd = None if d_star is None else d_star.reshape(rows, -1).repeat(3, 1)
+        holds = self._backup_holds(flat_x.repeat(3, 1), tt, candidates, dd).reshape(3, *x.shape[:-1])
+        keep = holds[0] & trusted
+        fallback = torch.where((~holds[1] & holds[2]).unsqueeze(-1), centre, u_back)
+        return keep, torch.where(keep.unsqueeze(-1), u_nominal, fallback)
 
     def _predict(
         self,
         x: torch.Tensor,
         u: torch.Tensor,
         d: torch.Tensor | None,
-        greedy: torch.Tensor,
+        greedy: int | None,
         domain: torch.Tensor,
         t: float | torch.Tensor,
     ) -> torch.Tensor:
-        """The predicted next states under ``u``: under ``d``, and on the ``greedy`` rows under
-        whichever of ``d`` and the disturbance box's corners leaves the least ``min(V, l)``."""
+        """The predicted next states under ``u``: under ``d``, and on the rows from ``greedy`` on
+        (None: no row) under whichever of ``d`` and the disturbance box's corners leaves the least
+        ``min(V, l)``."""
         y = self._ahead(x, u, d)
-        if d is None or not bool(greedy.any()):
+        if d is None or greedy is None:
             return y
         system = self.system
         box = require_box(system.disturbance_bounds, "the lookahead filter's greedy disturbance corners")
-        xg, ug = x[greedy], u[greedy]
+        xg, ug = x[greedy:], u[greedy:]
         corners = torch.cartesian_prod(
             *[torch.tensor([lo, hi], dtype=d.dtype, device=d.device) for lo, hi in zip(box.low, box.high)]
         ).reshape(-1, system.disturbance_dim)
         c = 1 + len(corners)  # candidates: d (its step is y's), then each corner, (c, G) flattened
         at_corners = self._ahead(
-            xg.repeat(len(corners), 1), ug.repeat(len(corners), 1), corners.repeat_interleave(len(xg), 0)
+            xg.repeat(len(corners), 1), ug.repeat(len(corners), 1), corners.repeat_interleave(xg.shape[0], 0)
         )
-        ahead = torch.cat([y[greedy], at_corners])
+        ahead = torch.cat([y[greedy:], at_corners])
         inside = self._inside(ahead, domain)
         clamped = torch.where(inside.unsqueeze(-1), ahead, ahead.clamp(domain[:, 0], domain[:, 1]))
         if isinstance(t, torch.Tensor) and t.ndim:
-            t = t[greedy].repeat(c)
+            t = t[greedy:].repeat(c)
         v = self.value_function.value(clamped, t)
         self._trust(clamped, t, v, None, None)
         worst = self._safety_value(v, ahead, inside).reshape(c, -1).argmin(0)
-        y = y.clone()
-        y[greedy] = ahead.reshape(c, -1, x.shape[-1])[worst, torch.arange(len(xg), device=x.device)]
-        return y
+        chosen = ahead.reshape(c, -1, x.shape[-1])[worst, torch.arange(xg.shape[0], device=x.device)]
+        return torch.cat([y[:greedy], chosen])
 
     def _safety_value(self, v: torch.Tensor, y: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
         """How far predicted states lie on the good side, ``> threshold`` to pass.
@@ -609,9 +668,10 @@ class SafetyFilter:
         for tensor in (p, u_star):
             if tensor is not None:
                 untrusted = untrusted | ~torch.isfinite(tensor).all(-1)
-        if bool(untrusted.any()):
-            bad = x[untrusted][0].tolist()
-            raise ValueError(
-                f"value function returned a non-finite value, gradient or optimal input at state {bad} (t = {t}); "
-                "the filter does not trust it and keeps no nominal input"
-            )
+        refuse_untrusted(
+            untrusted,
+            lambda: (
+                f"value function returned a non-finite value, gradient or optimal input at state "
+                f"{x[untrusted][0].tolist()} (t = {t}); the filter does not trust it and keeps no nominal input"
+            ),
+        )

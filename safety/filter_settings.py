@@ -29,6 +29,9 @@ LOOKAHEAD_DISTURBANCES = ("robust", "model")
 #: the backup input each kind uses unless told otherwise (see :mod:`safety.filter`)
 DEFAULT_POLICIES = {"switch": "greedy", "lookahead": "gradient", "smooth": "gradient"}
 
+#: what a filter does at a state outside the value function's domain (see :class:`FilterSettings`)
+OUTSIDE_DOMAIN = ("backup", "extrapolate")
+
 #: the time-to-go that counts down with the episode (``horizon - elapsed``, floored at 0)
 REMAINING = "remaining"
 
@@ -60,6 +63,11 @@ class FilterSettings:
         policy: the backup input, ``"gradient"`` or ``"greedy"``; ``None``: the kind's default
             (:data:`DEFAULT_POLICIES`, :attr:`backup_policy`; always ``"gradient"`` for reach kinds,
             :func:`settings_for_system`).
+        outside_domain: at a state outside the system's domain (headings wrapped first), where a
+            network extrapolates beyond what it was trained on: ``"backup"`` (default, fail closed)
+            keeps no nominal input and applies the backup input; ``"extrapolate"`` decides on the
+            extrapolated ``V`` as inside (reach before 0.3 did this: a scene without an arena, where
+            the Air3D evader escapes beyond the 1 m box, then keeps its nominal input).
     """
 
     kind: str = "switch"
@@ -69,6 +77,7 @@ class FilterSettings:
     backup_horizon: float | None = None
     backup_disturbance: str = "robust"
     policy: str | None = None
+    outside_domain: str = "backup"
 
     def __post_init__(self) -> None:
         """Refuse a setting that makes no sense, naming it and its value (the one check of each).
@@ -91,6 +100,8 @@ class FilterSettings:
             )
         if self.policy is not None:
             check_policy(self.policy)
+        if self.outside_domain not in OUTSIDE_DOMAIN:
+            raise ValueError(f"outside_domain must be one of {OUTSIDE_DOMAIN}, got {self.outside_domain!r}")
 
     def _set(self, name: str, value: Any) -> None:
         object.__setattr__(self, name, value)  # a frozen dataclass stores its checked value once
@@ -198,6 +209,7 @@ __all__ = [
     "KINDS",
     "LOOKAHEAD_DISTURBANCES",
     "MAX_BACKUP_STEPS",
+    "OUTSIDE_DOMAIN",
     "REMAINING",
     "FilterSettings",
     "default_threshold",

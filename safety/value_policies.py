@@ -22,6 +22,7 @@ from reach.systems.arrays import TORCH
 from reach.systems.box import require_box
 from reach.validation import is_positive_finite
 from reach.value_function import ValueFunction, value_and_gradient
+from safety.tracing import refuse_untrusted
 
 
 def check_states(x: torch.Tensor, state_dim: int, what: str = "states") -> None:
@@ -36,9 +37,7 @@ def check_states(x: torch.Tensor, state_dim: int, what: str = "states") -> None:
     if x.ndim == 0 or x.shape[-1] != state_dim:
         raise ValueError(f"{what} must have shape (..., {state_dim}), got {tuple(x.shape)}")
     finite = torch.isfinite(x).all(-1)
-    if not bool(finite.all()):
-        bad = x[~finite][0].tolist()
-        raise ValueError(f"{what} contain NaN or inf, e.g. {bad}")
+    refuse_untrusted(~finite, lambda: f"{what} contain NaN or inf, e.g. {x[~finite][0].tolist()}")
 
 
 class OptimalPolicy:
@@ -185,9 +184,12 @@ class GreedyPolicy:
         trusted = torch.isfinite(v) & torch.isfinite(low)
         score = torch.minimum(v, low).reshape(k, paths, count).amin(1)
         finite = trusted.reshape(k, paths, count).all(0).all(0)
-        if not bool(finite.all()):
-            bad = flat[~finite][0].tolist()
-            raise ValueError(f"the greedy policy met a non-finite value predicted from state {bad} (t = {t})")
+        refuse_untrusted(
+            ~finite,
+            lambda: (
+                f"the greedy policy met a non-finite value predicted from state {flat[~finite][0].tolist()} (t = {t})"
+            ),
+        )
         best = score.argmax(0)
         return controls[best].to(x.dtype).reshape(*batch, m)
 

@@ -2,6 +2,7 @@
 
 Floors, bottom up (``docs/design.md`` draws them):
 
+0. ``reach_runtime`` - the exported filter's runtime (NumPy and ONNX Runtime): imports none of ours;
 1. ``reach`` - systems, value-function protocol, integrators, atomic writes, locks, validation;
 2. ``reach_envs`` and ``groundtruth`` - environments and the grid solver, side by side (neither
    imports the other);
@@ -31,8 +32,11 @@ import pytest
 from reach.deprecation import MOVED, SPLIT
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("reach", "reach_envs", "groundtruth", "training", "safety", "studies", "reach_cli", "sweeps")
+PACKAGES = (
+    "reach_runtime", "reach", "reach_envs", "groundtruth", "training", "safety", "studies", "reach_cli", "sweeps"
+)  # fmt: skip
 FLOORS = {
+    "reach_runtime": 0,
     "reach": 1,
     "reach_envs": 2,
     "groundtruth": 2,

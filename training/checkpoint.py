@@ -61,6 +61,11 @@ def save_checkpoint(
         json.dump(meta, fh, indent=2, sort_keys=True)
 
 
+def network_digest(network: torch.nn.Module) -> str:
+    """The fingerprint of a value network: the SHA-256 its checkpoint records (architecture and weights)."""
+    return _digest(network.architecture(), network.state_dict())
+
+
 def _digest(architecture: dict[str, Any], state: dict[str, torch.Tensor]) -> str:
     """SHA-256 over the architecture (canonical JSON) and every tensor's name, dtype, shape and bytes."""
     h = hashlib.sha256(json.dumps(architecture, sort_keys=True).encode())

@@ -507,11 +507,22 @@ class NeuralValueFunction:
         if not bool(finite.all()):
             bad = x[~finite.to(x.device)][0].tolist()
             raise ValueError(f"states contain NaN or inf (or overflow {p.dtype}), e.g. {bad}")
+        return self._prepared(xc, t)
+
+    def _prepared(self, x: torch.Tensor, t: float | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """States in the weights' device and dtype, headings wrapped, and times broadcast to the batch."""
+        p = next(self.network.parameters())
         # headings are wrapped first: the network was trained on [-pi, pi), and V must not depend
         # on which multiple of 2 pi a caller's heading carries
-        xc = self.system.wrap(xc)
+        xc = self.system.wrap(x.to(device=p.device, dtype=p.dtype))
         tt = torch.broadcast_to(torch.as_tensor(t, dtype=p.dtype, device=p.device), xc.shape[:-1])
         return xc, tt
+
+    def unchecked(self) -> NeuralValueFunction:
+        """The same network without the value-dependent checks of states and times (NaN, inf, the
+        time range), for a graph trace (:mod:`safety.export`): a trace cannot branch on values, and
+        the exported filter's runtime makes these checks before it runs the graph."""
+        return _UncheckedNeuralValueFunction(self.network, self.matmul_dtype)
 
     @torch.no_grad()
     def value(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
@@ -536,3 +547,10 @@ class NeuralValueFunction:
             xi = xi.detach().requires_grad_(True)
             (g,) = torch.autograd.grad(self.network(xi, tt).sum(), xi)
         return g.to(device=x.device, dtype=x.dtype)
+
+
+class _UncheckedNeuralValueFunction(NeuralValueFunction):
+    """:meth:`NeuralValueFunction.unchecked`: inputs prepared (cast, headings wrapped), not checked."""
+
+    def _inputs(self, x: torch.Tensor, t: float | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self._prepared(x, t)

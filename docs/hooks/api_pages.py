@@ -16,7 +16,7 @@ from typing import Any
 
 log = logging.getLogger("mkdocs.hooks.api_pages")
 
-PACKAGES = ("reach", "reach_envs", "groundtruth", "training", "safety", "studies", "reach_cli")
+PACKAGES = ("reach", "reach_envs", "groundtruth", "training", "safety", "studies", "reach_cli", "reach_runtime")
 BLOCK = re.compile(r"^:::\s+([\w.]+)\s*$", re.M)
 ALIAS_CALL = re.compile(r"^\s*(?:moved|split)\(\s*__name__", re.M)
 

@@ -1,0 +1,186 @@
+"""The exported safety filter against the torch filter: equal decisions, and what a decision costs.
+
+Two studies, one command each (docs/export.md holds their tables):
+
+    python benchmarks/export_filter.py equivalence --states 100000
+    python benchmarks/export_filter.py latency --calls 3000
+
+For each system (Air3D's shipped network, the shipped 9D network, a user's system from
+``examples/my_systems.py`` trained for a few hundred steps here) and each filter kind, the filter is
+exported with :func:`safety.export.export_filter` and run with :mod:`reach_runtime`.
+
+``equivalence`` draws states uniformly from the domain, times-to-go uniformly over the horizon and
+nominal inputs uniformly over the control box, and counts decisions that differ (and how many of
+those lie within 1e-4 of the threshold), the largest value and gradient differences, and applied
+inputs that differ where the decision agrees.
+
+``latency`` times one decision at batch 1 on one thread (``torch.set_num_threads(1)``, ONNX
+Runtime with one intra-op thread), per call: the torch filter, the runtime's ``Filter.__call__``
+(its NumPy checks and the graph) and the graph alone (``session.run``); then states per second at
+batch 1024. Run it on a quiet machine: nothing else may run beside it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "examples"))
+
+from reach_runtime import Filter  # noqa: E402
+from safety import SafetyFilter, load_value_function  # noqa: E402
+from safety.export import export_filter  # noqa: E402
+from safety.filter_settings import FilterSettings  # noqa: E402
+
+DT = 0.05
+KINDS = ("switch", "smooth", "lookahead")
+
+
+def user_system_network(folder: Path, steps: int) -> object:
+    """A network of the docs' own-system example (DubinsAvoid), trained ``steps`` steps here."""
+    import my_systems  # noqa: F401  (registers the example systems)
+
+    from training import TrainConfig, Trainer
+
+    run = folder / "user"
+    Trainer(TrainConfig(system="dubins-avoid", steps=steps, width=64), run, progress=False).train()
+    return load_value_function(run).value_function
+
+
+def sources(folder: Path, user_steps: int) -> dict[str, object]:
+    return {
+        "air3d": load_value_function("pretrained:air3d").value_function,
+        "multivehicle9d": load_value_function("pretrained:multivehicle9d").value_function,
+        "dubins-avoid (user)": user_system_network(folder, user_steps),
+    }
+
+
+def exported(vf: object, kind: str, folder: Path, horizon: float) -> tuple[object, SafetyFilter, Filter, float]:
+    settings = FilterSettings(kind, backup_horizon=horizon if kind == "lookahead" else None)
+    start = time.perf_counter()
+    result = export_filter(vf, folder / f"{id(vf)}-{kind}.onnx", settings, dt=DT, check_states=0)
+    seconds = time.perf_counter() - start
+    meta = result.metadata
+    torch_filter = SafetyFilter(vf, meta["threshold"], settings=FilterSettings(**meta["settings"]), dt=DT)
+    return result, torch_filter, Filter.load(result.path), seconds
+
+
+def draws(system: object, count: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    x = system.sample_states(count, generator=g)
+    t = float(system.horizon) * torch.rand(count, generator=g)
+    low = torch.tensor(system.control_bounds.low, dtype=torch.float32)
+    high = torch.tensor(system.control_bounds.high, dtype=torch.float32)
+    u = low + (high - low) * torch.rand(count, system.control_dim, generator=g)
+    return x, t, u
+
+
+def equivalence(args: argparse.Namespace) -> None:
+    print(f"# equivalence: {args.states} states per system and kind, dt {DT}, lookahead backup {args.horizon} s")
+    print("| system | filter | export s | decisions differ | near threshold | max dV | max dgradV | applied differ |")
+    print("|---|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as scratch:
+        folder = Path(scratch)
+        for name, vf in sources(folder, args.user_steps).items():
+            for kind in KINDS:
+                result, torch_filter, runtime, seconds = exported(vf, kind, folder, args.horizon)
+                threshold = result.metadata["threshold"]
+                differ = near = applied_differ = 0
+                dv = dg = 0.0
+                for start in range(0, args.states, args.chunk):
+                    n = min(args.chunk, args.states - start)
+                    x, t, u = draws(vf.system, n, args.seed + start)
+                    applied, info = torch_filter(x, t, u)
+                    got, got_info = runtime(x.numpy(), u.numpy(), t.numpy())
+                    d = got_info.intervened != info.intervened.numpy()
+                    differ += int(d.sum())
+                    near += int((d & (np.abs(info.value.numpy() - threshold) < 1e-4)).sum())
+                    dv = max(dv, float(np.abs(got_info.value - info.value.numpy()).max()))
+                    dg = max(dg, float(np.abs(got_info.gradient - info.gradient.numpy()).max()))
+                    same = np.isclose(got, applied.numpy(), atol=1e-5).all(-1)
+                    applied_differ += int((~d & ~same).sum())
+                print(
+                    f"| {name} | {kind} | {seconds:.0f} | {differ} | {near} | {dv:.1e} | {dg:.1e} | {applied_differ} |",
+                    flush=True,
+                )
+
+
+def percentiles(fn: object, calls: int) -> tuple[float, float]:
+    for _ in range(max(50, calls // 10)):
+        fn()
+    times = np.empty(calls)
+    for i in range(calls):
+        start = time.perf_counter()
+        fn()
+        times[i] = time.perf_counter() - start
+    return float(np.percentile(times, 50) * 1e6), float(np.percentile(times, 99) * 1e6)
+
+
+def timings(
+    system: object, torch_filter: SafetyFilter, runtime: Filter, args: argparse.Namespace
+) -> tuple[list[tuple[float, float]], list[float]]:
+    """Per-call percentiles at batch 1 (torch, runtime, graph alone) and states/s at batch 1024."""
+    x, _, u = draws(system, 1024, args.seed)
+    horizon = float(system.horizon)
+    x1, u1 = x[:1], u[:1]
+    xn, un = x1.numpy()[0], u1.numpy()[0]
+    feed = {"state": x1.numpy(), "time_to_go": np.array([horizon], np.float32), "u_nominal": u1.numpy()}
+    row = [
+        percentiles(lambda: torch_filter(x1, horizon, u1), args.calls),
+        percentiles(lambda: runtime(xn, un, horizon), args.calls),
+        percentiles(lambda: runtime.session.run(None, feed), args.calls),
+    ]
+    rates = []
+    for fn in (lambda: torch_filter(x, horizon, u), lambda: runtime(x.numpy(), u.numpy(), horizon)):
+        fn()
+        start = time.perf_counter()
+        for _ in range(10):
+            fn()
+        rates.append(10 * 1024 / (time.perf_counter() - start))
+    return row, rates
+
+
+def latency(args: argparse.Namespace) -> None:
+    torch.set_num_threads(1)
+    print(f"# latency: batch 1, one thread, {args.calls} calls each (p50 / p99 in microseconds); dt {DT}, "
+          f"lookahead backup {args.horizon} s; throughput at batch 1024 in states/s")  # fmt: skip
+    print("| system | filter | torch p50 / p99 | runtime p50 / p99 | graph p50 / p99 | torch 1024 | runtime 1024 |")
+    print("|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as scratch:
+        folder = Path(scratch)
+        for name, vf in sources(folder, args.user_steps).items():
+            for kind in KINDS:
+                _, torch_filter, runtime, _ = exported(vf, kind, folder, args.horizon)
+                row, rates = timings(vf.system, torch_filter, runtime, args)
+                cells = " | ".join(f"{a:.0f} / {b:.0f}" for a, b in row)
+                print(f"| {name} | {kind} | {cells} | {rates[0]:.0f} | {rates[1]:.0f} |", flush=True)
+
+
+def main() -> None:
+    warnings.filterwarnings("ignore")
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="study", required=True)
+    for name in ("equivalence", "latency"):
+        p = sub.add_parser(name)
+        p.add_argument("--horizon", type=float, default=0.25, help="the lookahead's backup horizon (s)")
+        p.add_argument("--user-steps", type=int, default=300, help="training steps of the user system's network")
+        p.add_argument("--seed", type=int, default=0)
+        if name == "equivalence":
+            p.add_argument("--states", type=int, default=100_000)
+            p.add_argument("--chunk", type=int, default=10_000)
+        else:
+            p.add_argument("--calls", type=int, default=3000)
+    args = parser.parse_args()
+    equivalence(args) if args.study == "equivalence" else latency(args)
+
+
+if __name__ == "__main__":
+    main()

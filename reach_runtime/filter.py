@@ -1,0 +1,232 @@
+"""The torch-free safety filter: an exported ONNX graph behind the checks the torch filter makes.
+
+See :mod:`reach_runtime`. The graph (``safety.export``) is the torch filter's own decision, traced;
+this module only checks inputs, runs the graph, and refuses what the graph flags.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import onnxruntime
+
+__all__ = ["FORMAT", "Filter", "FilterInfo", "FilterMetadata"]
+
+#: the exported format this runtime reads (``reach.format`` in the file's metadata)
+FORMAT = "reach-filter/1"
+
+#: relative slack on the time-to-go range: times summed in float32 (``k * dt``) may overshoot it
+_TIME_TOLERANCE = 1e-6
+
+
+@dataclass(frozen=True)
+class FilterMetadata:
+    """What an exported filter declares about itself (``reach.*`` metadata, JSON-decoded)."""
+
+    system_name: str
+    system: dict[str, Any]
+    problem: str
+    state_dim: int
+    control_dim: int
+    domain: tuple[tuple[float, float], ...]
+    control_set: dict[str, Any]
+    kind: str
+    settings: dict[str, Any]
+    threshold: float
+    dt: float | None
+    integrator: str
+    time_range: tuple[float, float]
+    default_time_to_go: float | None
+    source: str
+    fingerprint: str
+    raw: dict[str, Any]
+
+    @classmethod
+    def from_properties(cls, props: dict[str, str], where: str) -> FilterMetadata:
+        """Decode and check the ``reach.*`` properties; ``ValueError`` naming a missing or bad one."""
+        raw: dict[str, Any] = {}
+        for key, text in props.items():
+            if key.startswith("reach."):
+                try:
+                    raw[key[len("reach.") :]] = json.loads(text)
+                except json.JSONDecodeError as error:
+                    raise ValueError(f"{where}: metadata {key} is not JSON ({error})") from None
+        if raw.get("format") != FORMAT:
+            raise ValueError(
+                f"{where}: not a reach filter of format {FORMAT!r} (reach.format = {raw.get('format')!r}); "
+                "export it with `reach export`"
+            )
+        needed = (
+            "system_name", "system", "problem", "state_dim", "control_dim", "domain", "control_set",
+            "settings", "threshold", "dt", "integrator", "time_range", "default_time_to_go", "source", "fingerprint",
+        )  # fmt: skip
+        missing = [k for k in needed if k not in raw]
+        if missing:
+            raise ValueError(f"{where}: metadata lacks {', '.join('reach.' + k for k in missing)}")
+        low, high = (float(v) for v in raw["time_range"])
+        return cls(
+            system_name=str(raw["system_name"]),
+            system=dict(raw["system"]),
+            problem=str(raw["problem"]),
+            state_dim=int(raw["state_dim"]),
+            control_dim=int(raw["control_dim"]),
+            domain=tuple((float(a), float(b)) for a, b in raw["domain"]),
+            control_set=dict(raw["control_set"]),
+            kind=str(raw["settings"]["kind"]),
+            settings=dict(raw["settings"]),
+            threshold=float(raw["threshold"]),
+            dt=None if raw["dt"] is None else float(raw["dt"]),
+            integrator=str(raw["integrator"]),
+            time_range=(low, high),
+            default_time_to_go=None if raw["default_time_to_go"] is None else float(raw["default_time_to_go"]),
+            source=str(raw["source"]),
+            fingerprint=str(raw["fingerprint"]),
+            raw=raw,
+        )
+
+
+@dataclass(frozen=True)
+class FilterInfo:
+    """What the filter saw and did, per state (leading batch shape as given; see ``safety.filter``)."""
+
+    value: np.ndarray
+    gradient: np.ndarray
+    nominal: np.ndarray
+    applied: np.ndarray
+    intervened: np.ndarray
+    infeasible: np.ndarray
+    outside_domain: np.ndarray
+
+
+class Filter:
+    """An exported safety filter (see :mod:`reach_runtime`).
+
+    ``Filter.load(path)`` opens the file; ``filter(x, u_nominal, t=None) -> (u, info)`` decides.
+    ``threads`` (default 1: a control loop's filter should not compete for cores) sets ONNX
+    Runtime's intra-op threads.
+    """
+
+    def __init__(self, session: onnxruntime.InferenceSession, metadata: FilterMetadata) -> None:
+        self.session = session
+        self.metadata = metadata
+        self._outputs = [o.name for o in session.get_outputs()]
+        names = [i.name for i in session.get_inputs()]
+        if names != ["state", "time_to_go", "u_nominal"]:
+            raise ValueError(f"the graph's inputs are {names}, not ['state', 'time_to_go', 'u_nominal']")
+        expected = {"control", "value", "gradient", "intervened", "infeasible", "outside_domain", "untrusted"}
+        if not expected <= set(self._outputs):
+            raise ValueError(f"the graph lacks outputs {sorted(expected - set(self._outputs))}")
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, threads: int = 1) -> Filter:
+        """Open an exported filter; ``ValueError`` names a missing, unreadable or foreign file."""
+        where = os.fspath(path)
+        if not os.path.isfile(where):
+            raise ValueError(f"{where}: no such file (an exported filter is one .onnx file)")
+        if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+            raise ValueError(f"threads must be a positive integer, got {threads!r}")
+        options = onnxruntime.SessionOptions()
+        options.intra_op_num_threads = threads
+        options.inter_op_num_threads = 1
+        options.execution_mode = onnxruntime.ExecutionMode.ORT_SEQUENTIAL
+        options.log_severity_level = 3
+        try:
+            session = onnxruntime.InferenceSession(where, options, providers=["CPUExecutionProvider"])
+        except Exception as error:  # ONNX Runtime raises its own exception types for unreadable files
+            raise ValueError(f"{where}: not a readable ONNX model ({type(error).__name__}: {error})") from None
+        props = session.get_modelmeta().custom_metadata_map
+        return cls(session, FilterMetadata.from_properties(props, where))
+
+    # ------------------------------------------------------------------ deciding
+    def __call__(self, x: Any, u_nominal: Any, t: float | Any | None = None) -> tuple[np.ndarray, FilterInfo]:
+        """Filtered inputs for states ``x`` ``(..., n)`` and nominal inputs ``(..., m)``.
+
+        ``t`` is the time-to-go, a number or one per state; ``None`` takes the export's default
+        (avoid's fixed horizon), and is refused where the time-to-go must count down. Returns the
+        applied inputs (float32, the batch shape of ``x``) and a :class:`FilterInfo`. Raises
+        ``ValueError`` for anything it cannot trust (see :mod:`reach_runtime`)."""
+        meta = self.metadata
+        xs = self._array(x, meta.state_dim, "states")
+        batch = xs.shape[:-1]
+        us = self._array(u_nominal, meta.control_dim, "u_nominal")
+        if us.shape[:-1] != batch:
+            raise ValueError(f"u_nominal must have shape {(*batch, meta.control_dim)}, got {us.shape}")
+        ts = self._times(t, batch)
+        flat = {
+            "state": xs.reshape(-1, meta.state_dim),
+            "time_to_go": ts.reshape(-1),
+            "u_nominal": us.reshape(-1, meta.control_dim),
+        }
+        out = dict(zip(self._outputs, self.session.run(None, flat)))
+        if bool(np.asarray(out["untrusted"]).any()):
+            raise ValueError(
+                "the value function returned a non-finite value, gradient or optimal input in this batch; "
+                "the filter does not trust it and keeps no nominal input"
+            )
+        applied = out["control"].reshape(*batch, meta.control_dim)
+        info = FilterInfo(
+            value=out["value"].reshape(batch),
+            gradient=out["gradient"].reshape(*batch, meta.state_dim),
+            nominal=us,
+            applied=applied,
+            intervened=out["intervened"].reshape(batch),
+            infeasible=out["infeasible"].reshape(batch),
+            outside_domain=out["outside_domain"].reshape(batch),
+        )
+        return applied, info
+
+    @staticmethod
+    def _array(values: Any, dim: int, what: str) -> np.ndarray:
+        """``values`` as float32 ``(..., dim)``, refusing a wrong shape, a non-real dtype or NaN/inf
+        (checked after the cast: a float64 of 1e300 overflows float32)."""
+        array = np.asarray(values)
+        if array.dtype.kind not in "fiu" or array.dtype.kind == "b":
+            raise ValueError(f"{what} must be real numbers, got dtype {array.dtype}")
+        if array.ndim == 0 or array.shape[-1] != dim:
+            raise ValueError(f"{what} must have shape (..., {dim}), got {array.shape}")
+        with np.errstate(over="ignore"):
+            cast = array.astype(np.float32)
+        finite = np.isfinite(cast)
+        if not finite.all():
+            bad = array.reshape(-1, dim)[~finite.reshape(-1, dim).all(-1)][0].tolist()
+            raise ValueError(f"{what} contain NaN or inf (or overflow float32), e.g. {bad}")
+        return cast
+
+    def _times(self, t: Any, batch: tuple[int, ...]) -> np.ndarray:
+        """The time-to-go per state, refusing a missing one that must count down, a non-number, a
+        wrong shape, and any time outside the range the value function covers."""
+        meta = self.metadata
+        if t is None:
+            if meta.default_time_to_go is None:
+                raise ValueError(
+                    f"this {meta.problem} filter of {meta.system_name} needs the time-to-go t (it counts down "
+                    "with the task's deadline)"
+                )
+            t = meta.default_time_to_go
+        if isinstance(t, (str, bytes)):
+            raise ValueError(f"t must be a time-to-go in seconds or an array of them, got {t!r}")
+        times = np.asarray(t)
+        if times.dtype.kind not in "fiu" or times.dtype.kind == "b":
+            raise ValueError(f"t must be real numbers, got dtype {times.dtype}")
+        if times.ndim and times.shape != batch and times.size != 1:
+            raise ValueError(f"a per-state t must have shape {batch} (one per state), got {times.shape}")
+        times = np.broadcast_to(times.astype(np.float64).reshape(() if times.size == 1 else batch), batch)
+        low, high = meta.time_range
+        tol = _TIME_TOLERANCE * max(1.0, abs(high))
+        bad = ~np.isfinite(times) | (times < low - tol) | (times > high + tol)
+        if bad.any():
+            value = float(times[bad].reshape(-1)[0])
+            raise ValueError(
+                f"time-to-go t = {value} lies outside [{low:g}, {high:g}], the times this value function covers"
+            )
+        return times.astype(np.float32)
+
+    def __repr__(self) -> str:
+        meta = self.metadata
+        dt = "" if meta.dt is None or math.isnan(meta.dt) else f", dt={meta.dt:g}"
+        return f"Filter({meta.kind} of {meta.system_name}, threshold={meta.threshold:g}{dt}, source={meta.source!r})"

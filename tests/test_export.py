@@ -1,0 +1,245 @@
+"""The exported safety filter: the ONNX graph decides as the torch filter does, the torch-free
+runtime fails closed as it does, the exporter refuses what it cannot export, and the runtime runs in
+a fresh virtual environment that has no torch."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("onnxruntime")
+pytest.importorskip("onnx")
+
+from reach_runtime import Filter
+from safety import SafetyFilter, load_value_function
+from safety.export import export_filter
+from safety.filter_settings import FilterSettings
+
+ROOT = Path(__file__).resolve().parents[1]
+DT = 0.05
+
+
+@pytest.fixture(scope="module")
+def air3d():
+    return load_value_function("pretrained:air3d").value_function
+
+
+@pytest.fixture(scope="module")
+def exported(air3d, tmp_path_factory):
+    """Air3D filters exported once per kind (an export traces and converts for ~20 s)."""
+    folder = tmp_path_factory.mktemp("exported")
+    settings = {
+        "switch": FilterSettings("switch"),
+        "smooth": FilterSettings("smooth"),
+        "lookahead": FilterSettings("lookahead", backup_horizon=DT),
+    }
+    return {
+        kind: export_filter(air3d, folder / f"{kind}.onnx", s, dt=DT, check_states=64) for kind, s in settings.items()
+    }
+
+
+def _inputs(system, count: int, seed: int):
+    g = torch.Generator().manual_seed(seed)
+    x = system.sample_states(count, generator=g)
+    t = 1.1 * torch.rand(count, generator=g)
+    u = 2 * torch.rand(count, system.control_dim, generator=g) - 1
+    return x, t, u
+
+
+@pytest.mark.parametrize("kind", ["switch", "smooth", "lookahead"])
+def test_the_exported_filter_decides_as_the_torch_filter(air3d, exported, kind):
+    """On 2,000 random states, times and nominal inputs: the same decisions except within 1e-4 of
+    the threshold, values and gradients within float32 rounding, and the same applied input where
+    the decision agrees (a bang-bang input may flip where its switching function is ~0)."""
+    result = exported[kind]
+    meta = result.metadata
+    assert meta["settings"]["kind"] == kind and meta["system_name"] == "air3d" and meta["dt"] == DT
+    assert meta["fingerprint"].startswith("sha256:") and meta["settings"]["outside_domain"] == "backup"
+    torch_filter = SafetyFilter(air3d, meta["threshold"], settings=FilterSettings(**meta["settings"]), dt=DT)
+    runtime = Filter.load(result.path)
+    x, t, u = _inputs(air3d.system, 2000, 1)
+    applied, info = torch_filter(x, t, u)
+    got, got_info = runtime(x.numpy(), u.numpy(), t.numpy())
+    np.testing.assert_allclose(got_info.value, info.value.numpy(), atol=2e-5, rtol=1e-5)
+    np.testing.assert_allclose(got_info.gradient, info.gradient.numpy(), atol=2e-4, rtol=1e-4)
+    differ = got_info.intervened != info.intervened.numpy()
+    if kind != "lookahead":  # the lookahead's verdict is its rollout's minimum, not V here
+        assert not (differ & (np.abs(info.value.numpy() - meta["threshold"]) > 1e-4)).any()
+    assert differ.mean() < 1e-3
+    agree = ~differ
+    same = np.isclose(got[agree], applied.numpy()[agree], atol=1e-5).all(-1)
+    assert same.mean() > 0.995 and got_info.intervened.any() and (~got_info.intervened).any()
+
+
+def test_the_runtime_takes_one_state_or_a_batch_and_defaults_the_time_to_go(exported, air3d):
+    runtime = Filter.load(exported["switch"].path)
+    x, _, u = _inputs(air3d.system, 5, 2)
+    batch, info = runtime(x.numpy(), u.numpy())  # avoid: the horizon by default
+    one, one_info = runtime(x[0].numpy(), u[0].numpy(), t=1.1)
+    assert batch.shape == (5, 1) and one.shape == (1,) and one_info.value.shape == ()
+    np.testing.assert_allclose(one, batch[0], atol=1e-6)
+    np.testing.assert_allclose(one_info.value, info.value[0], atol=1e-6)
+    assert "switch of air3d" in repr(runtime)
+
+
+def test_the_runtime_fails_closed(exported, air3d):
+    """Bad input raises before the graph runs; a state outside the domain keeps no nominal input."""
+    runtime = Filter.load(exported["switch"].path)
+    x, _, u = _inputs(air3d.system, 3, 3)
+    xs, us = x.numpy(), u.numpy()
+    bad = xs.copy()
+    bad[1, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN or inf"):
+        runtime(bad, us)
+    with pytest.raises(ValueError, match="overflow float32"):
+        runtime(xs.astype(np.float64) * np.array([1e300, 1, 1]), us)
+    with pytest.raises(ValueError, match=r"t = 1.5 lies outside \[0, 1.1\]"):
+        runtime(xs, us, t=1.5)
+    with pytest.raises(ValueError, match=r"t = -0\.1"):
+        runtime(xs, us, t=np.array([0.5, -0.1, 0.5]))
+    with pytest.raises(ValueError, match=r"shape \(\.\.\., 3\)"):
+        runtime(xs[:, :2], us)
+    with pytest.raises(ValueError, match="u_nominal must have shape"):
+        runtime(xs, us[:2])
+    with pytest.raises(ValueError, match="real numbers"):
+        runtime(xs.astype(str), us)
+    far = xs.copy()
+    far[:, 0] = 5.0  # 5 m away: outside the 1 m box the network was trained on
+    kept = np.zeros_like(us)
+    applied, info = runtime(far, kept)
+    assert info.outside_domain.all() and info.intervened.all()
+
+
+def test_an_untrusted_value_raises_in_the_runtime(exported, air3d, tmp_path):
+    """An exported file whose weight matrices are edited to NaN: the graph flags the batch and the
+    runtime refuses it (it never passes the nominal input on a value it cannot trust)."""
+    import onnx
+    from onnx import numpy_helper
+
+    model = onnx.load(exported["smooth"].path)
+    edited = 0
+    for tensor in model.graph.initializer:
+        array = numpy_helper.to_array(tensor)
+        if array.ndim == 2 and array.dtype == np.float32:
+            tensor.CopyFrom(numpy_helper.from_array(np.full_like(array, np.nan), tensor.name))
+            edited += 1
+    assert edited >= 2
+    onnx.save(model, tmp_path / "nan.onnx")
+    x, _, u = _inputs(air3d.system, 2, 4)
+    with pytest.raises(ValueError, match="non-finite value"):
+        Filter.load(tmp_path / "nan.onnx")(x.numpy(), u.numpy(), t=0.5)
+
+
+def test_the_exporter_refuses_what_it_cannot_export(air3d, air3d_grid, tmp_path):
+    with pytest.raises(ValueError, match="cannot be exported to ONNX"):
+        export_filter(air3d_grid, tmp_path / "grid.onnx")
+    with pytest.raises(ValueError, match=r"must end in \.onnx"):
+        export_filter(air3d, tmp_path / "filter.pt")
+    with pytest.raises(ValueError, match="is a directory"):
+        export_filter(air3d, tmp_path)
+    with pytest.raises(ValueError, match="needs a step dt"):
+        export_filter(air3d, tmp_path / "f.onnx", kind="lookahead")
+    with pytest.raises(ValueError, match="bfloat16"):
+        export_filter(air3d.with_matmul_dtype(torch.bfloat16), tmp_path / "f.onnx")
+    with pytest.raises(ValueError, match="filter kind must be one of"):
+        export_filter(air3d, tmp_path / "f.onnx", kind="magic")
+    assert not list(tmp_path.glob("*.onnx"))
+
+
+def test_the_runtime_refuses_a_file_that_is_not_an_exported_filter(tmp_path):
+    with pytest.raises(ValueError, match="no such file"):
+        Filter.load(tmp_path / "missing.onnx")
+    junk = tmp_path / "junk.onnx"
+    junk.write_bytes(b"not a model")
+    with pytest.raises(ValueError, match="not a readable ONNX model"):
+        Filter.load(junk)
+
+
+def test_reach_export_command_writes_and_refuses_in_one_line(tmp_path, air3d_grid):
+    out = tmp_path / "cli.onnx"
+    run = [sys.executable, "-m", "reach", "export"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    bad = subprocess.run(
+        [*run, "pretrained:air3d", "--out", str(tmp_path / "x.txt")], capture_output=True, text=True, env=env
+    )
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and ".onnx" in bad.stderr
+    bad = subprocess.run(
+        [*run, "pretrained:air3d", "--out", str(out), "--kind", "lookahead"], capture_output=True, text=True, env=env
+    )
+    assert bad.returncode == 2 and "needs a step dt" in bad.stderr and not out.exists()
+
+
+#: what the runtime imports: NumPy and ONNX Runtime, and what ONNX Runtime imports or declares
+RUNTIME_PACKAGES = ("numpy", "onnxruntime", "packaging", "flatbuffers", "google.protobuf")
+
+_SCRIPT = """
+import importlib.util, sys
+assert importlib.util.find_spec("torch") is None, "torch is importable"
+assert importlib.util.find_spec("reach") is None, "reach is importable"
+from reach_runtime import Filter
+f = Filter.load(sys.argv[1])
+u, info = f([0.1, 0.0, 0.0], [1.0])  # 0.1 m apart, head-on: the filter intervenes
+print(bool(info.intervened), float(info.value), u.tolist())
+try:
+    f([float("nan"), 0.0, 0.0], [1.0])
+except ValueError as error:
+    print("refused:", error)
+assert "torch" not in sys.modules
+"""
+
+
+def _run_in_fresh_venv(venv: Path, app: Path, onnx_file: Path) -> None:
+    python = venv / "bin" / "python"
+    shutil.copytree(ROOT / "reach_runtime", app / "reach_runtime")
+    done = subprocess.run(
+        [str(python), "-c", _SCRIPT, str(onnx_file)], cwd=app, capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    intervened, value, _ = done.stdout.splitlines()[0].split(" ", 2)
+    assert intervened == "True" and float(value) < 0
+    assert "refused: states contain NaN or inf" in done.stdout
+
+
+def test_the_runtime_runs_in_a_fresh_venv_without_torch(exported, tmp_path):
+    """A new virtual environment that sees only the runtime's folder, NumPy and ONNX Runtime (with
+    what ONNX Runtime needs), linked from this one so that the default suite downloads nothing:
+    no torch, no reach. (The same with a real ``pip install``: the slow test below.)"""
+    import importlib.util
+    import sysconfig
+
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
+    linked = tmp_path / "linked"
+    for name in RUNTIME_PACKAGES:
+        spec = importlib.util.find_spec(name)
+        assert spec is not None and spec.origin is not None, name
+        top = name.split(".")[0]
+        source = Path(spec.origin).parent
+        for _ in name.split(".")[1:]:
+            source = source.parent
+        (linked / top).parent.mkdir(parents=True, exist_ok=True)
+        if not (linked / top).exists():
+            (linked / top).symlink_to(source)
+    libs = Path(sysconfig.get_paths()["purelib"]) / "numpy.libs"
+    if libs.exists():
+        (linked / "numpy.libs").symlink_to(libs)
+    site = next((venv / "lib").glob("python*/site-packages"))
+    (site / "runtime_packages.pth").write_text(str(linked) + "\n")
+    _run_in_fresh_venv(venv, tmp_path / "app", exported["switch"].path)
+
+
+@pytest.mark.slow
+def test_the_runtime_installs_with_pip_in_a_fresh_venv(exported, tmp_path):
+    """``pip install numpy onnxruntime`` in a new virtual environment, then the runtime's folder."""
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    pip = [str(venv / "bin" / "python"), "-m", "pip", "install", "-q", "--disable-pip-version-check"]
+    subprocess.run([*pip, "numpy", "onnxruntime"], check=True, timeout=600)
+    _run_in_fresh_venv(venv, tmp_path / "app", exported["switch"].path)
