@@ -4,11 +4,16 @@ Every option that sets a :class:`~training.config.TrainConfig` field defaults to
 back to the dataclass, whose defaults ``--help`` prints. ``--resume RUN`` continues a run with its
 stored configuration: it takes new stop rules (``--steps``, ``--budget``, ``--target-loss``), logging
 options and ``--device``; any other training option is refused rather than silently ignored.
+
+``--distributed`` trains one run in the processes ``torchrun`` starts (:mod:`training.distributed`):
+``torchrun --nproc-per-node N -m reach train --distributed ...``. Every process runs this command;
+rank 0 alone writes the run directory and prints.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from typing import Any
 
@@ -26,6 +31,7 @@ from reach.validation import (
 )
 from reach_cli.options import add_subparser, default
 from training import TrainConfig, Trainer, TrainingDivergedError, parse_duration
+from training.distributed import Processes, joined
 from training.network import PARAMETERISATIONS
 from training.run_directory import RESUME_OVERRIDABLE, RunDirectory
 
@@ -56,7 +62,12 @@ TRAIN_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
         "encode headings as (sin, cos) (--no-sincos: heading / pi, with a seam at +-pi)",
     ),
     ("--sincos-radius", "sincos_radius", {"type": positive_float_arg}, "scale of the (sin, cos) inputs"),
-    ("--points", "points", {"type": positive_int_arg}, "points per step"),
+    (
+        "--points",
+        "points",
+        {"type": positive_int_arg},
+        "points per step, in all (--distributed splits them evenly among the processes)",
+    ),
     ("--lr", "lr", {"type": positive_float_arg}, "learning rate"),
     ("--lr-final", "lr_final", {"type": positive_float_arg}, "final learning rate of the cosine schedule"),
     ("--schedule", "schedule", {"choices": ["cosine", "constant"]}, "learning-rate schedule"),
@@ -148,6 +159,13 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--eval-time", type=finite_float_arg, default=None, help="time of evaluation (default: last stored)")
     p.add_argument("--out", default=None, help="run directory for a new run")
     p.add_argument("--resume", default=None, metavar="RUN_DIR", help="continue the run in RUN_DIR")
+    p.add_argument(
+        "--distributed",
+        action="store_true",
+        help="train one run in the processes torchrun starts (torchrun --nproc-per-node N -m reach train "
+        "--distributed ...): each takes an even share of every step's points, DistributedDataParallel averages "
+        "their gradients (gloo on the CPU, NCCL on CUDA, a GPU per process); rank 0 alone writes the run",
+    )
     p.set_defaults(func=run)
 
 
@@ -178,32 +196,47 @@ def _evaluator(args: argparse.Namespace) -> Any:
 def run(args: argparse.Namespace) -> int:
     fields = _config_fields(args)
     if args.resume:
-        if args.out:
-            raise ValueError(f"give --out for a new run or --resume for an old one, not both (--out {args.out})")
-        # an option the run cannot change is refused, naming its flag, unless it restates the stored
-        # value (``--compile off`` on a run trained with it); checked before the ground truth loads
-        stored, _ = RunDirectory(args.resume).resumed_config({})
-        fixed = sorted(k for k in set(fields) - RESUME_OVERRIDABLE if getattr(stored, k) != fields[k])
-        if fixed:
-            option = {field: flag for flag, field, _, _ in TRAIN_OPTIONS} | {
-                "budget_s": "--budget",
-                "compile": "--compile",
-            }
-            names = ", ".join(f"{option.get(name, name)} (stored: {getattr(stored, name)!r})" for name in fixed)
-            raise ValueError(
-                f"--resume continues {args.resume} with its stored configuration; {names} cannot change "
-                "(start a new run with --out to train with other settings)"
-            )
-        trainer = Trainer.resume(args.resume, evaluator=_evaluator(args), **fields)
+        config = _resumed_config(args, fields)
     else:
         if not args.out:
             raise ValueError("give --out RUN_DIR for a new run (or --resume RUN_DIR)")
         config = TrainConfig(**fields).validate()  # before loading a ground truth or building anything
-        trainer = Trainer(config, args.out, evaluator=_evaluator(args))
-    try:
-        summary = trainer.train()
-    except TrainingDivergedError as err:
-        print(f"reach train: {err}", file=sys.stderr)
-        return EXIT_PARTIAL
-    print(f"{summary['run_dir']}: {summary['steps']} steps in {summary['wall_time_s']:.1f} s ({summary['stopped']})")
+    # --distributed: torchrun's environment, the device and the batch's shares are checked before joining
+    with joined(config) if args.distributed else contextlib.nullcontext(Processes()) as processes:
+        evaluator = _evaluator(args) if processes.main else None  # rank 0 evaluates and reports
+        if args.resume:
+            trainer = Trainer.resume(args.resume, evaluator=evaluator, processes=processes, **fields)
+        else:
+            trainer = Trainer(config, args.out, evaluator=evaluator, processes=processes)
+        try:
+            summary = trainer.train()
+        except TrainingDivergedError as err:
+            if processes.main:
+                print(f"reach train: {err}", file=sys.stderr)
+            return EXIT_PARTIAL
+    if processes.main:
+        print(
+            f"{summary['run_dir']}: {summary['steps']} steps in {summary['wall_time_s']:.1f} s ({summary['stopped']})"
+        )
     return 0
+
+
+def _resumed_config(args: argparse.Namespace, fields: dict[str, Any]) -> TrainConfig:
+    """The configuration ``--resume`` continues with, its options checked before the ground truth loads."""
+    if args.out:
+        raise ValueError(f"give --out for a new run or --resume for an old one, not both (--out {args.out})")
+    # an option the run cannot change is refused, naming its flag, unless it restates the stored
+    # value (``--compile off`` on a run trained with it); checked before the ground truth loads
+    stored, _ = RunDirectory(args.resume).resumed_config({})
+    fixed = sorted(k for k in set(fields) - RESUME_OVERRIDABLE if getattr(stored, k) != fields[k])
+    if fixed:
+        option = {field: flag for flag, field, _, _ in TRAIN_OPTIONS} | {
+            "budget_s": "--budget",
+            "compile": "--compile",
+        }
+        names = ", ".join(f"{option.get(name, name)} (stored: {getattr(stored, name)!r})" for name in fixed)
+        raise ValueError(
+            f"--resume continues {args.resume} with its stored configuration; {names} cannot change "
+            "(start a new run with --out to train with other settings)"
+        )
+    return RunDirectory(args.resume).resumed_config(fields)[0]

@@ -14,7 +14,8 @@ network, a DeepReach import or a grid solution; :func:`load_value_function` load
 * :func:`rollout` - batched closed-loop simulation that skips decided trajectories;
 * :func:`verify` - violation statistics, delta-level and the scenario guarantee of one value
   function (:func:`studies.evaluate_many` runs it across many checkpoints on the same states);
-* :class:`RolloutStore` - rollout outcomes kept block by block, so a long verification resumes.
+* :class:`RolloutStore` - rollout outcomes kept block by block, so a long verification resumes;
+* :func:`export_filter` - a filter as one ONNX file for the torch-free :mod:`reach_runtime`.
 """
 
 from __future__ import annotations
@@ -35,15 +36,17 @@ from safety.value_policies import GreedyPolicy, OptimalPolicy, worst_case_distur
 from safety.verify import VerifySettings, sample_states, sample_superlevel_set, verify
 
 if TYPE_CHECKING:
+    from safety.export import export_filter
     from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper, SafetyFilterWrapper
 
-#: names whose module loads Gymnasium and PettingZoo, imported on first use so that
-#: ``import safety.filter`` (the CLI's start-up) stays light. (A name that equals its module's,
+#: names whose module loads Gymnasium and PettingZoo (the wrappers) or the ONNX export, imported on first
+#: use so that ``import safety.filter`` (the CLI's start-up) stays light. (A name that equals its module's,
 #: like ``rollout`` and ``verify``, must stay eager: importing the submodule would shadow it.)
 _LAZY = {
     "SafetyFilterParallelWrapper": "safety.wrappers",
     "SafetyFilterVectorWrapper": "safety.wrappers",
     "SafetyFilterWrapper": "safety.wrappers",
+    "export_filter": "safety.export",
 }
 
 
@@ -81,6 +84,7 @@ __all__ = [
     "SafetyFilterWrapper",
     "VerifySettings",
     "as_value_function",
+    "export_filter",
     "load_value_function",
     "rollout",
     "sample_states",

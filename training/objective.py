@@ -45,10 +45,15 @@ def load_upper_bound(config: TrainConfig, system: ControlAffineSystem) -> Any:
     return union
 
 
-class Objective:
-    """The training loss of ``network`` under ``config``, at whatever points a step draws."""
+class Objective(torch.nn.Module):
+    """The training loss of ``network`` under ``config``, at whatever points a step draws.
+
+    A module holding the network, so that DistributedDataParallel can wrap the whole loss
+    (:mod:`training.distributed`): a step calls it once, and the backward pass that follows averages
+    the network's gradients over the processes."""
 
     def __init__(self, config: TrainConfig, network: ValueNetwork) -> None:
+        super().__init__()
         self.config = config
         self.network = network
         self.residual_fn = residual_function(network, config.gradients, config.compile_resolved())
@@ -65,7 +70,7 @@ class Objective:
         if config.lower_bound is not None:
             check_lower_bound_system(network.system)
 
-    def __call__(
+    def forward(
         self, x: torch.Tensor, t: torch.Tensor, mask: torch.Tensor | None, pde: bool, labels: Labels | None
     ) -> tuple[torch.Tensor, dict[str, float]]:
         """The loss and its terms at states ``x`` and times ``t`` (``mask``: the vanilla boundary points;

@@ -30,14 +30,17 @@ class StepRecord(NamedTuple):
 
 class ProgressReport:
     """Reports a run of ``config`` from ``step`` on: lines to the metrics log of ``run`` and a progress bar
-    (shown if ``progress``). A context manager: the bar and the log close when its block ends."""
+    (shown if ``progress``). A context manager: the bar and the log close when its block ends.
+
+    ``run=None`` reports nothing (the processes of a distributed run other than rank 0, which reports
+    for them all); its timer still starts."""
 
     def __init__(
-        self, run: RunDirectory, config: TrainConfig, evaluator: Evaluator | None, step: int, progress: bool
+        self, run: RunDirectory | None, config: TrainConfig, evaluator: Evaluator | None, step: int, progress: bool
     ) -> None:
         self.config = config
         self.evaluator = evaluator
-        self.log = run.metrics_log(step, config.tensorboard)
+        self.log = None if run is None else run.metrics_log(step, config.tensorboard)
         #: when reporting started (the loop's checkpoint timer starts here too)
         self.started = self.last_eval = time.perf_counter()
         self.window_start, self.window_steps = time.perf_counter(), 0
@@ -47,7 +50,7 @@ class ProgressReport:
             initial=step,
             desc=f"{config.system} {config.layout}",
             unit="step",
-            **({} if progress else {"disable": True}),
+            **({} if progress and run is not None else {"disable": True}),
         )
 
     def stepped(self) -> None:
@@ -62,6 +65,8 @@ class ProgressReport:
         now = time.perf_counter()
         rate = self.window_steps / max(now - self.window_start, 1e-9)
         self.window_start, self.window_steps = now, 0
+        if self.log is None:
+            return
         row = {
             "step": step,
             "wall": round(wall, 3),
@@ -84,7 +89,8 @@ class ProgressReport:
 
     def close(self) -> None:
         self.bar.close()
-        self.log.close()
+        if self.log is not None:
+            self.log.close()
 
     def __enter__(self) -> ProgressReport:
         return self

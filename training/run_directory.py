@@ -78,6 +78,9 @@ class CheckpointState:
     wall: float  # seconds of training, accumulated across resumes
     loss_ema: float | None
     labels: Labels | None  # the lower-bound term's labelled points (on the CPU once loaded)
+    #: a run of several processes (training.distributed): every process's generator state and labels, by
+    #: rank (``generator`` and ``labels`` are rank 0's); ``None`` for a run of one process
+    streams: list[tuple[torch.Tensor, Labels | None]] | None = None
 
     def extra(self) -> dict[str, Any]:
         """The checkpoint payload's training-state entries."""
@@ -88,11 +91,13 @@ class CheckpointState:
             "wall": self.wall,
             "loss_ema": self.loss_ema,
             "labels": self.labels,
+            "streams": self.streams,
         }
 
     @classmethod
     def from_payload(cls, payload: dict[str, Any]) -> CheckpointState:
-        """The state a checkpoint payload holds (checkpoints of runs without labels may lack them)."""
+        """The state a checkpoint payload holds (checkpoints of runs without labels, or of one process, may
+        lack them)."""
         return cls(
             payload["optimizer"],
             payload["generator"],
@@ -100,7 +105,15 @@ class CheckpointState:
             payload["wall"],
             payload["loss_ema"],
             payload.get("labels"),
+            payload.get("streams"),
         )
+
+    def stream(self, rank: int, world_size: int) -> tuple[torch.Tensor | None, Labels | None]:
+        """The generator state and labels that process ``rank`` of ``world_size`` continues from: its own
+        when the checkpoint was written by as many processes, else none (``(None, None)``: its stream
+        is reseeded and its labels redrawn)."""
+        streams = self.streams or [(self.generator, self.labels)]
+        return streams[rank] if len(streams) == world_size else (None, None)
 
 
 class MetricsLog:

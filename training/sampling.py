@@ -2,7 +2,9 @@
 
 The draws come in a fixed order (labels when due, then the uniform points, then the zero-level
 candidates), so a resumed run draws what an uninterrupted run would have drawn; only a move to
-another kind of device restarts the stream (:func:`moved_run_seed`).
+another kind of device, or to another number of processes, restarts the stream (:func:`moved_run_seed`).
+Each process of a distributed run draws its own share of the points from its own stream
+(:func:`rank_seed`).
 """
 
 from __future__ import annotations
@@ -24,15 +26,32 @@ def moved_run_seed(seed: int, step: int) -> int:
     return (seed * 1_000_003 + step) % (2**63)
 
 
-class PointSampler:
-    """Draws a run's training points on ``device`` from its own generator, seeded with ``config.seed``."""
+def rank_seed(seed: int, rank: int) -> int:
+    """The sampling seed of process ``rank`` in a run of several processes: the run's ``seed`` itself for
+    rank 0 (one process under torchrun draws what a plain run draws), and for the others ``seed`` plus
+    ``rank`` times 2**64 over the golden ratio, modulo 2**63: for every rank below a million that lies
+    outside the range of run seeds (0 to 2**32 - 1), so no process draws another run's rank-0 stream."""
+    return (seed + rank * 0x9E37_79B9_7F4A_7C15) % (2**63)
 
-    def __init__(self, config: TrainConfig, network: ValueNetwork, device: torch.device) -> None:
+
+class PointSampler:
+    """Draws a run's training points on ``device`` from its own generator, seeded with ``config.seed``.
+
+    In a run of ``world_size`` processes, the sampler of process ``rank`` draws ``1 / world_size`` of every
+    step's points and lower-bound labels (their counts split evenly:
+    :meth:`training.distributed.Processes.check_shares`), from :func:`rank_seed`'s stream."""
+
+    def __init__(
+        self, config: TrainConfig, network: ValueNetwork, device: torch.device, rank: int = 0, world_size: int = 1
+    ) -> None:
         self.config = config
         self.network = network
         self.device = device
+        self.world_size = world_size
+        #: this process's sampling seed (the run's seed in a run of one process)
+        self.seed = rank_seed(config.seed, rank)
         self.generator = torch.Generator(device=device)
-        self.generator.manual_seed(config.seed)
+        self.generator.manual_seed(self.seed)
         box = network.system.domain_tensor(torch.float32, device)
         self._low, self._span = box[:, 0], box[:, 1] - box[:, 0]
 
@@ -44,10 +63,11 @@ class PointSampler:
         return x, torch.rand(n, generator=g, device=self.device) * tmax
 
     def points(self, tmax: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """One step's ``config.points`` states and times, and the vanilla parameterisation's boundary
-        mask (its first ``boundary_fraction`` of points, at ``t = 0``; ``None`` otherwise)."""
+        """One step's ``config.points`` states and times (this process's share of them), and the vanilla
+        parameterisation's boundary mask (its first ``boundary_fraction`` of points, at ``t = 0``;
+        ``None`` otherwise)."""
         c = self.config
-        n = c.points
+        n = c.points // self.world_size
         x, t = self.uniform(n, tmax)
         mask = None
         if c.parameterisation in LEARNED_BOUNDARY:
@@ -70,9 +90,9 @@ class PointSampler:
 
     def lower_bound_labels(self, tmax: float) -> Labels:
         """Fresh states and times labelled with what the network's policy achieves (``J <= V``), by the
-        ``config.lower_bound`` rule (``"mpc"`` or ``"policy"``)."""
+        ``config.lower_bound`` rule (``"mpc"`` or ``"policy"``); this process's share of ``lower_bound_points``."""
         c = self.config
-        x, t = self.uniform(c.lower_bound_points, tmax)
+        x, t = self.uniform(c.lower_bound_points // self.world_size, tmax)
         if c.lower_bound == "mpc":
             floor = mpc_lower_bound(
                 self.network,
@@ -88,12 +108,13 @@ class PointSampler:
             floor = policy_lower_bound(self.network, x, t, c.lower_bound_dt)
         return x, t, floor
 
-    def resume_stream(self, state: torch.Tensor, trained_on: str, step: int) -> bool:
+    def resume_stream(self, state: torch.Tensor | None, trained_on: str, step: int) -> bool:
         """Continue a checkpoint's stream: its generator ``state`` if it was drawn on this kind of device
-        (``trained_on``), else reseed from :func:`moved_run_seed` at ``step``. Returns whether the stream
-        was reseeded (the caller says so: the points differ from an uninterrupted run's)."""
-        if trained_on == self.device.type:
+        (``trained_on``), else (or with no ``state``: the checkpoint holds no stream of this process)
+        reseed from :func:`moved_run_seed` of this process's seed at ``step``. Returns whether the
+        stream was reseeded (the caller says so: the points differ from an uninterrupted run's)."""
+        if state is not None and trained_on == self.device.type:
             self.generator.set_state(state)
             return False
-        self.generator.manual_seed(moved_run_seed(self.config.seed, step))
+        self.generator.manual_seed(moved_run_seed(self.seed, step))
         return True

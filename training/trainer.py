@@ -4,11 +4,13 @@
 step draws (:mod:`training.sampling`), the loss (:mod:`training.objective`), the schedule
 (:mod:`training.schedule`), what it reports (:mod:`training.progress`), the run's directory with its
 lock, checkpoints, metrics and resume state (:mod:`training.run_directory`, whose docstring shows the
-layout), and Ctrl-C / SIGTERM (:mod:`training.signals`). Names that lived here before are re-exported.
+layout), Ctrl-C / SIGTERM (:mod:`training.signals`), and the processes of a distributed run
+(:mod:`training.distributed`). Names that lived here before are re-exported.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -21,6 +23,7 @@ import torch
 
 from reach.threads import thread_policy
 from training.config import TrainConfig
+from training.distributed import Processes
 from training.network import Encoding, ValueNetwork
 from training.objective import Objective, load_upper_bound
 from training.progress import Evaluator, ProgressReport, StepRecord
@@ -77,7 +80,11 @@ def build_network(config: TrainConfig) -> ValueNetwork:
 
 
 class Trainer:
-    """Runs one training run in ``run_dir`` (see :mod:`training.run_directory` for its files)."""
+    """Runs one training run in ``run_dir`` (see :mod:`training.run_directory` for its files).
+
+    ``processes`` (from :func:`training.distributed.joined`) makes this process one of several that train
+    the run together, each on its share of every step's points; only rank 0 writes to ``run_dir``,
+    and its ``evaluator`` alone is used. Without it the run trains in this process alone."""
 
     def __init__(
         self,
@@ -86,26 +93,34 @@ class Trainer:
         evaluator: Evaluator | None = None,
         progress: bool = True,
         *,
+        processes: Processes | None = None,
         _resuming: bool = False,
     ) -> None:
         self.config = config.validate()
+        self.processes = processes or Processes()
+        self.processes.check_shares(self.config)
         self.run = RunDirectory(run_dir)
         self.run_dir = self.run.path
-        if not _resuming:
+        if not _resuming and self.processes.main:  # the others would race rank 0 writing its config
             self.run.check_new()
         if evaluator is not None and getattr(evaluator, "system", None) is not None:
             wanted = config.build_system()
             wanted.require_same_physics(evaluator.system, "the evaluation ground truth")
-        self.evaluator = evaluator
+        self.evaluator = evaluator if self.processes.main else None
         self.progress = progress
-        self.device = torch.device(config.device)
+        self.device = self.processes.device(config.device)
         self.network = build_network(config).to(self.device)
         self.system = self.network.system
         self.optimizer = torch.optim.Adam(self.network.parameters(), lr=config.lr)
         self.objective = Objective(self.config, self.network)
+        #: the objective that steps call: the objective itself, or while a distributed run trains, the
+        #: objective behind DistributedDataParallel, which averages the network's gradients over the processes
+        self.step_objective: torch.nn.Module = self.objective
         #: the labelled points (x, t, J) of the lower-bound term, refreshed every lower_bound_every steps
         self.labels: Labels | None = None
-        self.sampler = PointSampler(self.config, self.network, self.device)
+        self.sampler = PointSampler(
+            self.config, self.network, self.device, self.processes.rank, self.processes.world_size
+        )
         self.schedule = Schedule(self.config, self.system.horizon)
         self.step = 0
         self.wall = 0.0  # seconds of training, accumulated across resumes
@@ -133,30 +148,50 @@ class Trainer:
     # ------------------------------------------------------------------ opening and resuming
     @classmethod
     def resume(
-        cls, run_dir: str | os.PathLike, evaluator: Evaluator | None = None, progress: bool = True, **overrides: Any
+        cls,
+        run_dir: str | os.PathLike,
+        evaluator: Evaluator | None = None,
+        progress: bool = True,
+        *,
+        processes: Processes | None = None,
+        **overrides: Any,
     ) -> Trainer:
-        """Continue the run in ``run_dir``; ``overrides`` may extend stop rules (steps, budget_s, ...)."""
+        """Continue the run in ``run_dir``; ``overrides`` may extend stop rules (steps, budget_s, ...).
+        A run trained by any number of processes resumes in one or several (``processes``: every one
+        reads ``run_dir``, so on several nodes it must be on storage they all see)."""
         run = RunDirectory(run_dir)
         config, trained_on = run.resumed_config(overrides)
-        trainer = cls(config, run.path, evaluator, progress, _resuming=True)
+        trainer = cls(config, run.path, evaluator, progress, processes=processes, _resuming=True)
         if run.checkpoint_path.exists():
             trainer._restore(run.load_checkpoint(trainer.network, config.layout), trained_on)
-        run.clean_metrics(trainer.step)
+        if trainer.processes.main:
+            run.clean_metrics(trainer.step)
         return trainer
 
     def _restore(self, state: CheckpointState, trained_on: str) -> None:
         """Take up a checkpoint's training state (its weights are loaded already)."""
         self.optimizer.load_state_dict(state.optimizer)
         self.step, self.wall, self.loss_ema = state.step, state.wall, state.loss_ema
-        if self.sampler.resume_stream(state.generator, trained_on, self.step):
-            warnings.warn(  # a CPU and a CUDA generator have different states: the stream cannot carry over
-                f"{self.run_dir}: trained on {trained_on}, resumed on {self.device.type} at step {self.step}: "
-                "the sampling generator is reseeded from the run's seed and step (same schedule and "
-                "steps, not the sample stream of an uninterrupted run on one device)",
+        generator, labels = state.stream(self.processes.rank, self.processes.world_size)
+        if self.sampler.resume_stream(generator, trained_on, self.step) and self.processes.main:
+            written = len(state.streams or [state.generator])
+            if written != self.processes.world_size:  # the streams are per process: they cannot carry over
+                why = (
+                    f"written by {written} process(es), resumed by {self.processes.world_size} at step {self.step}: "
+                    "each process's sampling generator is reseeded from the run's seed, its rank and the step, "
+                    "and lower-bound labels are redrawn"
+                )
+            else:  # a CPU and a CUDA generator have different states: the stream cannot carry over
+                why = (
+                    f"trained on {trained_on}, resumed on {self.device.type} at step {self.step}: the sampling "
+                    "generator is reseeded from the run's seed and step"
+                )
+            warnings.warn(
+                f"{self.run_dir}: {why} (same schedule and steps, not the sample stream of an uninterrupted run)",
                 stacklevel=3,  # the caller of resume
             )
         # checkpoints load on the CPU; the labels train on the run's device
-        self.labels = None if state.labels is None else tuple(v.to(self.device) for v in state.labels)
+        self.labels = None if labels is None else tuple(v.to(self.device) for v in labels)
 
     @classmethod
     def open(cls, config: TrainConfig, run_dir: str | os.PathLike, progress: bool = True) -> Trainer:
@@ -190,13 +225,28 @@ class Trainer:
         }
 
     def _save(self) -> None:
+        """Checkpoint the run. Every process of a distributed run calls this at the same step: rank 0
+        gathers their sampling streams and labels and writes the checkpoint alone."""
+        labels = None if self.labels is None else tuple(v.cpu() for v in self.labels)
+        streams = self.processes.gather((self.generator.get_state(), labels))
+        if not self.processes.main:
+            return
         state = CheckpointState(
-            self.optimizer.state_dict(), self.generator.get_state(), self.step, self.wall, self.loss_ema, self.labels
+            self.optimizer.state_dict(),
+            self.generator.get_state(),
+            self.step,
+            self.wall,
+            self.loss_ema,
+            self.labels,
+            streams if len(streams) > 1 else None,
         )
         self.run.save_checkpoint(self.network, state, self._metadata())
 
     def _snapshot(self, index: int) -> None:
-        """Save the network alone as snapshot ``index`` (of ``config.snapshots``), with its step and wall time."""
+        """Save the network alone as snapshot ``index`` (of ``config.snapshots``), with its step and wall
+        time (rank 0's part alone in a distributed run)."""
+        if not self.processes.main:
+            return
         meta = self._metadata(fraction=self.progress_fraction(), snapshot=index, snapshots=self.config.snapshots)
         self.run.save_snapshot(index, self.network, meta)
 
@@ -235,7 +285,12 @@ class Trainer:
 
     def _optimise(self) -> StepRecord:
         """One Adam step on fresh points at the schedule's learning rate and time range; its time counts
-        toward ``wall``. Raises :class:`TrainingDivergedError` if the loss is not finite."""
+        toward ``wall``. Raises :class:`TrainingDivergedError` if the loss is not finite.
+
+        In a distributed run the processes' loss terms are averaged before the backward pass (they all
+        see the combined batch's loss, so they diverge and meet a target loss together), and the step's
+        time is rank 0's (their schedules and time budgets stay in step; the others' steps also hold
+        the time they wait while rank 0 checkpoints or evaluates, which is not training)."""
         t0 = time.perf_counter()
         frac = self.progress_fraction()
         lr = self.learning_rate(frac)
@@ -244,14 +299,15 @@ class Trainer:
         tmax = self.time_range(frac)
         self._refresh_labels(tmax)  # counted as training time: it is part of the recipe's cost
         x, t, mask = self._sample(tmax)
-        loss, terms = self.objective(x, t, mask, self.schedule.trains_pde(frac), self.labels)
+        loss, terms = self.step_objective(x, t, mask, self.schedule.trains_pde(frac), self.labels)
+        terms = self.processes.mean(terms)
         if not math.isfinite(terms["loss"]):
             raise TrainingDivergedError(self._diverged_message(terms["loss"]))
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
         self.step += 1
-        self.wall += time.perf_counter() - t0
+        self.wall += self.processes.from_main(time.perf_counter() - t0)
         self.loss_ema = terms["loss"] if self.loss_ema is None else 0.95 * self.loss_ema + 0.05 * terms["loss"]
         return StepRecord(lr, tmax, terms)
 
@@ -280,16 +336,27 @@ class Trainer:
         checkpoint and raise :class:`TrainingInterrupted`; :meth:`resume` continues from there.
         Raises :class:`TrainingDivergedError` when the loss becomes NaN or inf. Unless the caller
         chose a thread count, torch uses the cores other processes leave free
-        (:func:`reach.threads.thread_policy`)."""
-        with self.run.lock(), deferred_signals() as stop, thread_policy():
-            return self._train(stop)
+        (:func:`reach.threads.thread_policy`). In a distributed run every process calls this; rank 0
+        alone locks, writes and reports."""
+        main = self.processes.main
+        with self.run.lock() if main else contextlib.nullcontext(), deferred_signals() as stop, thread_policy():
+            self.step_objective = self.processes.wrap(self.objective)
+            try:
+                return self._train(stop)
+            finally:
+                # DistributedDataParallel is dropped here, while the process group lives: its Reducer must
+                # not be the group's last owner, whose destructor would then run holding the GIL and wait
+                # for gloo's threads, which may need the GIL (a deadlock, pytorch/pytorch#56297)
+                self.step_objective = self.objective
 
     def _train(self, stop: dict[str, int]) -> dict[str, Any]:
         c = self.config
-        self.run.write_config(c)
-        with ProgressReport(self.run, c, self.evaluator, self.step, self.progress) as report:
+        main = self.processes.main
+        if main:
+            self.run.write_config(c)
+        with ProgressReport(self.run if main else None, c, self.evaluator, self.step, self.progress) as report:
             reason = self._run_steps(report, stop)
-            if c.snapshots and not self.run.snapshot_path(c.snapshots).exists():
+            if main and c.snapshots and not self.run.snapshot_path(c.snapshots).exists():
                 self._snapshot(c.snapshots)  # a run stopped early (target loss): its end is the last snapshot
             self._save()
         return {
@@ -316,13 +383,19 @@ class Trainer:
             if (due := self._snapshots_due()) > snapshots_taken:
                 self._snapshot(due)
                 snapshots_taken = due
-            if time.perf_counter() - last_checkpoint >= c.checkpoint_every_s:
+            # the processes of a distributed run act together: on a signal any of them caught, and on
+            # rank 0's checkpoint timer
+            checkpoint_due, interrupted = self.processes.any(
+                self.processes.main and time.perf_counter() - last_checkpoint >= c.checkpoint_every_s, bool(stop)
+            )
+            if checkpoint_due:
                 self._save()
                 last_checkpoint = time.perf_counter()
-            if stop:
+            if interrupted:
                 self._save()
+                signal_name = caught_signal_name(stop) if stop else "a signal to another process"
                 raise TrainingInterrupted(
-                    f"{caught_signal_name(stop)} at step {self.step}: saved {self.checkpoint_path}; continue "
+                    f"{signal_name} at step {self.step}: saved {self.checkpoint_path}; continue "
                     f"with `reach train --resume {self.run_dir}`"
                 )
             reason = self.stop_reason()
