@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -45,13 +44,15 @@ KINDS = ("switch", "smooth", "lookahead")
 
 
 def user_system_network(folder: Path, steps: int) -> object:
-    """A network of the docs' own-system example (DubinsAvoid), trained ``steps`` steps here."""
+    """A network of the docs' own-system example (DubinsAvoid), trained ``steps`` steps here (once:
+    a run already in ``folder`` is reused)."""
     import my_systems  # noqa: F401  (registers the example systems)
 
     from training import TrainConfig, Trainer
 
-    run = folder / "user"
-    Trainer(TrainConfig(system="dubins-avoid", steps=steps, width=64), run, progress=False).train()
+    run = folder / f"user-{steps}"
+    if not (run / "checkpoint.pt").exists():
+        Trainer(TrainConfig(system="dubins-avoid", steps=steps, width=64), run, progress=False).train()
     return load_value_function(run).value_function
 
 
@@ -63,14 +64,22 @@ def sources(folder: Path, user_steps: int) -> dict[str, object]:
     }
 
 
-def exported(vf: object, kind: str, folder: Path, horizon: float) -> tuple[object, SafetyFilter, Filter, float]:
+def exported(
+    vf: object, name: str, kind: str, folder: Path, horizon: float
+) -> tuple[dict, SafetyFilter, Filter, float | None]:
+    """The filter exported to ``folder`` (reused when there: the time is then None), the torch filter
+    of the same settings, and the runtime's filter."""
     settings = FilterSettings(kind, backup_horizon=horizon if kind == "lookahead" else None)
-    start = time.perf_counter()
-    result = export_filter(vf, folder / f"{id(vf)}-{kind}.onnx", settings, dt=DT, check_states=0)
-    seconds = time.perf_counter() - start
-    meta = result.metadata
-    torch_filter = SafetyFilter(vf, meta["threshold"], settings=FilterSettings(**meta["settings"]), dt=DT)
-    return result, torch_filter, Filter.load(result.path), seconds
+    path = folder / f"{name.split()[0]}-{kind}-{horizon:g}.onnx"
+    seconds = None
+    if not path.exists():
+        start = time.perf_counter()
+        export_filter(vf, path, settings, dt=DT, check_states=0)
+        seconds = time.perf_counter() - start
+    runtime = Filter.load(path)
+    meta = runtime.metadata
+    torch_filter = SafetyFilter(vf, meta.threshold, settings=FilterSettings(**meta.settings), dt=DT)
+    return meta.raw, torch_filter, runtime, seconds
 
 
 def draws(system: object, count: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -85,32 +94,34 @@ def draws(system: object, count: int, seed: int) -> tuple[torch.Tensor, torch.Te
 
 def equivalence(args: argparse.Namespace) -> None:
     print(f"# equivalence: {args.states} states per system and kind, dt {DT}, lookahead backup {args.horizon} s")
-    print("| system | filter | export s | decisions differ | near threshold | max dV | max dgradV | applied differ |")
-    print("|---|---|---|---|---|---|---|---|")
-    with tempfile.TemporaryDirectory() as scratch:
-        folder = Path(scratch)
-        for name, vf in sources(folder, args.user_steps).items():
-            for kind in KINDS:
-                result, torch_filter, runtime, seconds = exported(vf, kind, folder, args.horizon)
-                threshold = result.metadata["threshold"]
-                differ = near = applied_differ = 0
-                dv = dg = 0.0
-                for start in range(0, args.states, args.chunk):
-                    n = min(args.chunk, args.states - start)
-                    x, t, u = draws(vf.system, n, args.seed + start)
-                    applied, info = torch_filter(x, t, u)
-                    got, got_info = runtime(x.numpy(), u.numpy(), t.numpy())
-                    d = got_info.intervened != info.intervened.numpy()
-                    differ += int(d.sum())
-                    near += int((d & (np.abs(info.value.numpy() - threshold) < 1e-4)).sum())
-                    dv = max(dv, float(np.abs(got_info.value - info.value.numpy()).max()))
-                    dg = max(dg, float(np.abs(got_info.gradient - info.gradient.numpy()).max()))
-                    same = np.isclose(got, applied.numpy(), atol=1e-5).all(-1)
-                    applied_differ += int((~d & ~same).sum())
-                print(
-                    f"| {name} | {kind} | {seconds:.0f} | {differ} | {near} | {dv:.1e} | {dg:.1e} | {applied_differ} |",
-                    flush=True,
-                )
+    print("| system | filter | export s | differ | near threshold | max dV | max dgrad | applied differ | max du |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    folder = args.folder
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, vf in sources(folder, args.user_steps).items():
+        for kind in KINDS:
+            meta, torch_filter, runtime, seconds = exported(vf, name, kind, folder, args.horizon)
+            threshold = meta["threshold"]
+            differ = near = applied_differ = 0
+            dv = dg = du = 0.0
+            for start in range(0, args.states, args.chunk):
+                n = min(args.chunk, args.states - start)
+                x, t, u = draws(vf.system, n, args.seed + start)
+                applied, info = torch_filter(x, t, u)
+                got, got_info = runtime(x.numpy(), u.numpy(), t.numpy())
+                d = got_info.intervened != info.intervened.numpy()
+                differ += int(d.sum())
+                near += int((d & (np.abs(info.value.numpy() - threshold) < 1e-4)).sum())
+                dv = max(dv, float(np.abs(got_info.value - info.value.numpy()).max()))
+                dg = max(dg, float(np.abs(got_info.gradient - info.gradient.numpy()).max()))
+                same = np.isclose(got, applied.numpy(), atol=1e-5).all(-1)
+                applied_differ += int((~d & ~same).sum())
+                du = max(du, float(np.abs(got - applied.numpy())[~d].max(initial=0.0)))
+            took = "reused" if seconds is None else f"{seconds:.0f}"
+            print(
+                f"| {name} | {kind} | {took} | {differ} | {near} | {dv:.1e} | {dg:.1e} | {applied_differ} | {du:.1e} |",
+                flush=True,
+            )
 
 
 def percentiles(fn: object, calls: int) -> tuple[float, float]:
@@ -154,14 +165,16 @@ def latency(args: argparse.Namespace) -> None:
           f"lookahead backup {args.horizon} s; throughput at batch 1024 in states/s")  # fmt: skip
     print("| system | filter | torch p50 / p99 | runtime p50 / p99 | graph p50 / p99 | torch 1024 | runtime 1024 |")
     print("|---|---|---|---|---|---|---|")
-    with tempfile.TemporaryDirectory() as scratch:
-        folder = Path(scratch)
-        for name, vf in sources(folder, args.user_steps).items():
-            for kind in KINDS:
-                _, torch_filter, runtime, _ = exported(vf, kind, folder, args.horizon)
-                row, rates = timings(vf.system, torch_filter, runtime, args)
-                cells = " | ".join(f"{a:.0f} / {b:.0f}" for a, b in row)
-                print(f"| {name} | {kind} | {cells} | {rates[0]:.0f} | {rates[1]:.0f} |", flush=True)
+    folder = args.folder
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, vf in sources(folder, args.user_steps).items():
+        for kind in KINDS:
+            _, torch_filter, runtime, _ = exported(vf, name, kind, folder, args.horizon)
+            if args.prepare:
+                continue
+            row, rates = timings(vf.system, torch_filter, runtime, args)
+            cells = " | ".join(f"{a:.0f} / {b:.0f}" for a, b in row)
+            print(f"| {name} | {kind} | {cells} | {rates[0]:.0f} | {rates[1]:.0f} |", flush=True)
 
 
 def main() -> None:
@@ -173,11 +186,15 @@ def main() -> None:
         p.add_argument("--horizon", type=float, default=0.25, help="the lookahead's backup horizon (s)")
         p.add_argument("--user-steps", type=int, default=300, help="training steps of the user system's network")
         p.add_argument("--seed", type=int, default=0)
+        p.add_argument(
+            "--folder", type=Path, default=ROOT / "runs" / "export_filter", help="exports kept here and reused"
+        )
         if name == "equivalence":
             p.add_argument("--states", type=int, default=100_000)
             p.add_argument("--chunk", type=int, default=10_000)
         else:
             p.add_argument("--calls", type=int, default=3000)
+            p.add_argument("--prepare", action="store_true", help="export (or reuse) the filters, time nothing")
     args = parser.parse_args()
     equivalence(args) if args.study == "equivalence" else latency(args)
 

@@ -33,12 +33,14 @@ def air3d():
 
 @pytest.fixture(scope="module")
 def exported(air3d, tmp_path_factory):
-    """Air3D filters exported once per kind (an export traces and converts for ~20 s)."""
+    """Air3D filters exported once per kind (an export traces and converts for 10-30 s). The
+    lookahead checks its nominal step alone here (backup_horizon 0: each backup step adds about as
+    much again); with backup steps: the slow test below and ``benchmarks/export_filter.py``."""
     folder = tmp_path_factory.mktemp("exported")
     settings = {
         "switch": FilterSettings("switch"),
         "smooth": FilterSettings("smooth"),
-        "lookahead": FilterSettings("lookahead", backup_horizon=DT),
+        "lookahead": FilterSettings("lookahead", backup_horizon=0.0),
     }
     return {
         kind: export_filter(air3d, folder / f"{kind}.onnx", s, dt=DT, check_states=64) for kind, s in settings.items()
@@ -58,7 +60,18 @@ def test_the_exported_filter_decides_as_the_torch_filter(air3d, exported, kind):
     """On 2,000 random states, times and nominal inputs: the same decisions except within 1e-4 of
     the threshold, values and gradients within float32 rounding, and the same applied input where
     the decision agrees (a bang-bang input may flip where its switching function is ~0)."""
-    result = exported[kind]
+    _check_equivalence(air3d, exported[kind], kind)
+
+
+@pytest.mark.slow
+def test_the_exported_lookahead_with_backup_steps_decides_as_the_torch_filter(air3d, tmp_path):
+    settings = FilterSettings("lookahead", backup_horizon=2 * DT)
+    result = export_filter(air3d, tmp_path / "lookahead.onnx", settings, dt=DT, check_states=64)
+    assert result.metadata["backup_steps"] == 2
+    _check_equivalence(air3d, result, "lookahead")
+
+
+def _check_equivalence(air3d, result, kind: str) -> None:
     meta = result.metadata
     assert meta["settings"]["kind"] == kind and meta["system_name"] == "air3d" and meta["dt"] == DT
     assert meta["fingerprint"].startswith("sha256:") and meta["settings"]["outside_domain"] == "backup"
