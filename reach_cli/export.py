@@ -11,7 +11,7 @@ import argparse
 from typing import Any
 
 from reach.validation import nonnegative_float_arg, positive_float_arg
-from reach_cli.filter_eval import FILTER_OPTIONS, parse_time_to_go
+from reach_cli.filter_eval import FILTER_OPTIONS, add_filter_options, parse_time_to_go
 from reach_cli.options import add_subparser, default, signature_default
 from safety.export import export_filter
 from safety.filter_settings import KINDS, FilterSettings
@@ -52,10 +52,7 @@ def add_parser(sub: Any) -> None:
         help="the runtime's default time-to-go: None (the horizon), a number, or 'remaining' (the caller "
         "passes it; always so for reach kinds)",
     )
-    for option, field, kwargs, text in FILTER_OPTIONS:
-        p.add_argument(
-            option, dest=field, default=None, help=f"{text} (default: {default(FilterSettings, field)})", **kwargs
-        )
+    add_filter_options(p)
     p.add_argument(
         "--check-states",
         type=int,

@@ -59,6 +59,14 @@ FILTER_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
 )
 
 
+def add_filter_options(p: argparse.ArgumentParser) -> None:
+    """The :data:`FILTER_OPTIONS` on ``p``, each defaulting to None (the dataclass's default, shown)."""
+    for option, field, kwargs, text in FILTER_OPTIONS:
+        p.add_argument(
+            option, dest=field, default=None, help=f"{text} (default: {default(FilterSettings, field)})", **kwargs
+        )
+
+
 def add_parser(sub: Any) -> None:
 
     p = add_subparser(
@@ -99,10 +107,7 @@ def add_parser(sub: Any) -> None:
         default=None,
         help=f"smooth filter: comma-separated barrier rates gamma >= 0 (default: {default(FilterSettings, 'gamma'):g})",
     )
-    for option, field, kwargs, text in FILTER_OPTIONS:
-        p.add_argument(
-            option, dest=field, default=None, help=f"{text} (default: {default(FilterSettings, field)})", **kwargs
-        )
+    add_filter_options(p)
     p.add_argument(
         "--time-to-go",
         default=None,
