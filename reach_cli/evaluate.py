@@ -50,7 +50,12 @@ VERIFY_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
         "most value (slower)",
     ),
     ("--horizon", "horizon", {"type": positive_float_arg}, "time-to-go of the check (None: the system's)"),
-    ("--chunk-size", "chunk_size", {"type": positive_int_arg}, "states rolled out at once"),
+    (
+        "--chunk-size",
+        "chunk_size",
+        {"type": positive_int_arg},
+        "states rolled out at once; on a CUDA GPU 262144 unless given",
+    ),
     ("--target-eps", "target_eps", {"type": probability_arg}, "robust certification: eps to certify"),
     (
         "--robust-samples",
@@ -104,13 +109,14 @@ def add_parser(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     # lazy: this command's stack only when it runs
+    from safety.rollout import default_chunk_size
     from safety.sharding import make_backend
     from studies.batch_verification import evaluate_many, markdown_table, report_failures
     from studies.plots import plot_violation_bars
 
-    settings = VerifySettings(
-        **{field: getattr(args, field) for _, field, _, _ in VERIFY_OPTIONS if getattr(args, field) is not None}
-    )
+    given = {field: getattr(args, field) for _, field, _, _ in VERIFY_OPTIONS if getattr(args, field) is not None}
+    given.setdefault("chunk_size", default_chunk_size(args.device))  # a GPU fills up only with larger blocks
+    settings = VerifySettings(**given)
     out = check_output_path(args.out, "--out")
     backend = make_backend(args.backend, args.address)  # refuses --address without ray, before any work
     try:

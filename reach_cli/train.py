@@ -153,6 +153,19 @@ def add_parser(sub: Any) -> None:
         "compiling fails)",
     )
     p.add_argument(
+        "--cuda-graph",
+        choices=["auto", "on", "off"],
+        default=None,
+        help="replay each step as one CUDA graph (auto, the default: on a CUDA device, for runs that allow it; "
+        "on: refuse runs that do not, naming why)",
+    )
+    p.add_argument(
+        "--tf32",
+        action="store_true",
+        default=None,
+        help="let a CUDA GPU's TF32 tensor cores do the float32 matrix products (faster, not exact)",
+    )
+    p.add_argument(
         "--tensorboard", action="store_true", default=None, help="also log metrics for TensorBoard in RUN/tensorboard"
     )
     p.add_argument("--groundtruth", default=None, help="grid solution .npz to evaluate against while training")
@@ -178,6 +191,10 @@ def _config_fields(args: argparse.Namespace) -> dict[str, Any]:
         fields["budget_s"] = parse_duration(args.budget)
     if args.compile is not None:
         fields["compile"] = {"auto": None, "on": True, "off": False}[args.compile]
+    if args.cuda_graph is not None:
+        fields["cuda_graph"] = {"auto": None, "on": True, "off": False}[args.cuda_graph]
+    if args.tf32:
+        fields["matmul_precision"] = "tf32"
     if args.tensorboard:
         fields["tensorboard"] = True
     return fields

@@ -176,6 +176,21 @@ class RolloutSettings:
         return self if self.horizon is not None else replace(self, horizon=system.horizon)
 
 
+#: states a CUDA device rolls out at once by default (:func:`default_chunk_size`). The CPU default
+#: (``RolloutSettings.chunk_size``) left an H100 launch-bound: five 9D models did not finish the card
+#: protocol in 240 s, and at this size each took 44-52 s (docs/benchmarks.md).
+CUDA_CHUNK_SIZE = 262_144
+
+
+def default_chunk_size(device: str | torch.device) -> int:
+    """The chunk size for rollouts on ``device`` when the user names none: ``RolloutSettings``' default
+    on a CPU (or any other device), :data:`CUDA_CHUNK_SIZE` on a CUDA GPU, which only fills up with
+    larger blocks. ``reach evaluate`` uses it; the chosen size is recorded with each row's settings."""
+    if torch.device(device).type == "cuda":
+        return CUDA_CHUNK_SIZE
+    return RolloutSettings.chunk_size
+
+
 def concat_results(parts: list[RolloutResult]) -> RolloutResult:
     """The results of consecutive blocks of one batch of states as one result: outcomes in block
     order; ``state_steps`` and ``wall_time`` summed (each block's own simulation, wherever it ran)."""

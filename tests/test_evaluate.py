@@ -214,3 +214,20 @@ def test_capped_networks_evaluate_on_the_chosen_device(pair_grid, checkpoints: P
     rows = load_results(out)
     assert len(rows) == 2 and not any(r.get("error") for r in rows), [r.get("error") for r in rows]
     assert all(r["containment_miss_rate"] == 0.0 for r in rows)  # a minimum with the union misses none of it
+
+
+def test_chunk_size_follows_the_device_unless_given(checkpoints: Path, monkeypatch):
+    """A CUDA GPU rolls out 262,144 states at once by default (the CPU's 16,384 leaves it launch-bound);
+    ``reach evaluate`` records the size it used, and a given ``--chunk-size`` wins."""
+    from safety.rollout import CUDA_CHUNK_SIZE, RolloutSettings, default_chunk_size
+
+    assert default_chunk_size("cuda") == CUDA_CHUNK_SIZE == 262_144
+    assert default_chunk_size("cpu") == default_chunk_size(torch.device("cpu")) == RolloutSettings.chunk_size
+    used = []
+    monkeypatch.setattr(
+        "studies.batch_verification.evaluate_many", lambda sources, out, settings, **kw: used.append(settings) or []
+    )
+    source = str(checkpoints / "air3d.pt")
+    for extra in ([], ["--chunk-size", "999"]):
+        main(["evaluate", source, "--samples", "10", "--out", str(checkpoints / "r.csv"), *extra])
+    assert [s.chunk_size for s in used] == [16384, 999]

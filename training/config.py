@@ -86,6 +86,12 @@ class TrainConfig(SystemSpecified):
     zero_level_candidates: int = 4
     gradients: str = "fused"  # input derivatives: "fused" (hand-carried, one backward) or "autograd" (double backward)
     compile: bool | None = None  # torch.compile the fused residual; None: when the run is long enough (see below)
+    # replay each step as one CUDA graph (training.cuda_graph); None: on a CUDA device where the run
+    # allows it (cuda_graph_unsupported), True: require it, False: never
+    cuda_graph: bool | None = None
+    # "tf32": a CUDA GPU's TF32 tensor cores do the float32 matrix products (10-bit mantissas in,
+    # float32 sums): 1.4x the graphed 9D step on an H200, not exact (docs/benchmarks.md)
+    matmul_precision: str = "float32"
     curriculum: float = 0.5  # share of the run over which the sampled time range grows to the horizon
     pretrain: float = 0.0  # vanilla only: share of the run spent on the boundary loss alone
     boundary_fraction: float = 0.15  # vanilla only: share of points sampled at t = 0
@@ -200,6 +206,14 @@ class TrainConfig(SystemSpecified):
             raise ValueError(f"gradients must be 'fused' or 'autograd', got {self.gradients!r}")
         if self.compile not in (None, True, False):
             raise ValueError(f"compile must be true, false or null (auto), got {self.compile!r}")
+        if self.matmul_precision not in ("float32", "tf32"):
+            raise ValueError(f"matmul_precision must be 'float32' or 'tf32', got {self.matmul_precision!r}")
+        if self.matmul_precision == "tf32" and str(self.device).split(":")[0] != "cuda":
+            raise ValueError(f"matmul_precision='tf32' is a CUDA GPU's mode, and the run trains on {self.device!r}")
+        if self.cuda_graph not in (None, True, False):
+            raise ValueError(f"cuda_graph must be true, false or null (auto), got {self.cuda_graph!r}")
+        if self.cuda_graph and (why := self.cuda_graph_unsupported()):
+            raise ValueError(f"cuda_graph=True, but this run cannot replay its step as a CUDA graph: {why}")
         if self.compile and self.gradients != "fused":
             raise ValueError("compile needs gradients='fused' (torch.compile does not take double backward)")
         if self.upper_bound is not None and (not isinstance(self.upper_bound, str) or not self.upper_bound):
@@ -212,6 +226,23 @@ class TrainConfig(SystemSpecified):
         if self.loss not in ("l1", "l2"):
             raise ValueError(f"loss must be 'l1' or 'l2', got {self.loss!r}")
         return self
+
+    def cuda_graph_unsupported(self) -> str | None:
+        """Why this run's step cannot be replayed as a CUDA graph (:mod:`training.cuda_graph`), or
+        ``None`` when it can. A graph replays fixed kernels on fixed memory, so nothing in the step may
+        read a value back from the device or pick a data-dependent number of points."""
+        if str(self.device).split(":")[0] != "cuda":
+            return f"CUDA graphs need a CUDA device, and the run trains on {self.device!r}"
+        if self.parameterisation in LEARNED_BOUNDARY:
+            return (
+                f"the {self.parameterisation} parameterisation's boundary term selects its points by a mask "
+                "(a data-dependent count), and it pretrains on another loss"
+            )
+        if self.upper_bound is not None:
+            return "upper_bound: the pair union's input checks read its values back from the device"
+        if self.gradients != "fused":
+            return "gradients='autograd': the graphed step is built and measured for fused gradients only"
+        return None
 
     def compile_resolved(self) -> bool | None:
         """Whether to compile: ``compile`` if given, else (``None``, auto) for fused runs of at least

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -135,6 +136,25 @@ def training_loss(
     network: ValueNetwork,
     x: torch.Tensor,
     t: torch.Tensor,
+    **options: Any,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Scalar loss and its terms as floats for logging: :func:`loss_terms` with each term read back
+    (one device synchronisation for all of them)."""
+    total, terms = loss_terms(network, x, t, **options)
+    return total, terms_to_floats(terms)
+
+
+def terms_to_floats(terms: dict[str, torch.Tensor]) -> dict[str, float]:
+    """The loss terms read back as floats, all in one transfer (each ``float(tensor)`` on a GPU waits
+    for the device on its own)."""
+    values = torch.stack([v.detach().reshape(()).to(torch.float32) for v in terms.values()]).tolist()
+    return dict(zip(terms, values))
+
+
+def loss_terms(
+    network: ValueNetwork,
+    x: torch.Tensor,
+    t: torch.Tensor,
     *,
     pde: bool = True,
     residual_fn: ResidualFunction | None = None,
@@ -143,8 +163,10 @@ def training_loss(
     upper_bound: torch.Tensor | None = None,
     lower_bound: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
     weights: LossWeights = LossWeights(),
-) -> tuple[torch.Tensor, dict[str, float]]:
-    """Scalar loss and its terms (``pde``, ``boundary``, ``gradient``) as floats for logging.
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Scalar loss and its terms (``pde``, ``boundary``, ``gradient``, ...) as detached 0-d tensors:
+    nothing here reads a value back from the device (except the vanilla boundary mask's ``any``), so
+    a CUDA graph can capture it (:mod:`training.cuda_graph`).
 
     ``residual_fn`` (from :func:`residual_function`) computes the residual; default: autograd's.
     ``weights`` (:class:`LossWeights`) holds the norm and each optional term's weight.
@@ -163,34 +185,34 @@ def training_loss(
     ``lower_bound`` = ``(x, t, J)``: labelled points with a known lower bound ``J`` of the true value
     (:func:`training.labels.policy_lower_bound`) add ``weights.lower_bound * mean(relu(J - V(x, t)))``.
     """
-    terms: dict[str, float] = {}
+    terms: dict[str, torch.Tensor] = {}
     total = x.new_zeros(())
     if pde:
         residual, v, dv_dx = (residual_fn or (lambda a, b: hji_residual(network, a, b)))(x, t)
         pde_loss = residual.abs().mean() if weights.norm == "l1" else residual.square().mean()
         total = total + pde_loss
-        terms["pde"] = float(pde_loss.detach())
+        terms["pde"] = pde_loss.detach()
         if gradient_bound is not None:
             scale = network._scale.to(dv_dx.dtype)
             excess = torch.relu(torch.linalg.vector_norm(dv_dx * scale, dim=-1) - gradient_bound).mean()
             total = total + weights.gradient * excess
-            terms["gradient"] = float(excess.detach())
+            terms["gradient"] = excess.detach()
     else:
         v = network(x, t)
     if upper_bound is not None:
         known = torch.isfinite(upper_bound)
         excess = torch.where(known, torch.relu(v - torch.where(known, upper_bound, v.detach())), 0.0).mean()
         total = total + weights.upper_bound * excess
-        terms["upper_bound"] = float(excess.detach())
+        terms["upper_bound"] = excess.detach()
     if lower_bound is not None:
         x_label, t_label, floor = lower_bound
         shortfall = torch.relu(floor - network(x_label, t_label)).mean()
         total = total + weights.lower_bound * shortfall
-        terms["lower_bound"] = float(shortfall.detach())
+        terms["lower_bound"] = shortfall.detach()
     if network.parameterisation in LEARNED_BOUNDARY and boundary_mask is not None and boundary_mask.any():
         gap = v[boundary_mask] - network.system.boundary_value(x[boundary_mask])
         boundary = gap.abs().mean() if weights.norm == "l1" else gap.square().mean()
         total = total + weights.boundary * boundary
-        terms["boundary"] = float(boundary.detach())
-    terms["loss"] = float(total.detach())
+        terms["boundary"] = boundary.detach()
+    terms["loss"] = total.detach()
     return total, terms

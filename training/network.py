@@ -250,6 +250,14 @@ class ValueNetwork(nn.Module):
         enc = self.encoding
         self.register_buffer("_offset", torch.tensor(enc.state_offset, dtype=torch.float32), persistent=False)
         self.register_buffer("_scale", torch.tensor(enc.state_scale, dtype=torch.float32), persistent=False)
+        # the sin/cos-encoded dimensions and the others as index tensors on the network's device: a list
+        # index would copy from the CPU at every call, which a CUDA graph cannot capture
+        sincos = list(enc.sincos_dims or ())
+        kept = [i for i in range(system.state_dim) if i not in sincos]
+        self.register_buffer("_angle_index", torch.tensor(sincos, dtype=torch.long), persistent=False)
+        self.register_buffer("_kept_index", torch.tensor(kept, dtype=torch.long), persistent=False)
+        order = torch.tensor(kept + sincos, dtype=torch.long)  # state dims as the encoding lists them
+        self.register_buffer("_state_order", torch.argsort(order), persistent=False)
 
     # ------------------------------------------------------------------ description
     def architecture(self) -> dict[str, Any]:
@@ -269,10 +277,9 @@ class ValueNetwork(nn.Module):
         xs = (x - self._offset.to(x.dtype)) / self._scale.to(x.dtype)
         parts = [((t - enc.time_offset) / enc.time_scale).unsqueeze(-1), xs]
         if enc.sincos_dims:
-            keep = [i for i in range(x.shape[-1]) if i not in enc.sincos_dims]
-            angles = x[..., list(enc.sincos_dims)]
+            angles = x.index_select(-1, self._angle_index)
             r = enc.sincos_radius
-            parts = [parts[0], xs[..., keep], r * torch.sin(angles), r * torch.cos(angles)]
+            parts = [parts[0], xs.index_select(-1, self._kept_index), r * torch.sin(angles), r * torch.cos(angles)]
         return torch.cat(parts, dim=-1)
 
     def raw(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
@@ -333,16 +340,14 @@ class ValueNetwork(nn.Module):
         state_scale = self._scale.to(x.dtype)
         if not enc.sincos_dims:
             return g / state_scale
-        n = x.shape[-1]
-        keep = [i for i in range(n) if i not in enc.sincos_dims]
-        k, m = len(keep), len(enc.sincos_dims)
-        angles = x[..., list(enc.sincos_dims)]
-        parts = torch.empty_like(x)
-        parts[..., keep] = g[..., :k] / state_scale[keep]
+        m = len(enc.sincos_dims)
+        k = x.shape[-1] - m
+        angles = x.index_select(-1, self._angle_index)
+        kept = g[..., :k] / state_scale.index_select(0, self._kept_index)
         r = enc.sincos_radius
         d_sin, d_cos = g[..., k : k + m], g[..., k + m :]
-        parts[..., list(enc.sincos_dims)] = r * (d_sin * torch.cos(angles) - d_cos * torch.sin(angles))
-        return parts
+        turned = r * (d_sin * torch.cos(angles) - d_cos * torch.sin(angles))
+        return torch.cat([kept, turned], dim=-1).index_select(-1, self._state_order)
 
     @torch.no_grad()
     def value_and_gradient(

@@ -17,7 +17,7 @@ from reach.systems import ControlAffineSystem, MultiVehicle
 from training import pretrained
 from training.config import TrainConfig
 from training.labels import check_lower_bound_system
-from training.loss import LossWeights, residual_function, training_loss
+from training.loss import LossWeights, loss_terms, residual_function
 from training.network import ValueNetwork
 from training.sampling import Labels
 
@@ -72,10 +72,11 @@ class Objective(torch.nn.Module):
 
     def forward(
         self, x: torch.Tensor, t: torch.Tensor, mask: torch.Tensor | None, pde: bool, labels: Labels | None
-    ) -> tuple[torch.Tensor, dict[str, float]]:
-        """The loss and its terms at states ``x`` and times ``t`` (``mask``: the vanilla boundary points;
-        ``pde``: whether the residual counts yet; ``labels``: the lower-bound term's points, if any)."""
-        return training_loss(
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The loss and its terms (detached 0-d tensors, read back by the caller) at states ``x`` and
+        times ``t`` (``mask``: the vanilla boundary points; ``pde``: whether the residual counts yet;
+        ``labels``: the lower-bound term's points, if any)."""
+        return loss_terms(
             self.network,
             x,
             t,

@@ -44,10 +44,20 @@ LEGACY_DEFAULTS: dict[str, Any] = {"gradient_bound": None, "sincos_radius": 1.0}
 #: files whose presence means a directory already holds a run
 RUN_FILES = ("config.json", "checkpoint.pt", "metrics.jsonl")
 
-#: what ``resume`` may change: stop rules, logging and the device; anything else would make the
-#: resumed run a different run than its checkpoint and metrics say
+#: what ``resume`` may change: stop rules, logging, the device and whether its step is a CUDA graph;
+#: anything else would make the resumed run a different run than its checkpoint and metrics say
 RESUME_OVERRIDABLE = frozenset(
-    {"steps", "budget_s", "target_loss", "device", "log_every", "checkpoint_every_s", "eval_every_s", "tensorboard"}
+    {
+        "steps",
+        "budget_s",
+        "target_loss",
+        "device",
+        "cuda_graph",
+        "log_every",
+        "checkpoint_every_s",
+        "eval_every_s",
+        "tensorboard",
+    }
 )
 
 

@@ -65,25 +65,59 @@ class PointSampler:
     def points(self, tmax: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """One step's ``config.points`` states and times (this process's share of them), and the vanilla
         parameterisation's boundary mask (its first ``boundary_fraction`` of points, at ``t = 0``;
-        ``None`` otherwise)."""
-        c = self.config
+        ``None`` otherwise): :meth:`points_from` this step's :meth:`draws`."""
+        return self.points_from(self.draws(), tmax)
+
+    def draw_shapes(self) -> list[tuple[int, ...]]:
+        """The shapes of one step's uniform draws on [0, 1), in the stream's order: the states and the
+        times, then (with ``zero_level_fraction``) the zero-level candidates' states and times."""
+        c, d = self.config, self.network.system.state_dim
         n = c.points // self.world_size
-        x, t = self.uniform(n, tmax)
+        shapes: list[tuple[int, ...]] = [(n, d), (n,)]
+        near = int(c.zero_level_fraction * n)
+        if near:
+            m = near * c.zero_level_candidates
+            shapes += [(m, d), (m,)]
+        return shapes
+
+    def draws(self, out: list[torch.Tensor] | None = None) -> list[torch.Tensor]:
+        """One step's uniform draws (:meth:`draw_shapes`) from the run's generator, written into ``out``
+        when given: a CUDA graph's static buffers (:mod:`training.cuda_graph`), filled outside the graph
+        so that the run's own generator, whose state checkpoints carry, draws every point."""
+        g = self.generator
+        if out is None:
+            return [torch.rand(shape, generator=g, device=self.device) for shape in self.draw_shapes()]
+        for buffer in out:
+            torch.rand(buffer.shape, generator=g, out=buffer)
+        return out
+
+    def points_from(
+        self, draws: list[torch.Tensor], tmax: float | torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """The step's points from its :meth:`draws` (``tmax`` a float, or a 0-d tensor in a CUDA graph):
+        uniform on the domain and on ``[0, tmax]``, the last ``zero_level_fraction`` of them replaced
+        by the candidates nearest the network's zero level. Reads nothing back from the device."""
+        c = self.config
+        x, t = self._low + draws[0] * self._span, draws[1] * tmax
+        n = t.shape[0]
         mask = None
         if c.parameterisation in LEARNED_BOUNDARY:
             mask = torch.zeros(n, dtype=torch.bool, device=self.device)
             mask[: int(c.boundary_fraction * n)] = True
             t = torch.where(mask, torch.zeros_like(t), t)
-        near = int(c.zero_level_fraction * n)
-        if near:  # the last points (never the vanilla boundary's first ones): nearest V = 0 of a larger draw
-            x[n - near :], t[n - near :] = self.near_zero_level(near, tmax)
+        if len(draws) > 2:  # the last points (never the vanilla boundary's first ones)
+            near = int(c.zero_level_fraction * n)
+            x[n - near :], t[n - near :] = self._nearest_zero_level(
+                self._low + draws[2] * self._span, draws[3] * tmax, near
+            )
         return x, t, mask
 
     def near_zero_level(self, count: int, tmax: float) -> tuple[torch.Tensor, torch.Tensor]:
         """``count`` states and times with the smallest ``|V|`` among ``zero_level_candidates x count``
         uniform draws (one forward pass without gradients)."""
-        m = count * self.config.zero_level_candidates
-        x, t = self.uniform(m, tmax)
+        return self._nearest_zero_level(*self.uniform(count * self.config.zero_level_candidates, tmax), count)
+
+    def _nearest_zero_level(self, x: torch.Tensor, t: torch.Tensor, count: int) -> tuple[torch.Tensor, torch.Tensor]:
         with torch.no_grad():
             keep = self.network(x, t).abs().topk(count, largest=False).indices
         return x[keep], t[keep]

@@ -16,6 +16,7 @@ import math
 import os
 import time
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +24,9 @@ import torch
 
 from reach.threads import thread_policy
 from training.config import TrainConfig
+from training.cuda_graph import GraphedStep, portable_state
 from training.distributed import Processes
+from training.loss import terms_to_floats
 from training.network import Encoding, ValueNetwork
 from training.objective import Objective, load_upper_bound
 from training.progress import Evaluator, ProgressReport, StepRecord
@@ -55,6 +58,19 @@ __all__ = [
 _clean_metrics = clean_metrics
 _deferred_signals = deferred_signals
 _upper_bound = load_upper_bound
+
+
+@contextlib.contextmanager
+def matmul_precision(precision: str) -> Iterator[None]:
+    """Let CUDA float32 matrix products use TF32 tensor cores for a block (``"tf32"``), restoring torch's
+    process-wide setting after; ``"float32"`` leaves it alone."""
+    before = torch.backends.cuda.matmul.allow_tf32
+    if precision == "tf32":
+        torch.backends.cuda.matmul.allow_tf32 = True
+    try:
+        yield
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = before
 
 
 class TrainingDivergedError(RuntimeError):
@@ -99,6 +115,11 @@ class Trainer:
         self.config = config.validate()
         self.processes = processes or Processes()
         self.processes.check_shares(self.config)
+        if self.config.cuda_graph and self.processes.world_size > 1:
+            raise ValueError(
+                "cuda_graph=True, but this run trains in several processes: DistributedDataParallel's "
+                "gradient all-reduce is not captured (leave cuda_graph unset, or false)"
+            )
         self.run = RunDirectory(run_dir)
         self.run_dir = self.run.path
         if not _resuming and self.processes.main:  # the others would race rank 0 writing its config
@@ -122,6 +143,8 @@ class Trainer:
             self.config, self.network, self.device, self.processes.rank, self.processes.world_size
         )
         self.schedule = Schedule(self.config, self.system.horizon)
+        #: the step as one CUDA graph (training.cuda_graph), built at the first step where the run allows it
+        self.graphed: GraphedStep | None = None
         self.step = 0
         self.wall = 0.0  # seconds of training, accumulated across resumes
         self.loss_ema: float | None = None
@@ -232,7 +255,7 @@ class Trainer:
         if not self.processes.main:
             return
         state = CheckpointState(
-            self.optimizer.state_dict(),
+            portable_state(self.optimizer.state_dict()),  # loads into an eager or a graphed run alike
             self.generator.get_state(),
             self.step,
             self.wall,
@@ -294,22 +317,35 @@ class Trainer:
         t0 = time.perf_counter()
         frac = self.progress_fraction()
         lr = self.learning_rate(frac)
-        for group in self.optimizer.param_groups:
-            group["lr"] = lr
         tmax = self.time_range(frac)
         self._refresh_labels(tmax)  # counted as training time: it is part of the recipe's cost
-        x, t, mask = self._sample(tmax)
-        loss, terms = self.step_objective(x, t, mask, self.schedule.trains_pde(frac), self.labels)
-        terms = self.processes.mean(terms)
-        if not math.isfinite(terms["loss"]):
-            raise TrainingDivergedError(self._diverged_message(terms["loss"]))
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
+        if self.graphed is None and self.uses_cuda_graph():
+            self.graphed = GraphedStep(self.sampler, self.objective, self.optimizer)
+        if self.graphed is not None:
+            terms = self.graphed(lr, tmax, self.labels)  # updates first, checks after (training.cuda_graph)
+            if not math.isfinite(terms["loss"]):
+                raise TrainingDivergedError(self._diverged_message(terms["loss"]))
+        else:
+            for group in self.optimizer.param_groups:
+                group["lr"] = lr
+            x, t, mask = self._sample(tmax)
+            loss, tensors = self.step_objective(x, t, mask, self.schedule.trains_pde(frac), self.labels)
+            terms = self.processes.mean(terms_to_floats(tensors))
+            if not math.isfinite(terms["loss"]):
+                raise TrainingDivergedError(self._diverged_message(terms["loss"]))
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            self.optimizer.step()
         self.step += 1
         self.wall += self.processes.from_main(time.perf_counter() - t0)
         self.loss_ema = terms["loss"] if self.loss_ema is None else 0.95 * self.loss_ema + 0.05 * terms["loss"]
         return StepRecord(lr, tmax, terms)
+
+    def uses_cuda_graph(self) -> bool:
+        """Whether this run's steps replay as one CUDA graph: ``config.cuda_graph`` (unset: wherever the
+        run allows it) in a run of one process."""
+        c = self.config
+        return c.cuda_graph is not False and self.processes.world_size == 1 and c.cuda_graph_unsupported() is None
 
     def _diverged_message(self, loss: float) -> str:
         """What a diverged run kept on disk, and what to do next: resume from the last checkpoint
@@ -339,7 +375,12 @@ class Trainer:
         (:func:`reach.threads.thread_policy`). In a distributed run every process calls this; rank 0
         alone locks, writes and reports."""
         main = self.processes.main
-        with self.run.lock() if main else contextlib.nullcontext(), deferred_signals() as stop, thread_policy():
+        with (
+            self.run.lock() if main else contextlib.nullcontext(),
+            deferred_signals() as stop,
+            thread_policy(),
+            matmul_precision(self.config.matmul_precision),
+        ):
             self.step_objective = self.processes.wrap(self.objective)
             try:
                 return self._train(stop)
