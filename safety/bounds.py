@@ -20,7 +20,8 @@ random sine networks IBP stays 65-74x above it on small boxes and the mean-value
 3-4x. On the trained networks the weights are larger and the overestimation far worse: IBP
 1,100-15,000x at half-widths of 1e-3 to 1e-5 of the span, the mean-value form 180x (9D) and
 740x (Air3D) only at 1e-5. Neither is tight enough to certify a trained sine network by branch and
-bound at a useful box count; linear relaxations with back-substitution (CROWN) are the next step.
+bound at a useful box count; :mod:`safety.linear_bounds` (linear relaxations carried back through
+the layers) is, within 1.2x of the range from 1e-3 of the span down.
 
 Both compute in float64 and widen each step outward by an a-priori bound of its own rounding
 error (a dot product of ``n`` terms errs by at most ``(n + 2) u sum |w_i h_i|``, ``u = 2**-53``;

@@ -22,6 +22,7 @@ from safety.bounds import (
     mean_value_bounds,
     sin_interval,
 )
+from safety.linear_bounds import linear_bounds
 from training.network import Encoding, ValueNetwork
 
 SYSTEMS = {"air3d": Air3D(), "9d": MultiVehicle9D()}
@@ -116,6 +117,19 @@ def test_the_mean_value_form_is_much_tighter_on_small_boxes(system):
     mvf = mean_value_bounds(network, x_lo, x_hi, t_lo, t_hi)
     ratio = (ibp[1] - ibp[0]) / (mvf[1] - mvf[0])
     assert float(ratio.median()) >= 8.0
+
+
+@pytest.mark.parametrize("system", sorted(SYSTEMS))
+def test_linear_relaxations_are_much_tighter_than_intervals(system):
+    """CROWN-style bounds keep the correlations IBP forgets: on 16 boxes of up to 1e-2 of the span of a
+    random sine network (w0 = 30) they were 22-27x narrower when this was written."""
+    network = _network(system, "ssssl", 30.0, True, 1)
+    boxes = [_box(network, seed, -2.0) for seed in range(16)]
+    x_lo, x_hi, t_lo, t_hi = (torch.cat(parts) for parts in zip(*boxes))
+    ibp = interval_bounds(network, x_lo, x_hi, t_lo, t_hi)
+    crown = linear_bounds(network, x_lo, x_hi, t_lo, t_hi)
+    assert bool((crown[0] >= ibp[0]).all()) and bool((crown[1] <= ibp[1]).all())
+    assert float(((ibp[1] - ibp[0]) / (crown[1] - crown[0])).median()) >= 10.0
 
 
 @pytest.mark.parametrize(
