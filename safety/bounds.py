@@ -35,18 +35,11 @@ Why written here rather than taken from a library: auto_LiRPA's release pins tor
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import nn
 
+from reach.intervals import FUNCTION_ULPS, UNIT_ROUNDOFF, cos_interval, sin_interval
 from training.network import Sine, ValueNetwork
-
-#: unit roundoff of float64
-UNIT_ROUNDOFF = 2.0**-53
-#: elementary functions (sin, cos, tanh) err by at most this many ulps (glibc and torch: about 1)
-FUNCTION_ULPS = 4.0
-_TWO_PI = 2.0 * math.pi
 
 Interval = tuple[torch.Tensor, torch.Tensor]
 
@@ -58,31 +51,6 @@ def _widen(lo: torch.Tensor, hi: torch.Tensor, error: torch.Tensor | float) -> I
 def _function_error(value_bound: torch.Tensor | float) -> torch.Tensor | float:
     """The rounding error of an elementary function whose result and argument are bounded by ``value_bound``."""
     return FUNCTION_ULPS * UNIT_ROUNDOFF * (1.0 + value_bound)
-
-
-def sin_interval(lo: torch.Tensor, hi: torch.Tensor) -> Interval:
-    """Bounds of ``sin`` over ``[lo, hi]`` elementwise: the endpoints' values, and 1 (or -1) wherever a
-    maximum ``pi/2 + 2 k pi`` (a minimum ``-pi/2 + 2 k pi``) lies inside; widened for rounding."""
-    s_lo, s_hi = torch.sin(lo), torch.sin(hi)
-    low, high = torch.minimum(s_lo, s_hi), torch.maximum(s_lo, s_hi)
-    # a peak p + 2 k pi lies in [lo, hi] iff ceil((lo - p) / 2pi) <= floor((hi - p) / 2pi); the division's
-    # rounding is covered by also counting a peak within a few ulps of an end (then the bound is 1: sound)
-    slack = 8 * UNIT_ROUNDOFF * (1.0 + torch.maximum(lo.abs(), hi.abs()))
-    for peak, extreme in ((0.5 * math.pi, 1.0), (-0.5 * math.pi, -1.0)):
-        inside = torch.ceil((lo - slack - peak) / _TWO_PI) <= torch.floor((hi + slack - peak) / _TWO_PI)
-        if extreme > 0:
-            high = torch.where(inside, torch.ones_like(high), high)
-        else:
-            low = torch.where(inside, -torch.ones_like(low), low)
-    error = _function_error(torch.maximum(lo.abs(), hi.abs()))
-    return (low - error).clamp(min=-1.0), (high + error).clamp(max=1.0)
-
-
-def cos_interval(lo: torch.Tensor, hi: torch.Tensor) -> Interval:
-    """Bounds of ``cos`` over ``[lo, hi]``: ``cos x = sin(x + pi/2)`` (the shift's rounding widened)."""
-    shift = 0.5 * math.pi
-    pad = 2 * UNIT_ROUNDOFF * (shift + torch.maximum(lo.abs(), hi.abs()))
-    return sin_interval(lo + shift - pad, hi + shift + pad)
 
 
 def linear_interval(layer: nn.Linear, lo: torch.Tensor, hi: torch.Tensor, scale: float = 1.0) -> Interval:
