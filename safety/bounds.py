@@ -35,6 +35,10 @@ Why written here rather than taken from a library: auto_LiRPA's release pins tor
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+from typing import Any
+
 import torch
 from torch import nn
 
@@ -97,10 +101,23 @@ def _encoding_interval(network: ValueNetwork, x_lo: torch.Tensor, x_hi: torch.Te
     return torch.cat(lows, -1), torch.cat(highs, -1)
 
 
+def on_network_device(function: Callable[..., Any]) -> Callable[..., Any]:
+    """Run a bound function with tensor factories defaulting to the network's device (its first
+    argument): the boxes and every constant then live where the weights do, CPU or GPU."""
+
+    @functools.wraps(function)
+    def wrapped(network: ValueNetwork, *args: Any, **kwargs: Any) -> Any:
+        with torch.device(next(network.parameters()).device):
+            return function(network, *args, **kwargs)
+
+    return wrapped
+
+
 def _check_box(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi) -> tuple[torch.Tensor, ...]:
     n = network.system.state_dim
-    x_lo, x_hi = (torch.as_tensor(v, dtype=torch.float64).cpu() for v in (x_lo, x_hi))
-    t_lo, t_hi = (torch.as_tensor(v, dtype=torch.float64).cpu() for v in (t_lo, t_hi))
+    device = next(network.parameters()).device
+    x_lo, x_hi = (torch.as_tensor(v, dtype=torch.float64).to(device) for v in (x_lo, x_hi))
+    t_lo, t_hi = (torch.as_tensor(v, dtype=torch.float64).to(device) for v in (t_lo, t_hi))
     if x_lo.ndim != 2 or x_lo.shape != x_hi.shape or x_lo.shape[-1] != n:
         raise ValueError(
             f"state boxes must be two (B, {n}) tensors of corners, got {tuple(x_lo.shape)} and {tuple(x_hi.shape)}"
@@ -114,6 +131,7 @@ def _check_box(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi) -> tuple[torch.Ten
     return x_lo, x_hi, t_lo, t_hi
 
 
+@on_network_device
 def interval_bounds(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi) -> Interval:
     """Sound bounds of ``network.raw(x, t)`` for every ``x`` in each box ``[x_lo, x_hi]`` (``(B, n)``)
     and ``t`` in ``[t_lo, t_hi]`` (scalars or ``(B,)``), by interval bound propagation (float64, CPU)."""
@@ -169,6 +187,7 @@ def _matvec_interval(weight: torch.Tensor, g: Interval) -> Interval:
     return mid - spread - error, mid + spread + error
 
 
+@on_network_device
 def gradient_bounds(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi) -> Interval:
     """Sound bounds of ``d network.raw / d(encoded input)`` over each box (backward through the layers
     with interval derivatives), shape ``(B, input_dim)``."""
@@ -187,6 +206,7 @@ def _encoded_gradient(network: ValueNetwork, lo: torch.Tensor, hi: torch.Tensor)
     return g
 
 
+@on_network_device
 def input_gradient_bounds(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi) -> tuple[Interval, Interval]:
     """Sound bounds of ``d network.raw / dt`` (``(B,)``) and ``d network.raw / dx`` (``(B, n)``) over each box."""
     x_lo, x_hi, t_lo, t_hi = _check_box(network, x_lo, x_hi, t_lo, t_hi)
@@ -194,6 +214,7 @@ def input_gradient_bounds(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi) -> tupl
     return _input_jacobian(network, g, x_lo, x_hi)
 
 
+@on_network_device
 def mean_value_bounds(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi) -> Interval:
     """Sound bounds of ``network.raw(x, t)`` over each box by the mean-value form around its centre,
     intersected with :func:`interval_bounds`. The gradient is taken with respect to ``(t, x)`` through

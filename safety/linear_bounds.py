@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from safety.bounds import FUNCTION_ULPS, UNIT_ROUNDOFF, Interval, _check_box, interval_bounds
+from safety.bounds import FUNCTION_ULPS, UNIT_ROUNDOFF, Interval, _check_box, interval_bounds, on_network_device
 from training.network import Sine, ValueNetwork
 
 __all__ = ["linear_bounds"]
@@ -146,39 +146,50 @@ def _relax_layer(layer: _Layer, lo: torch.Tensor, hi: torch.Tensor) -> tuple[tor
 
 
 def _back_substitute(
-    spec_w: torch.Tensor, spec_b: torch.Tensor, layers: list[_Layer], lines: list[tuple], inputs: Interval
+    spec_w: torch.Tensor,
+    spec_b: torch.Tensor,
+    layers: list[_Layer],
+    lines: list[tuple],
+    inputs: Interval,
+    magnitude: torch.Tensor,
 ) -> Interval:
     """Bounds of ``spec_w @ h + spec_b`` (``spec_w`` ``(B, m, width)``) where ``h`` is the output of
-    ``layers`` (whose activations are enclosed by ``lines``) at inputs in the box ``inputs``."""
+    ``layers`` (whose activations are enclosed by ``lines``) at inputs in the box ``inputs``.
+    ``magnitude`` (``(B, width)``, :func:`_magnitudes`) bounds ``|h|`` and every partial sum that
+    makes it, so ``|spec_w| magnitude`` bounds the sum of the absolute values of all the products
+    computed here: the rounding margin."""
     lam = spec_w
     lower = spec_b.expand(lam.shape[:2]).clone()
     upper = lower.clone()
-    magnitude = spec_b.abs().expand(lam.shape[:2]).clone()  # the same sums in absolute values
-    lam_abs = lam.abs()
     depth = 0
     for layer, (slope, low, high) in zip(reversed(layers), reversed(lines)):
-        pos, neg = lam.clamp(min=0), lam.clamp(max=0)
-        lower = lower + (pos @ low.unsqueeze(-1) + neg @ high.unsqueeze(-1)).squeeze(-1)
-        upper = upper + (pos @ high.unsqueeze(-1) + neg @ low.unsqueeze(-1)).squeeze(-1)
-        magnitude = magnitude + (lam_abs @ torch.maximum(low.abs(), high.abs()).unsqueeze(-1)).squeeze(-1)
+        mid, rad = 0.5 * (low + high), 0.5 * (high - low)
+        centre = (lam @ mid.unsqueeze(-1)).squeeze(-1)
+        spread = (lam.abs() @ rad.unsqueeze(-1)).squeeze(-1)
         lam = lam * slope.unsqueeze(1)
-        lam_abs = lam_abs * slope.abs().unsqueeze(1)
         shift = lam @ layer.bias
-        lower, upper = lower + shift, upper + shift
-        magnitude = magnitude + lam_abs @ layer.bias.abs()
+        lower, upper = lower + centre - spread + shift, upper + centre + spread + shift
         lam = lam @ layer.weight
-        lam_abs = lam_abs @ layer.weight.abs()
-        depth += layer.weight.shape[1] + 4
+        depth += layer.weight.shape[0] + layer.weight.shape[1] + 8
     lo, hi = inputs
     centre, radius = (0.5 * (lo + hi)).unsqueeze(-1), (0.5 * (hi - lo)).unsqueeze(-1)
     mid = (lam @ centre).squeeze(-1)
     spread = (lam.abs() @ radius).squeeze(-1)
-    magnitude = magnitude + (lam_abs @ torch.maximum(lo.abs(), hi.abs()).unsqueeze(-1)).squeeze(-1)
     k = depth + lo.shape[-1] + 8
-    error = (k * UNIT_ROUNDOFF / (1 - k * UNIT_ROUNDOFF)) * (magnitude + spread + mid.abs())
+    total = (spec_w.abs() @ magnitude.unsqueeze(-1)).squeeze(-1) + spec_b.abs()
+    error = (k * UNIT_ROUNDOFF / (1 - k * UNIT_ROUNDOFF)) * 4 * total
     return lower + mid - spread - error, upper + mid + spread + error
 
 
+def _magnitudes(layer: _Layer, lines: tuple, previous: torch.Tensor) -> torch.Tensor:
+    """A bound of ``|h|`` after ``layer`` and of every partial sum toward it, from ``previous``'s:
+    ``|slope| (|W| m + |b|) + max(|low|, |high|)``. Forward, once per layer and box."""
+    slope, low, high = lines
+    z = previous @ layer.weight.abs().T + layer.bias.abs()
+    return slope.abs() * z + torch.maximum(low.abs(), high.abs()) + z
+
+
+@on_network_device
 def linear_bounds(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi) -> Interval:
     """Sound bounds of ``network.raw(x, t)`` over each box (``(B, n)`` corners, times scalars or
     ``(B,)``), by linear relaxations carried back through the layers; intersected with
@@ -189,11 +200,14 @@ def linear_bounds(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi) -> Interval:
     layers, output = _layers(network)
     batch = x_lo.shape[0]
     lines: list[tuple] = []
+    magnitude = torch.maximum(inputs[0].abs(), inputs[1].abs())
     for j, layer in enumerate(layers):
         spec = layer.weight.expand(batch, -1, -1)
-        pre = _back_substitute(spec, layer.bias, layers[:j], lines, inputs)
+        pre = _back_substitute(spec, layer.bias, layers[:j], lines, inputs, magnitude)
         lines.append(_relax_layer(layer, *pre))
+        magnitude = _magnitudes(layer, lines[-1], magnitude)
     spec = output.weight.detach().to(torch.float64).expand(batch, -1, -1)
-    lo, hi = _back_substitute(spec, output.bias.detach().to(torch.float64), layers, lines, inputs)
+    bias = output.bias.detach().to(torch.float64)
+    lo, hi = _back_substitute(spec, bias, layers, lines, inputs, magnitude)
     ibp = interval_bounds(network, x_lo, x_hi, t_lo, t_hi)
     return torch.maximum(lo.squeeze(-1), ibp[0]), torch.minimum(hi.squeeze(-1), ibp[1])

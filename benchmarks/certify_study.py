@@ -1,0 +1,66 @@
+"""Formal certification of a shipped value network by branch and bound (safety.certify): how much of
+the state box is proven, refuted or left unknown at each level, and in what time.
+
+Usage: ``python benchmarks/certify_study.py [--source pretrained:air3d] [--levels 0.05 0.1 0.2]
+[--time-to-go 1.0] [--dt 0.02] [--max-seconds 120] [--device cpu|cuda]``
+
+Each level runs the verifier (``safety.certify.certify``) from a fresh cover of the box until it
+finishes or its time runs out; what is left counts as unknown. ``certified`` is yes only when every
+box is outside the set or proven.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from safety.certify import CertifySettings, certify
+from safety.sources import load_value_function
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--source", default="pretrained:air3d")
+    parser.add_argument("--levels", type=float, nargs="+", default=[0.05, 0.1, 0.2])
+    parser.add_argument("--time-to-go", type=float, default=1.0)
+    parser.add_argument("--dt", type=float, default=0.02)
+    parser.add_argument("--integrator", default="euler")
+    parser.add_argument("--max-seconds", type=float, default=120.0)
+    parser.add_argument("--min-width", type=float, default=1 / 256)
+    parser.add_argument("--initial-splits", type=int, default=8)
+    parser.add_argument("--batch", type=int, default=512)
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args()
+    network = load_value_function(args.source).value_function
+    print(
+        f"# {args.source}: T = {args.time_to_go}, dt = {args.dt} ({args.integrator}), min width {args.min_width:g} "
+        f"of the span, {args.max_seconds:g} s a level, device {args.device}"
+    )
+    print("| level c | certified | outside | proven | refuted | unknown | boxes handled | wall s | counterexamples |")
+    print("|---:|---|---:|---:|---:|---:|---:|---:|---:|")
+    for level in args.levels:
+        settings = CertifySettings(
+            level=level,
+            time_to_go=args.time_to_go,
+            dt=args.dt,
+            integrator=args.integrator,
+            min_relative_width=args.min_width,
+            initial_splits=args.initial_splits,
+            batch=args.batch,
+            max_seconds=args.max_seconds,
+        )
+        result = certify(network, settings, device=args.device)
+        shares = result.volume_shares()
+        print(
+            f"| {level:g} | {'yes' if result.certified else 'no'} | {shares['outside']:.4f} | {shares['proven']:.4f} | "
+            f"{shares['refuted']:.4f} | {shares['unknown']:.4f} | {result.boxes_handled} | {result.wall_time:.1f} | "
+            f"{len(result.counterexamples)} |",
+            flush=True,
+        )
+
+
+if __name__ == "__main__":
+    main()

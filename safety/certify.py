@@ -1,0 +1,372 @@
+"""Formal certification of a learned safe set by branch and bound over boxes of states.
+
+For a neural value function ``V``, a level ``c`` and a time-to-go ``T``, the set is
+``S_c = {x : V(x, T) >= c}``. The verifier covers the state box with boxes and tries to prove, on each:
+
+* **(a) inclusion**: every state of ``S_c`` in the box is outside the failure set, ``l(x) > 0``;
+* **(b) one-step robust invariance**: one backup input ``u`` (a vertex or the centre of the control
+  box, the same for the whole box) such that for *every* state of the box and *every* disturbance of
+  the disturbance box, the next state ``step(x, u, d)`` (the env's integrator and ``dt``) lies in
+  ``S_c`` again, and inside the value function's domain (a heading, which the network's sin/cos
+  encoding makes periodic, may wrap).
+
+A box on which ``V < c`` everywhere holds no state of ``S_c`` and needs nothing more. Every other
+box is **proven** (both hold, with its backup input), **refuted** (a concrete counterexample at its
+centre, checked by evaluation: a state of ``S_c`` with ``l <= 0``, or one from which every candidate
+input has a disturbance leading out of ``S_c``), or **split** in two along its relatively widest
+dimension, until it reaches ``min_relative_width`` (then **unknown**).
+
+If every box is outside or proven, then from any state of ``S_c`` a filter that applies the box's
+backup input keeps the state in ``S_c`` for all time, under the model's dynamics, the integrator's
+discrete time and any disturbance in its box, and ``S_c`` never meets the failure set: the
+certificate. Bounds: :mod:`safety.linear_bounds` for the network, :mod:`reach.intervals` for the
+margins and the step. This first version certifies avoid problems with the ``exact``, ``diff`` and
+``vanilla`` output parameterisations.
+"""
+
+from __future__ import annotations
+
+import copy
+import itertools
+import math
+import time
+from dataclasses import asdict, dataclass, field
+
+import torch
+
+from reach.integrators import check_integrator, make_stepper
+from reach.intervals import INTERVAL, Interval, IntervalBackend, box_columns
+from reach.systems.arrays import TORCH
+from reach.validation import positive_finite
+from safety.linear_bounds import linear_bounds
+from training.network import NeuralValueFunction, ValueNetwork
+
+__all__ = ["CertificationResult", "CertifySettings", "certify", "value_bounds"]
+
+#: box statuses
+OUTSIDE, PROVEN, REFUTED, UNKNOWN = 0, 1, 2, 3
+STATUS_NAMES = ("outside", "proven", "refuted", "unknown")
+
+
+class _Unwrapped(IntervalBackend):
+    """Interval columns whose headings are left unwrapped by the step: the verifier wraps the next-state
+    box itself, exactly, by cutting it at the seam (:func:`_wrap_boxes`)."""
+
+    @staticmethod
+    def wrap_angle(a: Interval) -> Interval:
+        return a
+
+
+def _wrap_boxes(lo: torch.Tensor, hi: torch.Tensor, periodic: list[int]) -> tuple[torch.Tensor, ...]:
+    """Boxes with their periodic dimensions wrapped into ``[-pi, pi]``, a box that crosses the seam cut
+    in two there: ``(lo, hi, owner)`` with ``owner`` the row each piece came from. A box that spans
+    a whole turn or more keeps ``[-pi, pi]`` whole."""
+    owner = torch.arange(len(lo), device=lo.device)
+    for i in periodic:
+        width = hi[:, i] - lo[:, i]
+        turns = torch.floor((lo[:, i] + math.pi) / (2 * math.pi))
+        a = lo[:, i] - turns * 2 * math.pi
+        b = a + width
+        whole = width >= 2 * math.pi
+        a, b = torch.where(whole, -math.pi, a), torch.where(whole, math.pi, b)
+        crosses = b > math.pi
+        lo, hi = lo.clone(), hi.clone()
+        lo[:, i], hi[:, i] = a, torch.where(crosses, math.pi, b)
+        extra = crosses.nonzero().squeeze(-1)
+        if len(extra):
+            lo2, hi2 = lo[extra].clone(), hi[extra].clone()
+            lo2[:, i], hi2[:, i] = -math.pi, b[extra] - 2 * math.pi
+            lo, hi = torch.cat([lo, lo2]), torch.cat([hi, hi2])
+            owner = torch.cat([owner, owner[extra]])
+    return lo, hi, owner
+
+
+@dataclass(frozen=True)
+class CertifySettings:
+    """What a certificate proves and how hard the verifier tries (all checked at construction)."""
+
+    level: float  # c: the set is {V(x, T) >= c}
+    time_to_go: float  # T
+    dt: float
+    integrator: str = "euler"
+    #: each disturbance dimension is split into this many pieces, each piece proven on its own
+    #: (tighter bounds of the next states; the claim is the same: every disturbance)
+    disturbance_splits: int = 2
+    initial_splits: int = 8  # the first cover: this many boxes per dimension
+    min_relative_width: float = 1 / 256  # boxes narrower than this (share of the span) are not split
+    batch: int = 512  # boxes bounded at once
+    max_boxes: int = 2_000_000  # stop (unfinished, never "certified") past this many boxes handled
+    max_seconds: float | None = None  # ... or past this wall time
+
+    def __post_init__(self) -> None:
+        if not math.isfinite(self.level):
+            raise ValueError(f"level must be finite, got {self.level!r}")
+        positive_finite("time_to_go", self.time_to_go)
+        positive_finite("dt", self.dt)
+        check_integrator(self.integrator)
+        for name in ("disturbance_splits", "initial_splits", "batch", "max_boxes"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if self.max_seconds is not None:
+            positive_finite("max_seconds", self.max_seconds)
+        if not (0 < self.min_relative_width <= 1):
+            raise ValueError(f"min_relative_width must lie in (0, 1], got {self.min_relative_width!r}")
+
+
+@dataclass
+class CertificationResult:
+    """The verifier's boxes (corners ``lo``, ``hi``), each one's status and backup input index
+    (``-1`` where none), the candidate inputs, and what it cost. ``certified`` only when every box
+    is outside or proven and the run finished."""
+
+    settings: CertifySettings
+    lo: torch.Tensor
+    hi: torch.Tensor
+    status: torch.Tensor
+    backup: torch.Tensor
+    candidates: torch.Tensor
+    counterexamples: list[dict] = field(default_factory=list)
+    finished: bool = True
+    wall_time: float = 0.0
+    boxes_handled: int = 0
+
+    @property
+    def certified(self) -> bool:
+        return self.finished and bool(((self.status == OUTSIDE) | (self.status == PROVEN)).all())
+
+    def volume_shares(self) -> dict[str, float]:
+        """Each status's share of the state box's volume."""
+        volume = (self.hi - self.lo).prod(-1)
+        total = float(volume.sum())
+        return {name: float(volume[self.status == k].sum()) / total for k, name in enumerate(STATUS_NAMES)}
+
+    def summary(self) -> dict:
+        return {
+            "certified": self.certified,
+            "finished": self.finished,
+            "boxes": len(self.status),
+            "boxes_handled": self.boxes_handled,
+            "wall_time_s": self.wall_time,
+            **{f"volume_{k}": v for k, v in self.volume_shares().items()},
+            "settings": asdict(self.settings),
+        }
+
+
+def _network(value_function: NeuralValueFunction | ValueNetwork) -> ValueNetwork:
+    network = getattr(value_function, "network", value_function)
+    if not isinstance(network, ValueNetwork):
+        raise TypeError(f"certify takes a neural value function, got {type(value_function).__name__}")
+    system = network.system
+    if system.kind != "avoid":
+        raise ValueError(f"certify proves avoid problems for now; {system.name} is a {system.kind} problem")
+    if network.parameterisation not in ("exact", "diff", "vanilla"):
+        raise ValueError(
+            f"certify takes the exact, diff and vanilla parameterisations, not {network.parameterisation!r}"
+        )
+    return network
+
+
+def value_bounds(network: ValueNetwork, x_lo: torch.Tensor, x_hi: torch.Tensor, t: float) -> Interval:
+    """Sound bounds of ``V(x, t)`` over each box (``(B, n)`` corners) at one time-to-go ``t``: the
+    raw output's linear bounds through the output map, the boundary value's by interval arithmetic."""
+    o_lo, o_hi = linear_bounds(network, x_lo, x_hi, t, t)
+    enc = network.encoding
+    if network.parameterisation == "vanilla":
+        offset: Interval | float = enc.value_offset
+        scale = enc.value_scale
+    else:
+        offset = Interval._of(network.system.failure_margin_columns(box_columns(x_lo, x_hi), INTERVAL))
+        scale = enc.value_scale * (t / enc.horizon if network.parameterisation == "exact" else 1.0)
+    return offset + scale * Interval(o_lo, o_hi)
+
+
+def _candidates(network: ValueNetwork) -> torch.Tensor:
+    """The backup inputs tried on every box: the control box's vertices, then its centre."""
+    box = network.system.control_bounds
+    vertices = [list(v) for v in itertools.product(*zip(box.low, box.high))]
+    return torch.tensor([*vertices, list(box.center)], dtype=torch.float64)
+
+
+def _disturbance_pieces(network: ValueNetwork, splits: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The disturbance box cut into ``splits`` pieces per dimension (its bounding box for a ball)."""
+    system = network.system
+    if not system.disturbance_dim:
+        return torch.zeros(1, 0, dtype=torch.float64), torch.zeros(1, 0, dtype=torch.float64)
+    low = torch.tensor(system.disturbance_bounds.low, dtype=torch.float64)
+    high = torch.tensor(system.disturbance_bounds.high, dtype=torch.float64)
+    cuts = [torch.linspace(float(a), float(b), splits + 1, dtype=torch.float64) for a, b in zip(low, high)]
+    pieces = list(itertools.product(*[range(splits)] * len(cuts)))
+    lo = torch.tensor([[float(cuts[j][i]) for j, i in enumerate(p)] for p in pieces], dtype=torch.float64)
+    hi = torch.tensor([[float(cuts[j][i + 1]) for j, i in enumerate(p)] for p in pieces], dtype=torch.float64)
+    return lo, hi
+
+
+class _Verifier:
+    def __init__(self, network: ValueNetwork, settings: CertifySettings, device: torch.device) -> None:
+        # a float64 copy on the device: the caller's network stays as it is
+        self.network, self.settings = copy.deepcopy(network).double().eval().to(device), settings
+        system = network.system
+        self.system = system
+        self.domain = system.domain_tensor(torch.float64, device)
+        self.span = self.domain[:, 1] - self.domain[:, 0]
+        self.periodic_dims = list(system.periodic_dims)
+        self.periodic = torch.tensor([i in self.periodic_dims for i in range(system.state_dim)])
+        self.step = make_stepper(system, settings.dt, settings.integrator, _Unwrapped())
+        self.point_step = make_stepper(system, settings.dt, settings.integrator, TORCH)
+        self.candidates = _candidates(network)
+        self.d_lo, self.d_hi = _disturbance_pieces(network, settings.disturbance_splits)
+
+    def value(self, x_lo: torch.Tensor, x_hi: torch.Tensor) -> Interval:
+        return value_bounds(self.network, x_lo, x_hi, self.settings.time_to_go)
+
+    def point_value(self, x: torch.Tensor) -> torch.Tensor:
+        t = torch.full(x.shape[:-1], self.settings.time_to_go, dtype=torch.float64)
+        with torch.no_grad():
+            return self.network(x, t)
+
+    def keeps(self, lo: torch.Tensor, hi: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """``(B,)``: whether the input ``u`` keeps every next state of each box, under every disturbance
+        piece, inside the domain and in ``S_c`` (the next states wrapped as the env wraps them)."""
+        b, p = lo.shape[0], len(self.d_lo)
+        x_lo, x_hi = lo.repeat_interleave(p, 0), hi.repeat_interleave(p, 0)
+        d_lo, d_hi = self.d_lo.repeat(b, 1), self.d_hi.repeat(b, 1)
+        nxt = self.step(box_columns(x_lo, x_hi), [Interval.point(float(c)) for c in u], box_columns(d_lo, d_hi))
+        n_lo, n_hi, owner = _wrap_boxes(
+            torch.stack([c.lo for c in nxt], -1), torch.stack([c.hi for c in nxt], -1), self.periodic_dims
+        )
+        ok = (((n_lo >= self.domain[:, 0]) & (n_hi <= self.domain[:, 1])) | self.periodic).all(-1)
+        check = ok.nonzero().squeeze(-1)
+        if len(check):
+            ok[check] = self.value(n_lo[check], n_hi[check]).lo >= self.settings.level
+        # a (box, piece) holds when all its wrapped parts do; a box when all its pieces do
+        held = torch.ones(b * p, dtype=torch.long)
+        held.scatter_reduce_(0, owner, ok.long(), reduce="amin")
+        return held.reshape(b, p).bool().all(-1)
+
+    def invariant(self, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+        """``(B,)`` the first candidate input that keeps each box in ``S_c`` (:meth:`keeps`), or -1.
+        Candidates are tried in turn, each only on the boxes no earlier one kept."""
+        chosen = torch.full((len(lo),), -1, dtype=torch.long)
+        for k, u in enumerate(self.candidates):
+            open_ = (chosen < 0).nonzero().squeeze(-1)
+            if not len(open_):
+                break
+            kept = self.keeps(lo[open_], hi[open_], u)
+            chosen[open_[kept]] = k
+        return chosen
+
+    def refute(self, lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Tensor, list[dict]]:
+        """Counterexamples at the boxes' centres (float64 evaluation): a state of ``S_c`` with ``l <= 0``,
+        or one from which every candidate input has a disturbance vertex that leaves ``S_c``."""
+        x = 0.5 * (lo + hi)
+        c = self.settings.level
+        v = self.point_value(x)
+        in_set = v >= c
+        failing = self.system.failure_margin(x) <= 0
+        escapes = torch.ones(len(x), dtype=torch.bool)
+        d_vertices = [list(v) for v in itertools.product(*zip(self.d_lo.amin(0).tolist(), self.d_hi.amax(0).tolist()))]
+        for u in self.candidates:
+            some_d_escapes = torch.zeros(len(x), dtype=torch.bool)
+            for d in d_vertices or [[]]:
+                u_cols = [torch.full((len(x),), float(a), dtype=torch.float64) for a in u]
+                d_cols = [torch.full((len(x),), float(a), dtype=torch.float64) for a in d]
+                nxt = TORCH.stack(self.point_step(TORCH.unbind(x), u_cols, d_cols))
+                some_d_escapes |= self.point_value(nxt) < c
+            escapes &= some_d_escapes
+        refuted = in_set & (failing | escapes)
+        found = [
+            {"state": x[i].tolist(), "value": float(v[i]), "reason": "l <= 0" if failing[i] else "every input escapes"}
+            for i in refuted.nonzero().squeeze(-1).tolist()
+        ]
+        return refuted, found
+
+    def run(self, progress: bool = False) -> CertificationResult:
+        s, start = self.settings, time.perf_counter()
+        n = self.system.state_dim
+        grid = torch.linspace(0, 1, s.initial_splits + 1, dtype=torch.float64)
+        cells = torch.cartesian_prod(*[torch.arange(s.initial_splits)] * n).reshape(-1, n)
+        queue_lo = self.domain[:, 0] + grid[cells] * self.span
+        queue_hi = self.domain[:, 0] + grid[cells + 1] * self.span
+        done_lo, done_hi, done_status, done_backup = [], [], [], []
+        counterexamples: list[dict] = []
+        handled = 0
+        while len(queue_lo) and handled < s.max_boxes:
+            if s.max_seconds is not None and time.perf_counter() - start > s.max_seconds:
+                break
+            lo, hi = queue_lo[: s.batch], queue_hi[: s.batch]
+            queue_lo, queue_hi = queue_lo[s.batch :], queue_hi[s.batch :]
+            handled += len(lo)
+            status = torch.full((len(lo),), UNKNOWN, dtype=torch.long)
+            backup = torch.full((len(lo),), -1, dtype=torch.long)
+            v = self.value(lo, hi)
+            outside = v.hi < s.level
+            status[outside] = OUTSIDE
+            rest = (~outside).nonzero().squeeze(-1)
+            if len(rest):
+                margin = Interval._of(self.system.failure_margin_columns(box_columns(lo[rest], hi[rest]), INTERVAL))
+                included = (margin.lo > 0).nonzero().squeeze(-1)
+                chosen = torch.full((len(rest),), -1, dtype=torch.long)
+                if len(included):
+                    chosen[included] = self.invariant(lo[rest[included]], hi[rest[included]])
+                proven = chosen >= 0
+                status[rest[proven]] = PROVEN
+                backup[rest[proven]] = chosen[proven]
+                open_ = rest[~proven]
+                if len(open_):
+                    refuted, found = self.refute(lo[open_], hi[open_])
+                    status[open_[refuted]] = REFUTED
+                    counterexamples += found
+                    undecided = open_[~refuted]
+                    width = (hi[undecided] - lo[undecided]) / self.span
+                    splittable = width.amax(-1) > s.min_relative_width
+                    split = undecided[splittable]
+                    if len(split):
+                        dim = ((hi[split] - lo[split]) / self.span).argmax(-1)
+                        mid = 0.5 * (lo[split, dim] + hi[split, dim])
+                        left_hi, right_lo = hi[split].clone(), lo[split].clone()
+                        rows = torch.arange(len(split))
+                        left_hi[rows, dim], right_lo[rows, dim] = mid, mid
+                        # breadth first: every box is tried at each size before any is split further
+                        queue_lo = torch.cat([queue_lo, lo[split], right_lo])
+                        queue_hi = torch.cat([queue_hi, left_hi, hi[split]])
+                        status[split] = -1  # replaced by its halves
+            keep = status >= 0
+            done_lo.append(lo[keep]), done_hi.append(hi[keep])
+            done_status.append(status[keep]), done_backup.append(backup[keep])
+            if progress:
+                print(f"{handled} boxes handled, {len(queue_lo)} queued", flush=True)
+        finished = len(queue_lo) == 0
+        if not finished:  # what is left counts as unknown: never reported as proven
+            done_lo.append(queue_lo), done_hi.append(queue_hi)
+            done_status.append(torch.full((len(queue_lo),), UNKNOWN, dtype=torch.long))
+            done_backup.append(torch.full((len(queue_lo),), -1, dtype=torch.long))
+        return CertificationResult(
+            s,
+            torch.cat(done_lo).cpu(),
+            torch.cat(done_hi).cpu(),
+            torch.cat(done_status).cpu(),
+            torch.cat(done_backup).cpu(),
+            self.candidates.cpu(),
+            counterexamples,
+            finished,
+            time.perf_counter() - start,
+            handled,
+        )
+
+
+def certify(
+    value_function: NeuralValueFunction | ValueNetwork,
+    settings: CertifySettings,
+    progress: bool = False,
+    device: str | torch.device = "cpu",
+) -> CertificationResult:
+    """Prove (or refute) that ``{V(x, T) >= c}`` is a safe, robustly invariant set (module docstring),
+    bounding boxes on ``device`` (a GPU bounds many more boxes a second; float64 throughout)."""
+    network = _network(value_function)
+    if settings.time_to_go > network.system.horizon:
+        raise ValueError(
+            f"time_to_go {settings.time_to_go:g} is beyond the value function's horizon {network.system.horizon:g}"
+        )
+    with torch.device(device):
+        return _Verifier(network, settings, torch.device(device)).run(progress)
