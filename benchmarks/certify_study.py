@@ -33,14 +33,18 @@ def main() -> None:
     parser.add_argument("--initial-splits", type=int, default=8)
     parser.add_argument("--batch", type=int, default=512)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--max-boxes", type=int, default=2_000_000)
     args = parser.parse_args()
     network = load_value_function(args.source).value_function
     print(
         f"# {args.source}: T = {args.time_to_go}, dt = {args.dt} ({args.integrator}), min width {args.min_width:g} "
         f"of the span, {args.max_seconds:g} s a level, device {args.device}"
     )
-    print("| level c | certified | outside | proven | refuted | unknown | boxes handled | wall s | counterexamples |")
-    print("|---:|---|---:|---:|---:|---:|---:|---:|---:|")
+    print(
+        "| level c | certified | finished | outside | proven | refuted | unknown | boxes handled | wall s "
+        "| counterexamples |"
+    )
+    print("|---:|---|---|---:|---:|---:|---:|---:|---:|---:|")
     for level in args.levels:
         settings = CertifySettings(
             level=level,
@@ -51,11 +55,13 @@ def main() -> None:
             initial_splits=args.initial_splits,
             batch=args.batch,
             max_seconds=args.max_seconds,
+            max_boxes=args.max_boxes,
         )
         result = certify(network, settings, device=args.device)
         shares = result.volume_shares()
         print(
-            f"| {level:g} | {'yes' if result.certified else 'no'} | {shares['outside']:.4f} | {shares['proven']:.4f} | "
+            f"| {level:g} | {'yes' if result.certified else 'no'} | {'yes' if result.finished else 'no'} | "
+            f"{shares['outside']:.4f} | {shares['proven']:.4f} | "
             f"{shares['refuted']:.4f} | {shares['unknown']:.4f} | {result.boxes_handled} | {result.wall_time:.1f} | "
             f"{len(result.counterexamples)} |",
             flush=True,
