@@ -1,0 +1,290 @@
+"""A formally certified safe set from the verifier's boxes, its certificate file, and the checker.
+
+:func:`safety.certify.certify` proves boxes one at a time: on each **proven** box every state of
+``S_c = {V(x, T) >= c}`` is safe and has a backup input that keeps its next state in ``S_c``. Some
+boxes stay refuted or unknown, so ``S_c`` itself is not certified. :func:`certified_set` shrinks it
+to ``S = S_c ∩ (union of the kept proven boxes)``: a proven box is dropped while some next state of
+it (its input, every disturbance) could land in a cell that is neither a kept box nor a box proven
+to hold no state of ``S_c``; repeated until nothing changes (the largest such union). Then every
+state of ``S`` is safe and its backup input keeps it in ``S``: ``S`` is invariant for all time.
+
+The **certificate file** (``.npz``, read with ``allow_pickle=False``: loading runs no code) holds the
+kept boxes with their backup inputs, the boxes proven outside ``S_c``, the settings, the system, and
+the value function's fingerprint. :func:`check_certificate` re-verifies it from the file alone, with
+none of the verifier's search: the fingerprint, system and settings must match; every outside box
+must bound ``V < c``; every kept box must prove inclusion and invariance with its stored input; and
+its next states must lie within the file's boxes. The checker reuses the bounds
+(:mod:`safety.linear_bounds`, :mod:`reach.intervals`), not the search.
+
+Closure is checked on the cell grid of the boxes (the verifier's cover is dyadic), with a table of
+cumulative counts: one array of ``R**n`` cells, so up to :data:`MAX_GRID_CELLS` (Air3D at 256 cells
+a dimension; not the 6D and 9D systems, whose certified sets need another closure check).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from reach.atomic import atomic_path
+from reach.intervals import INTERVAL, Interval, box_columns
+from safety.certify import OUTSIDE, PROVEN, CertificationResult, CertifySettings, _network, _Verifier, _wrap_boxes
+from training.checkpoint import network_digest
+from training.network import NeuralValueFunction, ValueNetwork
+
+__all__ = ["Certificate", "certified_set", "check_certificate", "load_certificate", "save_certificate"]
+
+#: the largest cell grid the closure check builds (int32 cumulative counts: 256 MB)
+MAX_GRID_CELLS = 2**26
+FORMAT = "reach-certificate/1"
+
+
+class Certificate:
+    """A certified set: ``kept`` boxes (``S`` is ``S_c`` within them) with their backup inputs,
+    ``outside`` boxes (``V < c`` on each), the grid ``resolution`` per dimension, and provenance."""
+
+    def __init__(
+        self,
+        settings: CertifySettings,
+        system: dict,
+        fingerprint: str,
+        kept_lo: torch.Tensor,
+        kept_hi: torch.Tensor,
+        inputs: torch.Tensor,
+        outside_lo: torch.Tensor,
+        outside_hi: torch.Tensor,
+        resolution: int,
+    ) -> None:
+        self.settings, self.system, self.fingerprint = settings, system, fingerprint
+        self.kept_lo, self.kept_hi, self.inputs = kept_lo, kept_hi, inputs
+        self.outside_lo, self.outside_hi = outside_lo, outside_hi
+        self.resolution = resolution
+
+    def kept_volume_share(self, domain: torch.Tensor) -> float:
+        """The kept boxes' share of the state box (``S`` is the part of them where ``V >= c``)."""
+        span = domain[:, 1] - domain[:, 0]
+        return float(((self.kept_hi - self.kept_lo) / span).prod(-1).sum())
+
+
+class _Grid:
+    """The dyadic cell grid of a cover: box corners to integer cells, and counts of marked cells in
+    any range (a cumulative table, one extra layer of zeros at the start of every dimension)."""
+
+    def __init__(self, domain: torch.Tensor, resolution: int) -> None:
+        n = domain.shape[0]
+        if resolution**n > MAX_GRID_CELLS:
+            raise ValueError(
+                f"closure on a grid of {resolution}^{n} cells exceeds {MAX_GRID_CELLS} cells: this certificate "
+                "check covers low-dimensional systems (Air3D) for now"
+            )
+        self.domain, self.resolution, self.n = domain, resolution, n
+        self.span = domain[:, 1] - domain[:, 0]
+
+    def cells(self, lo: torch.Tensor, hi: torch.Tensor, exact: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        """Cell ranges ``[a, b)`` per dimension: exact corners of grid boxes (``exact``, refused if off
+        the grid), or every cell a box of states touches."""
+        a = (lo - self.domain[:, 0]) / self.span * self.resolution
+        b = (hi - self.domain[:, 0]) / self.span * self.resolution
+        if exact:
+            ra, rb = torch.round(a), torch.round(b)
+            if bool(((a - ra).abs() > 1e-6).any() or ((b - rb).abs() > 1e-6).any()):
+                raise ValueError("a box's corners are not on the certificate's cell grid")
+            a, b = ra, rb
+        else:
+            a, b = torch.floor(a - 1e-9), torch.ceil(b + 1e-9)
+        return a.long().clamp(0, self.resolution), b.long().clamp(0, self.resolution)
+
+    def table(self, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+        """The cumulative count table of the cells the grid boxes ``[lo, hi]`` cover: each box adds
+        +-1 at its ``2**n`` corners of a difference array, whose running sums give the coverage."""
+        a, b = self.cells(lo, hi, exact=True)
+        r, n = self.resolution, self.n
+        diff = torch.zeros((r + 1,) * n, dtype=torch.int32)
+        for corner in range(2**n):
+            pick = [(corner >> d) & 1 for d in range(n)]
+            index = tuple(b[:, d] if p else a[:, d] for d, p in enumerate(pick))
+            sign = -1 if sum(pick) % 2 else 1
+            diff.index_put_(index, torch.full((len(a),), sign, dtype=torch.int32), accumulate=True)
+        coverage = diff
+        for d in range(n):
+            coverage = coverage.cumsum(d, dtype=torch.int32)
+        table = (coverage[(slice(0, r),) * n] > 0).to(torch.int32)
+        for d in range(n):
+            table = torch.nn.functional.pad(table.cumsum(d, dtype=torch.int32), [0, 0] * (n - 1 - d) + [1, 0])
+        return table
+
+    def count(self, table: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """Marked cells in each range ``[a, b)`` (inclusion and exclusion over the ``2**n`` corners)."""
+        total = torch.zeros(len(a), dtype=torch.long)
+        for corner in range(2**self.n):
+            pick = [(corner >> d) & 1 for d in range(self.n)]
+            index = tuple(b[:, d] if p else a[:, d] for d, p in enumerate(pick))
+            sign = -1 if (self.n - sum(pick)) % 2 else 1
+            total += sign * table[index].long()
+        return total
+
+
+def _resolution(result: CertificationResult, domain: torch.Tensor) -> int:
+    """The finest grid the cover's boxes sit on: the initial splits times two per halving."""
+    span = domain[:, 1] - domain[:, 0]
+    smallest = float(((result.hi - result.lo) / span).min())
+    return round(1 / smallest) if smallest > 0 else 1
+
+
+def _next_boxes(verifier: _Verifier, lo: torch.Tensor, hi: torch.Tensor, inputs: torch.Tensor) -> tuple:
+    """Every wrapped next-state box of each box under its input and each disturbance piece, with
+    the row of the box it came from."""
+    b, p = len(lo), len(verifier.d_lo)
+    x_lo, x_hi = lo.repeat_interleave(p, 0), hi.repeat_interleave(p, 0)
+    u = inputs.repeat_interleave(p, 0)
+    d_lo, d_hi = verifier.d_lo.repeat(b, 1), verifier.d_hi.repeat(b, 1)
+    nxt = verifier.step(box_columns(x_lo, x_hi), [Interval(c, c) for c in u.unbind(-1)], box_columns(d_lo, d_hi))
+    n_lo, n_hi, owner = _wrap_boxes(
+        torch.stack([c.lo for c in nxt], -1), torch.stack([c.hi for c in nxt], -1), verifier.periodic_dims
+    )
+    return n_lo, n_hi, torch.arange(b).repeat_interleave(p)[owner]
+
+
+def _closed(grid: _Grid, table: torch.Tensor, n_lo: torch.Tensor, n_hi: torch.Tensor) -> torch.Tensor:
+    """Whether each next-state box lies within the marked cells."""
+    a, b = grid.cells(n_lo.cpu(), n_hi.cpu(), exact=False)
+    return grid.count(table, a, b) == (b - a).prod(-1)
+
+
+def certified_set(value_function: NeuralValueFunction | ValueNetwork, result: CertificationResult) -> Certificate:
+    """The largest union of ``result``'s proven boxes whose next states stay within it or in boxes
+    proven outside ``S_c`` (module docstring), as a :class:`Certificate`."""
+    network = _network(value_function)
+    verifier = _Verifier(network, result.settings, torch.device("cpu"))
+    grid = _Grid(verifier.domain, _resolution(result, verifier.domain))
+    keep = result.status == PROVEN
+    outside = result.status == OUTSIDE
+    inputs = result.candidates[result.backup.clamp(min=0)]
+    rows = keep.nonzero().squeeze(-1)
+    n_lo, n_hi, owner = _next_boxes(verifier, result.lo[rows], result.hi[rows], inputs[rows])
+    alive = torch.ones(len(rows), dtype=torch.bool)
+    while True:
+        allowed = alive.clone()
+        cover_lo = torch.cat([result.lo[rows][allowed], result.lo[outside]])
+        cover_hi = torch.cat([result.hi[rows][allowed], result.hi[outside]])
+        table = grid.table(cover_lo, cover_hi)
+        closed = _closed(grid, table, n_lo, n_hi)
+        holds = torch.ones(len(rows), dtype=torch.long)
+        holds.scatter_reduce_(0, owner, closed.long(), reduce="amin")
+        now = alive & holds.bool()
+        if bool((now == alive).all()):
+            break
+        alive = now
+    kept = rows[alive]
+    return Certificate(
+        result.settings,
+        network.system.config(),
+        network_digest(network),
+        result.lo[kept],
+        result.hi[kept],
+        inputs[kept],
+        result.lo[outside],
+        result.hi[outside],
+        grid.resolution,
+    )
+
+
+def save_certificate(path: str | Path, certificate: Certificate) -> Path:
+    """Write ``certificate`` atomically (``.npz``; arrays and one JSON header, nothing executable)."""
+    path = Path(path)
+    if path.suffix != ".npz":
+        raise ValueError(f"a certificate file ends in .npz, got {str(path)!r}")
+    header = {
+        "format": FORMAT,
+        "settings": asdict(certificate.settings),
+        "system": certificate.system,
+        "fingerprint": certificate.fingerprint,
+        "resolution": certificate.resolution,
+    }
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez(
+            f,
+            header=np.array(json.dumps(header)),
+            kept_lo=certificate.kept_lo.numpy(),
+            kept_hi=certificate.kept_hi.numpy(),
+            inputs=certificate.inputs.numpy(),
+            outside_lo=certificate.outside_lo.numpy(),
+            outside_hi=certificate.outside_hi.numpy(),
+        )
+    return path
+
+
+def load_certificate(path: str | Path) -> Certificate:
+    """Read a certificate file (no pickles: nothing in it runs); refuses junk naming the problem."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            header = json.loads(str(data["header"]))
+            arrays = {k: torch.from_numpy(np.array(data[k], dtype=np.float64)) for k in
+                      ("kept_lo", "kept_hi", "inputs", "outside_lo", "outside_hi")}  # fmt: skip
+    except (OSError, ValueError, KeyError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: not a reach certificate file ({err})") from None
+    if not isinstance(header, dict) or header.get("format") != FORMAT:
+        raise ValueError(f"{path}: not a reach certificate file (format {header.get('format')!r})")
+    return Certificate(
+        CertifySettings(**header["settings"]),
+        header["system"],
+        header["fingerprint"],
+        arrays["kept_lo"],
+        arrays["kept_hi"],
+        arrays["inputs"],
+        arrays["outside_lo"],
+        arrays["outside_hi"],
+        int(header["resolution"]),
+    )
+
+
+def check_certificate(path: str | Path, value_function: NeuralValueFunction | ValueNetwork) -> Certificate:
+    """Re-verify a certificate file for ``value_function`` from the file alone (module docstring).
+    Raises ``ValueError`` naming the first thing that does not hold; returns the certificate."""
+    certificate = load_certificate(path)
+    network = _network(value_function)
+    if network.system.config() != certificate.system:
+        raise ValueError(f"{path}: certifies {certificate.system}, not this value function's {network.system.config()}")
+    digest = network_digest(network)
+    if digest != certificate.fingerprint:
+        raise ValueError(
+            f"{path}: certifies the value function {certificate.fingerprint[:12]}..., not this one ({digest[:12]}...): "
+            "a changed model needs a new certificate"
+        )
+    settings = certificate.settings
+    verifier = _Verifier(network, settings, torch.device("cpu"))
+    domain = verifier.domain
+    grid = _Grid(domain, certificate.resolution)
+    for name, lo, hi in (("kept", certificate.kept_lo, certificate.kept_hi),
+                         ("outside", certificate.outside_lo, certificate.outside_hi)):  # fmt: skip
+        if lo.ndim != 2 or lo.shape != hi.shape or lo.shape[-1] != domain.shape[0]:
+            raise ValueError(f"{path}: its {name} boxes have shape {tuple(lo.shape)}")
+        if bool(((lo < domain[:, 0] - 1e-12) | (hi > domain[:, 1] + 1e-12) | (lo > hi)).any()):
+            raise ValueError(f"{path}: a {name} box is not a box inside the domain")
+        grid.cells(lo, hi, exact=True)
+    if len(certificate.outside_lo) and bool(
+        (verifier.value(certificate.outside_lo, certificate.outside_hi).hi >= settings.level).any()
+    ):
+        raise ValueError(f"{path}: an outside box is not proven to hold only V < {settings.level:g}")
+    lo, hi, u = certificate.kept_lo, certificate.kept_hi, certificate.inputs
+    control = network.system.control_bounds
+    low, high = torch.tensor(control.low, dtype=torch.float64), torch.tensor(control.high, dtype=torch.float64)
+    if u.shape != (len(lo), len(control.low)) or bool(((u < low) | (u > high)).any()):
+        raise ValueError(f"{path}: a backup input is missing or outside the control box")
+    margin = Interval._of(network.system.failure_margin_columns(box_columns(lo, hi), INTERVAL))
+    if bool((margin.lo <= 0).any()):
+        raise ValueError(f"{path}: a kept box is not proven to keep l(x) > 0")
+    n_lo, n_hi, _ = _next_boxes(verifier, lo, hi, u)
+    inside = (((n_lo >= domain[:, 0]) & (n_hi <= domain[:, 1])) | verifier.periodic).all(-1)
+    if not bool(inside.all()):
+        raise ValueError(f"{path}: a kept box's next states may leave the domain")
+    if len(n_lo) and bool((verifier.value(n_lo, n_hi).lo < settings.level).any()):
+        raise ValueError(f"{path}: a kept box's next states are not proven to stay in V >= {settings.level:g}")
+    table = grid.table(torch.cat([lo, certificate.outside_lo]), torch.cat([hi, certificate.outside_hi]))
+    if not bool(_closed(grid, table, n_lo, n_hi).all()):
+        raise ValueError(f"{path}: a kept box's next states may leave the certified boxes")
+    return certificate
