@@ -5,9 +5,9 @@ Each subcommand is one module of this package holding its parser beside its hand
 ``record`` (an episode as a GIF), ``groundtruth`` (grid BRT solve), ``train`` (value networks),
 ``evaluate`` (rollout verification across checkpoints), ``filter-eval`` (what a safety filter
 changes in episodes of a task), ``export`` (a filter as one ONNX file for the torch-free
-runtime), ``plot`` (BRT slices, union overlays, violation bars,
-filtered-episode GIFs), ``sweep`` (layouts x seeds on a budget, with a report) and ``demo`` (all of
-it on Air3D).
+runtime), ``certify`` (a formally certified safe set, or the check of its file), ``plot`` (BRT
+slices, union overlays, violation bars, filtered-episode GIFs), ``sweep`` (layouts x seeds on a
+budget, with a report) and ``demo`` (all of it on Air3D).
 
 Handlers only parse and call library functions. Options that mirror a library setting default to
 ``None`` and fall back to the library's dataclass, so every default has one source; ``--help``
@@ -33,11 +33,24 @@ import torch
 
 from reach.exit_codes import EXIT_BROKEN_PIPE, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_USAGE
 from reach.threads import apply_thread_policy
-from reach_cli import demo, envs, evaluate, export, filter_eval, groundtruth, plot, pretrained, record, sweep, train
+from reach_cli import (
+    certify,
+    demo,
+    envs,
+    evaluate,
+    export,
+    filter_eval,
+    groundtruth,
+    plot,
+    pretrained,
+    record,
+    sweep,
+    train,
+)
 from reach_cli.options import OneLineParser, common_options, finish_namespace
 
 #: subcommand modules, in the order ``reach --help`` lists them
-COMMANDS = (envs, pretrained, record, groundtruth, train, evaluate, filter_eval, export, plot, sweep, demo)
+COMMANDS = (envs, pretrained, record, groundtruth, train, evaluate, filter_eval, export, certify, plot, sweep, demo)
 
 
 def build_parser() -> argparse.ArgumentParser:

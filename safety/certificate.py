@@ -248,7 +248,9 @@ def check_certificate(path: str | Path, value_function: NeuralValueFunction | Va
     certificate = load_certificate(path)
     network = _network(value_function)
     if network.system.config() != certificate.system:
-        raise ValueError(f"{path}: certifies {certificate.system}, not this value function's {network.system.config()}")
+        theirs, ours = certificate.system.get("name"), network.system.config()["name"]
+        what = f"{theirs}, not {ours}" if theirs != ours else f"{ours} with other parameters ({certificate.system})"
+        raise ValueError(f"{path}: certifies {what}")
     digest = network_digest(network)
     if digest != certificate.fingerprint:
         raise ValueError(

@@ -220,3 +220,33 @@ def test_the_certified_set_is_closed_and_its_file_checks(torus_network, tmp_path
         check_certificate(tmp_path / "junk.npz", torus_network)
     with pytest.raises(ValueError, match=r"ends in \.npz"):
         save_certificate(tmp_path / "torus.json", certificate)
+
+
+def test_the_command_line_certifies_and_checks_in_one_line_errors(network, tmp_path, capsys):
+    from reach_cli import main
+    from training import save_checkpoint
+
+    source = tmp_path / "air3d.pt"
+    save_checkpoint(source, network.float())
+    out = tmp_path / "cert.npz"
+    args = ["certify", str(source), "--level", "0.3", "--dt", "0.05", "--initial-splits", "6", "--min-width", "0.0417"]
+    assert main([*args, "--out", str(out)]) in (0, 3)
+    assert "wrote" in capsys.readouterr().out and out.exists()
+    assert main(["certify", str(source), "--check", str(out)]) == 0
+    assert "holds for" in capsys.readouterr().out
+    other = tmp_path / "other.pt"
+    save_checkpoint(other, ValueNetwork(Air3D(), "ssl", width=16, w0=3.0))
+    for bad in (
+        ["certify", str(other), "--check", str(out)],
+        ["certify", str(source), "--level", "0.3"],
+        ["certify", str(source), "--level", "0.3", "--out", str(tmp_path / "c.json")],
+        ["certify", str(source), "--check", str(out), "--level", "0.1"],
+        ["certify", str(source), "--level", "nan", "--out", str(out)],
+    ):
+        try:
+            code = main(bad)
+        except SystemExit as exit_:  # argparse's own refusal of a bad value
+            code = exit_.code
+        assert code == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and "Traceback" not in err, err

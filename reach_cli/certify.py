@@ -1,0 +1,98 @@
+"""``reach certify``: a formally certified safe set of a value network, and the check of a certificate file.
+
+Wiring only: the options become a :class:`~safety.certify.CertifySettings` (options left out fall back
+to its defaults); :func:`~safety.certify.certify` proves boxes, :func:`~safety.certificate.certified_set`
+keeps the largest closed union of them, and the file is written atomically. ``--check CERT`` re-verifies
+a file for the value function named, from the file alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from reach.exit_codes import EXIT_PARTIAL
+from reach.validation import device_arg, finite_float_arg, positive_float_arg, positive_int_arg, unit_interval_arg
+from reach_cli.options import add_subparser, default
+from safety.certify import CertifySettings
+
+#: (option, CertifySettings field, argparse keywords, help) of the verifier's knobs
+CERTIFY_OPTIONS = (
+    ("--integrator", "integrator", {"choices": ["euler", "rk4"]}, "the env's integrator, which the proof steps with"),
+    ("--disturbance-splits", "disturbance_splits", {"type": positive_int_arg}, "pieces per disturbance dimension"),
+    ("--initial-splits", "initial_splits", {"type": positive_int_arg}, "the first cover's boxes per dimension"),
+    ("--min-width", "min_relative_width", {"type": unit_interval_arg}, "smallest box (share of the span)"),
+    ("--batch", "batch", {"type": positive_int_arg}, "boxes bounded at once"),
+    ("--max-boxes", "max_boxes", {"type": positive_int_arg}, "stop after this many boxes (the rest: unknown)"),
+    ("--max-seconds", "max_seconds", {"type": positive_float_arg}, "stop after this wall time (the rest: unknown)"),
+)
+
+
+def add_parser(sub: Any) -> None:
+    p = add_subparser(
+        sub, "certify", help="prove a safe set {V >= c} invariant by branch and bound, or check a certificate file"
+    )
+    p.add_argument("source", help="value function: a run, .pt or pretrained:NAME (a neural avoid problem)")
+    p.add_argument("--check", metavar="CERT", default=None, help="re-verify this certificate file for SOURCE")
+    p.add_argument("--level", type=finite_float_arg, default=None, help="c: the set is {V(x, T) >= c}")
+    p.add_argument("--time-to-go", type=positive_float_arg, default=None, help="T (default: the system's horizon)")
+    p.add_argument("--dt", type=positive_float_arg, default=None, help="the env's step (default: the env scenes' step)")
+    for option, field, kwargs, text in CERTIFY_OPTIONS:
+        p.add_argument(
+            option, dest=field, default=None, help=f"{text} (default: {default(CertifySettings, field)})", **kwargs
+        )
+    p.add_argument(
+        "--device", type=device_arg, default="cpu", help="where boxes are bounded (a GPU: many more a second)"
+    )
+    p.add_argument("--out", default=None, help="the certificate file to write (.npz)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    # lazy: the verifier's stack only when this command runs
+    from safety.certificate import certified_set, check_certificate, save_certificate
+    from safety.certify import certify
+    from safety.sources import load_value_function
+
+    if args.dt is None:
+        from reach_envs.scenes import Scene  # lazy: the env stack (gymnasium) only for this default
+
+        args.dt = default(Scene, "dt")
+
+    if args.check is not None:
+        if args.out is not None or args.level is not None:
+            raise ValueError("--check re-verifies a file as it is: give no --level or --out with it")
+        value_function = load_value_function(args.source).value_function
+        certificate = check_certificate(args.check, value_function)
+        s = certificate.settings
+        print(
+            f"{args.check}: holds for {args.source}: {len(certificate.kept_lo)} boxes certified at level {s.level:g}, "
+            f"T = {s.time_to_go:g}, dt = {s.dt:g} ({s.integrator})"
+        )
+        return 0
+    if args.level is None or args.out is None:
+        raise ValueError("give --level and --out (or --check CERT to re-verify a file)")
+    if not str(args.out).endswith(".npz"):
+        raise ValueError(f"--out: a certificate file ends in .npz, got {args.out!r}")
+    value_function = load_value_function(args.source).value_function
+    given = {field: getattr(args, field) for _, field, _, _ in CERTIFY_OPTIONS if getattr(args, field) is not None}
+    time_to_go = args.time_to_go if args.time_to_go is not None else value_function.system.horizon
+    settings = CertifySettings(level=args.level, time_to_go=time_to_go, dt=args.dt, **given)
+    result = certify(value_function, settings, device=args.device)
+    certificate = certified_set(value_function, result)
+    path = save_certificate(args.out, certificate)
+    shares = result.volume_shares()
+    domain = value_function.system.domain_tensor()
+    ended = "finished" if result.finished else "stopped"
+    print(
+        f"{ended} after {result.boxes_handled} boxes in {result.wall_time:.1f} s: "
+        + ", ".join(f"{name} {share:.4f}" for name, share in shares.items())
+        + f" of the state box; {len(result.counterexamples)} counterexamples"
+    )
+    share = certificate.kept_volume_share(domain)
+    print(
+        f"wrote {path}: {len(certificate.kept_lo)} boxes, {share:.4f} of the state box, "
+        f"certified invariant and safe where V >= {args.level:g}"
+        + ("" if result.certified else " (the rest of {V >= c} is not certified)")
+    )
+    return 0 if len(certificate.kept_lo) else EXIT_PARTIAL
