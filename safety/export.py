@@ -202,6 +202,7 @@ def _trace_and_convert(filt: SafetyFilter, path: str) -> None:
     graph = make_fx(
         _decision(filt), tracing_mode="symbolic", decomposition_table=_DECOMPOSITIONS, _allow_non_fake_inputs=True
     )(*example)
+    graph.eval()  # a traced graph starts in training mode, which the exporter warns of (it has no such layers)
     batch = torch.export.Dim("batch")
     torch.onnx.export(
         graph,
