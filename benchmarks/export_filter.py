@@ -26,6 +26,7 @@ import argparse
 import sys
 import time
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -82,6 +83,14 @@ def exported(
     return meta.raw, torch_filter, runtime, seconds
 
 
+def filters(args: argparse.Namespace) -> Iterator[tuple[str, str, object, tuple]]:
+    """Every (system, kind) of the study with its exported filter (:func:`exported`), in table order."""
+    args.folder.mkdir(parents=True, exist_ok=True)
+    for name, vf in sources(args.folder, args.user_steps).items():
+        for kind in KINDS:
+            yield name, kind, vf, exported(vf, name, kind, args.folder, args.horizon)
+
+
 def draws(system: object, count: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     g = torch.Generator().manual_seed(seed)
     x = system.sample_states(count, generator=g)
@@ -96,32 +105,28 @@ def equivalence(args: argparse.Namespace) -> None:
     print(f"# equivalence: {args.states} states per system and kind, dt {DT}, lookahead backup {args.horizon} s")
     print("| system | filter | export s | differ | near threshold | max dV | max dgrad | applied differ | max du |")
     print("|---|---|---|---|---|---|---|---|---|")
-    folder = args.folder
-    folder.mkdir(parents=True, exist_ok=True)
-    for name, vf in sources(folder, args.user_steps).items():
-        for kind in KINDS:
-            meta, torch_filter, runtime, seconds = exported(vf, name, kind, folder, args.horizon)
-            threshold = meta["threshold"]
-            differ = near = applied_differ = 0
-            dv = dg = du = 0.0
-            for start in range(0, args.states, args.chunk):
-                n = min(args.chunk, args.states - start)
-                x, t, u = draws(vf.system, n, args.seed + start)
-                applied, info = torch_filter(x, t, u)
-                got, got_info = runtime(x.numpy(), u.numpy(), t.numpy())
-                d = got_info.intervened != info.intervened.numpy()
-                differ += int(d.sum())
-                near += int((d & (np.abs(info.value.numpy() - threshold) < 1e-4)).sum())
-                dv = max(dv, float(np.abs(got_info.value - info.value.numpy()).max()))
-                dg = max(dg, float(np.abs(got_info.gradient - info.gradient.numpy()).max()))
-                same = np.isclose(got, applied.numpy(), atol=1e-5).all(-1)
-                applied_differ += int((~d & ~same).sum())
-                du = max(du, float(np.abs(got - applied.numpy())[~d].max(initial=0.0)))
-            took = "reused" if seconds is None else f"{seconds:.0f}"
-            print(
-                f"| {name} | {kind} | {took} | {differ} | {near} | {dv:.1e} | {dg:.1e} | {applied_differ} | {du:.1e} |",
-                flush=True,
-            )
+    for name, kind, vf, (meta, torch_filter, runtime, seconds) in filters(args):
+        threshold = meta["threshold"]
+        differ = near = applied_differ = 0
+        dv = dg = du = 0.0
+        for start in range(0, args.states, args.chunk):
+            n = min(args.chunk, args.states - start)
+            x, t, u = draws(vf.system, n, args.seed + start)
+            applied, info = torch_filter(x, t, u)
+            got, got_info = runtime(x.numpy(), u.numpy(), t.numpy())
+            d = got_info.intervened != info.intervened.numpy()
+            differ += int(d.sum())
+            near += int((d & (np.abs(info.value.numpy() - threshold) < 1e-4)).sum())
+            dv = max(dv, float(np.abs(got_info.value - info.value.numpy()).max()))
+            dg = max(dg, float(np.abs(got_info.gradient - info.gradient.numpy()).max()))
+            same = np.isclose(got, applied.numpy(), atol=1e-5).all(-1)
+            applied_differ += int((~d & ~same).sum())
+            du = max(du, float(np.abs(got - applied.numpy())[~d].max(initial=0.0)))
+        took = "reused" if seconds is None else f"{seconds:.0f}"
+        print(
+            f"| {name} | {kind} | {took} | {differ} | {near} | {dv:.1e} | {dg:.1e} | {applied_differ} | {du:.1e} |",
+            flush=True,
+        )
 
 
 def percentiles(fn: object, calls: int) -> tuple[float, float]:
@@ -165,16 +170,12 @@ def latency(args: argparse.Namespace) -> None:
           f"lookahead backup {args.horizon} s; throughput at batch 1024 in states/s")  # fmt: skip
     print("| system | filter | torch p50 / p99 | runtime p50 / p99 | graph p50 / p99 | torch 1024 | runtime 1024 |")
     print("|---|---|---|---|---|---|---|")
-    folder = args.folder
-    folder.mkdir(parents=True, exist_ok=True)
-    for name, vf in sources(folder, args.user_steps).items():
-        for kind in KINDS:
-            _, torch_filter, runtime, _ = exported(vf, name, kind, folder, args.horizon)
-            if args.prepare:
-                continue
-            row, rates = timings(vf.system, torch_filter, runtime, args)
-            cells = " | ".join(f"{a:.0f} / {b:.0f}" for a, b in row)
-            print(f"| {name} | {kind} | {cells} | {rates[0]:.0f} | {rates[1]:.0f} |", flush=True)
+    for name, kind, vf, (_, torch_filter, runtime, _) in filters(args):
+        if args.prepare:
+            continue
+        row, rates = timings(vf.system, torch_filter, runtime, args)
+        cells = " | ".join(f"{a:.0f} / {b:.0f}" for a, b in row)
+        print(f"| {name} | {kind} | {cells} | {rates[0]:.0f} | {rates[1]:.0f} |", flush=True)
 
 
 def main() -> None:
