@@ -246,7 +246,12 @@ def check_certificate(path: str | Path, value_function: NeuralValueFunction | Va
     """Re-verify a certificate file for ``value_function`` from the file alone (module docstring).
     Raises ``ValueError`` naming the first thing that does not hold; returns the certificate."""
     certificate = load_certificate(path)
-    network = _network(value_function)
+    verify_certificate(certificate, value_function, str(path))
+    return certificate
+
+
+def check_provenance(certificate: Certificate, network: ValueNetwork, path: str) -> None:
+    """Refuse a certificate of another system or another value function, naming which."""
     if network.system.config() != certificate.system:
         theirs, ours = certificate.system.get("name"), network.system.config()["name"]
         what = f"{theirs}, not {ours}" if theirs != ours else f"{ours} with other parameters ({certificate.system})"
@@ -257,6 +262,14 @@ def check_certificate(path: str | Path, value_function: NeuralValueFunction | Va
             f"{path}: certifies the value function {certificate.fingerprint[:12]}..., not this one ({digest[:12]}...): "
             "a changed model needs a new certificate"
         )
+
+
+def verify_certificate(
+    certificate: Certificate, value_function: NeuralValueFunction | ValueNetwork, path: str = "the certificate"
+) -> None:
+    """Re-verify ``certificate`` for ``value_function`` (what :func:`check_certificate` does after reading)."""
+    network = _network(value_function)
+    check_provenance(certificate, network, path)
     settings = certificate.settings
     verifier = _Verifier(network, settings, torch.device("cpu"))
     domain = verifier.domain
@@ -289,4 +302,3 @@ def check_certificate(path: str | Path, value_function: NeuralValueFunction | Va
     table = grid.table(torch.cat([lo, certificate.outside_lo]), torch.cat([hi, certificate.outside_hi]))
     if not bool(_closed(grid, table, n_lo, n_hi).all()):
         raise ValueError(f"{path}: a kept box's next states may leave the certified boxes")
-    return certificate

@@ -165,12 +165,16 @@ def torus_network() -> ValueNetwork:
     return ValueNetwork(system, "ssl", width=16, w0=3.0, encoding=encoding)
 
 
-def test_the_certified_set_is_closed_and_its_file_checks(torus_network, tmp_path):
+@pytest.fixture(scope="module")
+def torus_certificate(torus_network):
+    return certified_set(torus_network, certify(torus_network, TORUS))
+
+
+def test_the_certified_set_is_closed_and_its_file_checks(torus_network, torus_certificate, tmp_path):
     """The shrunk set keeps proven boxes whose next states stay in it (checked at samples: 86.7 % of
     the torus when this was written), its file re-verifies from the file alone, and a changed model,
     level or box, or junk, is refused naming why."""
-    result = certify(torus_network, TORUS)
-    certificate = certified_set(torus_network, result)
+    certificate = torus_certificate
     domain = Torus().domain_tensor(torch.float64, "cpu")
     assert certificate.kept_volume_share(domain) > 0.5
     path = save_certificate(tmp_path / "torus.npz", certificate)
@@ -250,3 +254,35 @@ def test_the_command_line_certifies_and_checks_in_one_line_errors(network, tmp_p
         assert code == 2
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and "Traceback" not in err, err
+
+
+def test_the_certified_filter_keeps_every_trajectory_safe(torus_network, torus_certificate):
+    """From states of the certified set, 150 steps of random nominal inputs (some outside the control
+    box) and random disturbances, through the filter: every state stays certified and outside the
+    disc; inputs pushing into the disc are replaced, and a non-finite state is refused."""
+    from safety.certified_filter import CertifiedFilter
+
+    filt = CertifiedFilter(torus_certificate, torus_network)
+    system = Torus()
+    step = make_stepper(system, TORUS.dt, TORUS.integrator, TORCH)
+    g = torch.Generator().manual_seed(3)
+    x = system.sample_states(400, generator=g, dtype=torch.float64)
+    _, info = filt(x, torch.zeros(len(x), 2, dtype=torch.float64))
+    x = x[info.certified]
+    assert len(x) > 100
+    interventions = 0
+    for _ in range(150):
+        nominal = -1.5 + 3.0 * torch.rand((len(x), 2), generator=g, dtype=torch.float64)
+        applied, info = filt(x, nominal)
+        assert bool(info.certified.all())
+        interventions += int(info.intervened.sum())
+        d = -0.3 + 0.6 * torch.rand((len(x), 2), generator=g, dtype=torch.float64)
+        x = system.wrap(TORCH.stack(step(TORCH.unbind(x), TORCH.unbind(applied), TORCH.unbind(d))))
+        assert bool((system.failure_margin(x) > 0).all())
+    assert interventions > 0
+    toward = -torch.tensor([[1.5, 0.0]], dtype=torch.float64)  # from (1.35, 0): straight at the disc
+    applied, info = filt(torch.tensor([[1.35, 0.0]], dtype=torch.float64), toward * 0.66)
+    if bool(info.certified[0]):
+        assert bool(info.intervened[0])
+    with pytest.raises(ValueError, match="not finite"):
+        filt(torch.tensor([[float("nan"), 0.0]]), torch.zeros(1, 2))
