@@ -33,7 +33,7 @@ def network() -> ValueNetwork:
     return ValueNetwork(system, "ssl", width=16, w0=3.0, encoding=encoding)
 
 
-SETTINGS = CertifySettings(level=0.3, time_to_go=1.0, dt=0.05, initial_splits=6, min_relative_width=1 / 24, batch=256)
+SETTINGS = CertifySettings(level=0.3, time_to_go=1.0, dt=0.05, initial_splits=6, min_relative_width=1 / 12, batch=256)
 
 
 @pytest.fixture(scope="module")
@@ -233,7 +233,7 @@ def test_the_command_line_certifies_and_checks_in_one_line_errors(network, tmp_p
     source = tmp_path / "air3d.pt"
     save_checkpoint(source, network.float())
     out = tmp_path / "cert.npz"
-    args = ["certify", str(source), "--level", "0.3", "--dt", "0.05", "--initial-splits", "6", "--min-width", "0.0417"]
+    args = ["certify", str(source), "--level", "0.3", "--dt", "0.05", "--initial-splits", "4", "--min-width", "0.125"]
     assert main([*args, "--out", str(out)]) in (0, 3)
     assert "wrote" in capsys.readouterr().out and out.exists()
     assert main(["certify", str(source), "--check", str(out)]) == 0
@@ -257,7 +257,7 @@ def test_the_command_line_certifies_and_checks_in_one_line_errors(network, tmp_p
 
 
 def test_the_certified_filter_keeps_every_trajectory_safe(torus_network, torus_certificate):
-    """From states of the certified set, 150 steps of random nominal inputs (some outside the control
+    """From 64 states of the certified set, 100 steps of random nominal inputs (some outside the control
     box) and random disturbances, through the filter: every state stays certified and outside the
     disc; inputs pushing into the disc are replaced, and a non-finite state is refused."""
     from safety.certified_filter import CertifiedFilter
@@ -268,10 +268,10 @@ def test_the_certified_filter_keeps_every_trajectory_safe(torus_network, torus_c
     g = torch.Generator().manual_seed(3)
     x = system.sample_states(400, generator=g, dtype=torch.float64)
     _, info = filt(x, torch.zeros(len(x), 2, dtype=torch.float64))
-    x = x[info.certified]
-    assert len(x) > 100
+    x = x[info.certified][:64]
+    assert len(x) == 64
     interventions = 0
-    for _ in range(150):
+    for _ in range(100):
         nominal = -1.5 + 3.0 * torch.rand((len(x), 2), generator=g, dtype=torch.float64)
         applied, info = filt(x, nominal)
         assert bool(info.certified.all())
