@@ -248,6 +248,8 @@ def test_sigint_saves_and_the_run_resumes(tmp_path):
             "1",
             "--checkpoint-every",
             "1000",
+            "--compile",  # 100,000 steps would compile the step (10-30 s on a cold cache) before the first
+            "off",  # metric line; interrupting a compiled run is not what this test checks
             "--out",
             str(run),
         ],

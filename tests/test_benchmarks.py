@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -13,8 +14,14 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_run_all_quick_and_compare(tmp_path: Path):
+    from reach.threads import free_cores
+
     cmd = [sys.executable, str(ROOT / "benchmarks" / "run_all.py"), "--quick", "--only", "rollouts"]
-    first = subprocess.run([*cmd, "--out", str(tmp_path / "a")], capture_output=True, text=True, cwd=ROOT)
+    # the benchmark takes torch's default of a thread per core, which spin-wait on each other where
+    # other work keeps a core busy (reach.threads): beside a training run this test took 163 s, and
+    # 22 s on the cores left free, as the reach command itself would choose
+    env = {**os.environ, "OMP_NUM_THREADS": str(free_cores())}
+    first = subprocess.run([*cmd, "--out", str(tmp_path / "a")], capture_output=True, text=True, cwd=ROOT, env=env)
     assert first.returncode == 0, first.stderr
     summary = json.loads((tmp_path / "a" / "summary.json").read_text())
     assert summary["runs"][0]["exit"] == 0 and "agrees with reach" in summary["runs"][0]["tables"]
@@ -24,6 +31,7 @@ def test_run_all_quick_and_compare(tmp_path: Path):
         capture_output=True,
         text=True,
         cwd=ROOT,
+        env=env,
     )
     assert second.returncode == 0, second.stderr
     assert "| previous wall (s) | ratio |" in second.stdout
@@ -141,14 +149,22 @@ def test_step_budget_study_trains_resumes_and_scores_through_the_library(tmp_pat
     assert report.scored_settings(out)["samples"] == 64
 
 
-def test_nine_d_study_scripts_refuse_a_bad_device_or_chunk_size_before_any_work(tmp_path: Path):
+def test_nine_d_study_scripts_refuse_a_bad_device_or_chunk_size_before_any_work(tmp_path: Path, monkeypatch, capsys):
     """--device and --chunk-size are checked by the library's own argument types: one clear error,
-    exit 2, and nothing trained or written."""
-    for script in ("nine_d_accuracy_vs_time.py", "nine_d_ablation.py", "nine_d_layouts.py"):
+    exit 2, and nothing trained or written. (Each script's ``main``, in this process: six fresh
+    interpreters importing torch cost ~10 s; an exception other than the parser's exit fails here.)"""
+    import importlib
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    for script in ("nine_d_accuracy_vs_time", "nine_d_ablation", "nine_d_layouts"):
+        main = importlib.import_module(script).main
         for bad, words in ((["--device", "tpu"], "--device"), (["--chunk-size", "0"], "--chunk-size")):
-            cmd = [sys.executable, str(ROOT / "benchmarks" / script), "train", "--out", str(tmp_path / "s"), *bad]
-            out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
-            assert out.returncode == 2 and words in out.stderr and "Traceback" not in out.stderr, out.stderr
+            try:
+                code = main(["train", "--out", str(tmp_path / "s"), *bad])
+            except SystemExit as exit_info:  # argparse's error exit
+                code = exit_info.code
+            err = capsys.readouterr().err
+            assert code == 2 and words in err and "Traceback" not in err, err
     assert not (tmp_path / "s").exists()
 
 

@@ -11,7 +11,7 @@ from studies.demo import run_demo
 def test_demo_writes_a_report_and_resumes(tmp_path: Path):
     out = tmp_path / "demo"
     lines: list[str] = []
-    kwargs = dict(budget_s=4.0, grid=31, samples=300, episodes=40, progress=False, compile=False)
+    kwargs = dict(budget_s=2.0, grid=21, samples=300, episodes=40, progress=False, compile=False)
     report = run_demo(out, log=lines.append, **kwargs)
     text = report.read_text()
     assert "| air3d_gt | grid |" in text and "| air3d-ssssl | ssssl |" in text
