@@ -1,13 +1,19 @@
-"""`reach demo` end to end at toy size: every stage runs and the report links files that exist."""
+"""`reach demo` end to end at toy size: every stage runs and the report links files that exist.
+
+Marked ``slow`` (about 40 s, two thirds of it rendering the episode GIF twice) to keep the default
+suite under 10 minutes on 2 cores; CI (``.ci/run``) runs it by name in its slow step."""
 
 from __future__ import annotations
 
 import re
 from pathlib import Path
 
+import pytest
+
 from studies.demo import run_demo
 
 
+@pytest.mark.slow
 def test_demo_writes_a_report_and_resumes(tmp_path: Path):
     out = tmp_path / "demo"
     lines: list[str] = []
