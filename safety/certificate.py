@@ -31,8 +31,7 @@ import numpy as np
 import torch
 
 from reach.atomic import atomic_path
-from reach.intervals import INTERVAL, Interval, box_columns
-from safety.certify import OUTSIDE, PROVEN, CertificationResult, CertifySettings, _network, _Verifier, _wrap_boxes
+from safety.certify import OUTSIDE, PROVEN, CertificationResult, CertifySettings, _network, _Verifier, margin_bounds
 from training.checkpoint import network_digest
 from training.network import NeuralValueFunction, ValueNetwork
 
@@ -136,17 +135,9 @@ def _resolution(result: CertificationResult, domain: torch.Tensor) -> int:
 
 
 def _next_boxes(verifier: _Verifier, lo: torch.Tensor, hi: torch.Tensor, inputs: torch.Tensor) -> tuple:
-    """Every wrapped next-state box of each box under its input and each disturbance piece, with
-    the row of the box it came from."""
-    b, p = len(lo), len(verifier.d_lo)
-    x_lo, x_hi = lo.repeat_interleave(p, 0), hi.repeat_interleave(p, 0)
-    u = inputs.repeat_interleave(p, 0)
-    d_lo, d_hi = verifier.d_lo.repeat(b, 1), verifier.d_hi.repeat(b, 1)
-    nxt = verifier.step(box_columns(x_lo, x_hi), [Interval(c, c) for c in u.unbind(-1)], box_columns(d_lo, d_hi))
-    n_lo, n_hi, owner = _wrap_boxes(
-        torch.stack([c.lo for c in nxt], -1), torch.stack([c.hi for c in nxt], -1), verifier.periodic_dims
-    )
-    return n_lo, n_hi, torch.arange(b).repeat_interleave(p)[owner]
+    """:meth:`_Verifier.next_boxes`, each with the row of the box it came from."""
+    n_lo, n_hi, piece = verifier.next_boxes(lo, hi, inputs)
+    return n_lo, n_hi, piece // len(verifier.d_lo)
 
 
 def _closed(grid: _Grid, table: torch.Tensor, n_lo: torch.Tensor, n_hi: torch.Tensor) -> torch.Tensor:
@@ -290,12 +281,11 @@ def verify_certificate(
     low, high = torch.tensor(control.low, dtype=torch.float64), torch.tensor(control.high, dtype=torch.float64)
     if u.shape != (len(lo), len(control.low)) or bool(((u < low) | (u > high)).any()):
         raise ValueError(f"{path}: a backup input is missing or outside the control box")
-    margin = Interval._of(network.system.failure_margin_columns(box_columns(lo, hi), INTERVAL))
+    margin = margin_bounds(network.system, lo, hi)
     if bool((margin.lo <= 0).any()):
         raise ValueError(f"{path}: a kept box is not proven to keep l(x) > 0")
     n_lo, n_hi, _ = _next_boxes(verifier, lo, hi, u)
-    inside = (((n_lo >= domain[:, 0]) & (n_hi <= domain[:, 1])) | verifier.periodic).all(-1)
-    if not bool(inside.all()):
+    if not bool(verifier.in_domain(n_lo, n_hi).all()):
         raise ValueError(f"{path}: a kept box's next states may leave the domain")
     if len(n_lo) and bool((verifier.value(n_lo, n_hi).lo < settings.level).any()):
         raise ValueError(f"{path}: a kept box's next states are not proven to stay in V >= {settings.level:g}")

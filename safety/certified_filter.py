@@ -23,7 +23,6 @@ from dataclasses import dataclass
 
 import torch
 
-from reach.intervals import Interval, box_columns
 from safety.certificate import (
     Certificate,
     _closed,
@@ -32,7 +31,7 @@ from safety.certificate import (
     load_certificate,
     verify_certificate,
 )
-from safety.certify import _network, _Verifier, _wrap_boxes
+from safety.certify import _network, _Verifier
 from training.network import NeuralValueFunction, ValueNetwork
 
 __all__ = ["CertifiedFilter", "CertifiedInfo"]
@@ -122,25 +121,9 @@ class CertifiedFilter:
         return ((u >= low) & (u <= high)).all(-1)
 
     def _keeps_set(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """Whether ``u`` is proven to lead each state ``x`` back into the certified set."""
-        verifier, p = self._verifier, len(self._verifier.d_lo)
-        b = len(x)
-        x_rep, u_rep = x.repeat_interleave(p, 0), u.repeat_interleave(p, 0)
-        d_lo, d_hi = verifier.d_lo.repeat(b, 1), verifier.d_hi.repeat(b, 1)
-        nxt = verifier.step(
-            box_columns(x_rep, x_rep), [Interval(c, c) for c in u_rep.unbind(-1)], box_columns(d_lo, d_hi)
-        )
-        n_lo, n_hi, owner = _wrap_boxes(
-            torch.stack([c.lo for c in nxt], -1), torch.stack([c.hi for c in nxt], -1), verifier.periodic_dims
-        )
-        ok = (((n_lo >= verifier.domain[:, 0]) & (n_hi <= verifier.domain[:, 1])) | verifier.periodic).all(-1)
-        check = ok.nonzero().squeeze(-1)
-        if len(check):
-            ok[check] = verifier.value(n_lo[check], n_hi[check]).lo >= self.certificate.settings.level
-            ok[check] &= _closed(self._grid, self._allowed, n_lo[check], n_hi[check])
-        held = torch.ones(b * p, dtype=torch.long)  # per (state, disturbance piece): all its wrapped parts
-        held.scatter_reduce_(0, owner, ok.long(), reduce="amin")
-        return held.reshape(b, p).bool().all(-1)
+        """Whether ``u`` is proven to lead each state ``x`` back into the certified set: the verifier's
+        check on the point box of each state, with the next states also inside the certificate's boxes."""
+        return self._verifier.keeps(x, x, u, also=lambda n_lo, n_hi: _closed(self._grid, self._allowed, n_lo, n_hi))
 
     def _optimal(self, x: torch.Tensor) -> torch.Tensor:
         """``u*`` of ``grad V`` where nothing is certified (the best the value function offers)."""

@@ -30,12 +30,14 @@ import copy
 import itertools
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import torch
 
 from reach.integrators import check_integrator, make_stepper
 from reach.intervals import INTERVAL, Interval, IntervalBackend, box_columns
+from reach.systems import ControlAffineSystem
 from reach.systems.arrays import TORCH
 from reach.validation import positive_finite
 from safety.linear_bounds import linear_bounds
@@ -167,6 +169,11 @@ def _network(value_function: NeuralValueFunction | ValueNetwork) -> ValueNetwork
     return network
 
 
+def margin_bounds(system: ControlAffineSystem, x_lo: torch.Tensor, x_hi: torch.Tensor) -> Interval:
+    """Sound bounds of the failure margin ``l(x)`` over each box (the system's own code, on intervals)."""
+    return Interval._of(system.failure_margin_columns(box_columns(x_lo, x_hi), INTERVAL))
+
+
 def value_bounds(network: ValueNetwork, x_lo: torch.Tensor, x_hi: torch.Tensor, t: float) -> Interval:
     """Sound bounds of ``V(x, t)`` over each box (``(B, n)`` corners) at one time-to-go ``t``: the
     raw output's linear bounds through the output map, the boundary value's by interval arithmetic."""
@@ -176,7 +183,7 @@ def value_bounds(network: ValueNetwork, x_lo: torch.Tensor, x_hi: torch.Tensor, 
         offset: Interval | float = enc.value_offset
         scale = enc.value_scale
     else:
-        offset = Interval._of(network.system.failure_margin_columns(box_columns(x_lo, x_hi), INTERVAL))
+        offset = margin_bounds(network.system, x_lo, x_hi)
         scale = enc.value_scale * (t / enc.horizon if network.parameterisation == "exact" else 1.0)
     return offset + scale * Interval(o_lo, o_hi)
 
@@ -225,23 +232,44 @@ class _Verifier:
         with torch.no_grad():
             return self.network(x, t)
 
-    def keeps(self, lo: torch.Tensor, hi: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """``(B,)``: whether the input ``u`` keeps every next state of each box, under every disturbance
-        piece, inside the domain and in ``S_c`` (the next states wrapped as the env wraps them)."""
+    def next_boxes(self, lo: torch.Tensor, hi: torch.Tensor, inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The next-state boxes of each box under its input (``inputs`` ``(B, m)``) and each disturbance
+        piece, wrapped as the env wraps states (cut at the seam): ``(n_lo, n_hi, piece)``, ``piece`` the
+        row of (box, disturbance piece), box-major, that each came from."""
         b, p = lo.shape[0], len(self.d_lo)
         x_lo, x_hi = lo.repeat_interleave(p, 0), hi.repeat_interleave(p, 0)
+        u = inputs.repeat_interleave(p, 0)
         d_lo, d_hi = self.d_lo.repeat(b, 1), self.d_hi.repeat(b, 1)
-        nxt = self.step(box_columns(x_lo, x_hi), [Interval.point(float(c)) for c in u], box_columns(d_lo, d_hi))
-        n_lo, n_hi, owner = _wrap_boxes(
+        nxt = self.step(box_columns(x_lo, x_hi), [Interval(c, c) for c in u.unbind(-1)], box_columns(d_lo, d_hi))
+        return _wrap_boxes(
             torch.stack([c.lo for c in nxt], -1), torch.stack([c.hi for c in nxt], -1), self.periodic_dims
         )
-        ok = (((n_lo >= self.domain[:, 0]) & (n_hi <= self.domain[:, 1])) | self.periodic).all(-1)
+
+    def in_domain(self, n_lo: torch.Tensor, n_hi: torch.Tensor) -> torch.Tensor:
+        """Whether each box lies inside the domain (periodic dimensions wrap, so they always do)."""
+        return (((n_lo >= self.domain[:, 0]) & (n_hi <= self.domain[:, 1])) | self.periodic).all(-1)
+
+    def keeps(
+        self,
+        lo: torch.Tensor,
+        hi: torch.Tensor,
+        inputs: torch.Tensor,
+        also: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+    ) -> torch.Tensor:
+        """``(B,)``: whether each box's input (``inputs`` ``(B, m)``) keeps every next state, under every
+        disturbance piece, inside the domain and in ``S_c``, and (``also``, given the next-state boxes
+        that passed) wherever else the caller requires."""
+        b, p = lo.shape[0], len(self.d_lo)
+        n_lo, n_hi, piece = self.next_boxes(lo, hi, inputs)
+        ok = self.in_domain(n_lo, n_hi)
         check = ok.nonzero().squeeze(-1)
         if len(check):
             ok[check] = self.value(n_lo[check], n_hi[check]).lo >= self.settings.level
+            if also is not None:
+                ok[check] &= also(n_lo[check], n_hi[check])
         # a (box, piece) holds when all its wrapped parts do; a box when all its pieces do
         held = torch.ones(b * p, dtype=torch.long)
-        held.scatter_reduce_(0, owner, ok.long(), reduce="amin")
+        held.scatter_reduce_(0, piece, ok.long(), reduce="amin")
         return held.reshape(b, p).bool().all(-1)
 
     def invariant(self, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
@@ -252,7 +280,7 @@ class _Verifier:
             open_ = (chosen < 0).nonzero().squeeze(-1)
             if not len(open_):
                 break
-            kept = self.keeps(lo[open_], hi[open_], u)
+            kept = self.keeps(lo[open_], hi[open_], u.expand(len(open_), -1))
             chosen[open_[kept]] = k
         return chosen
 
@@ -304,7 +332,7 @@ class _Verifier:
             status[outside] = OUTSIDE
             rest = (~outside).nonzero().squeeze(-1)
             if len(rest):
-                margin = Interval._of(self.system.failure_margin_columns(box_columns(lo[rest], hi[rest]), INTERVAL))
+                margin = margin_bounds(self.system, lo[rest], hi[rest])
                 included = (margin.lo > 0).nonzero().squeeze(-1)
                 chosen = torch.full((len(rest),), -1, dtype=torch.long)
                 if len(included):
