@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 os.environ.setdefault("TQDM_DISABLE", "1")
 
+import numpy as np
 import pytest
 import torch
 
@@ -81,8 +83,6 @@ def step_in_lockstep(venv, singles, steps: int, action_range: float, check_info=
     """Step a vector env and its single-env twins with the same random actions (in
     ``[-action_range, action_range]``), asserting equal observations, rewards and end flags under
     NEXT_STEP autoreset; ``check_info(info)`` sees each vector step's info. Returns the resets."""
-    import numpy as np
-
     n = len(singles)
     rng = np.random.default_rng(0)
     done = np.zeros(n, dtype=bool)
@@ -108,3 +108,27 @@ def step_in_lockstep(venv, singles, steps: int, action_range: float, check_info=
 def lockstep():
     """:func:`step_in_lockstep`, for tests comparing a vector env with single envs."""
     return step_in_lockstep
+
+
+def nan_weight_copy(source: Path, target: Path) -> Path:
+    """A copy of an exported ONNX filter with every weight matrix set to NaN (at least two), written
+    to ``target``: a value function the runtimes must refuse to trust."""
+    import onnx  # lazy: the export tests' dependency (the dev extra), not every test's
+    from onnx import numpy_helper
+
+    model = onnx.load(source)
+    edited = 0
+    for tensor in model.graph.initializer:
+        array = numpy_helper.to_array(tensor)
+        if array.ndim == 2 and array.dtype == np.float32:
+            tensor.CopyFrom(numpy_helper.from_array(np.full_like(array, np.nan), tensor.name))
+            edited += 1
+    assert edited >= 2
+    onnx.save(model, target)
+    return target
+
+
+@pytest.fixture
+def nan_weights():
+    """:func:`nan_weight_copy`, for the tests of the Python and C++ runtimes' refusal."""
+    return nan_weight_copy
