@@ -139,6 +139,10 @@ TRAIN_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
 )
 
 
+#: the choices of --compile and --cuda-graph, and the TrainConfig value each stands for (None: auto)
+AUTO_ON_OFF = {"auto": None, "on": True, "off": False}
+
+
 def add_parser(sub: Any) -> None:
     p = add_subparser(sub, "train", help="train a value network of any activation layout")
     for option, field, kwargs, text in TRAIN_OPTIONS:
@@ -147,14 +151,14 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--budget", default=None, help="wall-clock budget, e.g. 90s, 10m, 1h (default: none)")
     p.add_argument(
         "--compile",
-        choices=["auto", "on", "off"],
+        choices=list(AUTO_ON_OFF),
         default=None,
         help="torch.compile the training step (auto, the default: runs of 2 min or 2000 steps and more, eager if "
         "compiling fails)",
     )
     p.add_argument(
         "--cuda-graph",
-        choices=["auto", "on", "off"],
+        choices=list(AUTO_ON_OFF),
         default=None,
         help="replay each step as one CUDA graph (auto, the default: on a CUDA device, for runs that allow it; "
         "on: refuse runs that do not, naming why)",
@@ -189,10 +193,9 @@ def _config_fields(args: argparse.Namespace) -> dict[str, Any]:
         fields["gradient_bound"] = None
     if args.budget is not None:
         fields["budget_s"] = parse_duration(args.budget)
-    if args.compile is not None:
-        fields["compile"] = {"auto": None, "on": True, "off": False}[args.compile]
-    if args.cuda_graph is not None:
-        fields["cuda_graph"] = {"auto": None, "on": True, "off": False}[args.cuda_graph]
+    for option in ("compile", "cuda_graph"):
+        if getattr(args, option) is not None:
+            fields[option] = AUTO_ON_OFF[getattr(args, option)]
     if args.tf32:
         fields["matmul_precision"] = "tf32"
     if args.tensorboard:

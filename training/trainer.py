@@ -145,6 +145,7 @@ class Trainer:
         self.schedule = Schedule(self.config, self.system.horizon)
         #: the step as one CUDA graph (training.cuda_graph), built at the first step where the run allows it
         self.graphed: GraphedStep | None = None
+        self._wants_graph = self.uses_cuda_graph()  # decided once: the configuration does not change
         self.step = 0
         self.wall = 0.0  # seconds of training, accumulated across resumes
         self.loss_ema: float | None = None
@@ -319,7 +320,7 @@ class Trainer:
         lr = self.learning_rate(frac)
         tmax = self.time_range(frac)
         self._refresh_labels(tmax)  # counted as training time: it is part of the recipe's cost
-        if self.graphed is None and self.uses_cuda_graph():
+        if self.graphed is None and self._wants_graph:
             self.graphed = GraphedStep(self.sampler, self.objective, self.optimizer)
         if self.graphed is not None:
             terms = self.graphed(lr, tmax, self.labels)  # updates first, checks after (training.cuda_graph)
