@@ -5,6 +5,7 @@ Run::
     python benchmarks/catalogue_recipes.py status                 # each recipe's command and progress
     python benchmarks/catalogue_recipes.py measure [--seconds 60]  # the quiet 2-core rate of each system
     python benchmarks/catalogue_recipes.py run [--threads 2]       # train them in turn, resuming any
+    python benchmarks/catalogue_recipes.py run --names quadrotor --device cuda   # one recipe, on a GPU
 
 Each recipe trains for two hours of the quiet 2-core rate, given as steps (``minutes x steps per
 minute``, the rate ``measure`` printed on a quiet machine), so a run that shares the cores or is
@@ -138,12 +139,18 @@ def measure(args: argparse.Namespace) -> int:
 
 def run(args: argparse.Namespace) -> int:
     ensure_pairwise(ROOT / PAIR_GRID)
+    names = None if args.names is None else args.names.split(",")
+    unknown = sorted(set(names or ()) - {recipe.name for recipe in RECIPES})
+    if unknown:
+        raise SystemExit(f"--names: no recipe {', '.join(map(repr, unknown))} (recipes: {[r.name for r in RECIPES]})")
     with thread_policy(args.threads):  # as `reach --threads`: the runs train with this many threads
-        return _train_queue(args.threads)
+        return _train_queue(args.threads, names, args.device)
 
 
-def _train_queue(threads: int) -> int:
+def _train_queue(threads: int, names: list[str] | None, device: str) -> int:
     for recipe in RECIPES:
+        if names is not None and recipe.name not in names:
+            continue
         if not recipe.steps_per_minute:
             print(f"{recipe.name}: no measured rate; the queue stops here (run `measure`)")
             return 1
@@ -157,9 +164,11 @@ def _train_queue(threads: int) -> int:
             shown += ["--steps", str(recipe.steps)]
         else:
             shown = recipe.command(threads)
+        if device != "cpu":
+            shown[shown.index("train") + 1 : shown.index("train") + 1] = ["--device", device]
         print(f"{recipe.name}: {shlex.join(shown)}", flush=True)
         fields = {k: str(ROOT / v) if k == "upper_bound" else v for k, v in recipe.fields().items()}
-        if train_or_resume(run_dir, recipe.steps, 0, fields):
+        if train_or_resume(run_dir, recipe.steps, 0, fields, device=device):
             return 1
     return 0
 
@@ -170,9 +179,14 @@ def main(argv: list[str] | None = None) -> int:
     for name, func in (("status", status), ("measure", measure), ("run", run)):
         s = sub.add_parser(name)
         s.add_argument("--threads", type=int, default=2)
+        if name in ("measure", "run"):
+            s.add_argument("--names", default=None, help="comma-separated recipes (default: all)")
         if name == "measure":
             s.add_argument("--seconds", type=float, default=60.0)
-            s.add_argument("--names", default=None, help="comma-separated recipes (default: all)")
+        if name == "run":
+            # the recipe is its step count: a GPU trains the same steps (issue 42, point 6), and a run
+            # may move between devices when it resumes
+            s.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
         s.set_defaults(func=func)
     args = p.parse_args(argv)
     return int(args.func(args))

@@ -189,6 +189,8 @@ def evaluate(args: argparse.Namespace) -> int:
         command += ["--ground-truth", args.ground_truth]
     if args.pairwise:
         command += ["--pairwise", args.pairwise]
+    if args.device != "cpu":
+        command += ["--device", args.device]
     with tempfile.TemporaryDirectory() as tmp:
         rows = evaluate_many(
             [source],
@@ -197,6 +199,7 @@ def evaluate(args: argparse.Namespace) -> int:
             system=card.system,
             ground_truth=args.ground_truth,
             pairwise=args.pairwise,
+            device=args.device,
         )
     row = rows[0]
     if row.get("error"):
@@ -210,6 +213,7 @@ def evaluate(args: argparse.Namespace) -> int:
         "robust_samples": args.robust_samples,
         "seed": args.seed,
         "hardware": args.hardware,
+        "wall_time_s": row.get("wall_time"),
         "metrics": metrics,
     }
     write_card(dataclasses.replace(card, evaluation=evaluation))
@@ -295,6 +299,7 @@ def main() -> int:
     v.add_argument("--chunk-size", type=positive_int_arg, default=None, help="states per rollout batch (memory only)")
     v.add_argument("--ground-truth", default=None)
     v.add_argument("--pairwise", default=None)
+    v.add_argument("--device", default="cpu", help="cpu or cuda: where the rollouts run")
     v.add_argument("--hardware", default="2 CPU cores (shared VM), torch 2.13.0+cpu")
     v.set_defaults(func=evaluate)
     r = sub.add_parser("record", help="add a reach evaluate run of the shipped file (its JSON) to the card")

@@ -121,16 +121,17 @@ class PairwiseUnion:
             out.append(torch.stack([c * dx + s * dy, -s * dx + c * dy, rel_th], dim=-1))
         return torch.stack(out, dim=-2)
 
-    def _per_pair(self, method: str, rel: torch.Tensor, t: float | torch.Tensor):
+    def _per_pair(self, method: str, rel: torch.Tensor, t: float | torch.Tensor, checked: bool = True):
         """``method`` (``"value"`` or ``"value_and_gradient"``) of each pair's solution at its relative
         state ``rel[..., k, :]``, stacked over the pairs. Where every pair shares one solution (the
         usual case: identical cars) it is one interpolation over all pairs at once, not one per pair."""
+        more = {} if checked else {"checked": False}  # only value() takes it
         if all(sol is self._solutions[0] for sol in self._solutions):
             tt = t
             if isinstance(t, torch.Tensor) and t.ndim:  # a time per state: the same for each of its pairs
                 tt = t.unsqueeze(-1).expand(rel.shape[:-1])
-            return getattr(self._solutions[0], method)(rel, tt)
-        out = [getattr(sol, method)(rel[..., k, :], t) for k, sol in enumerate(self._solutions)]
+            return getattr(self._solutions[0], method)(rel, tt, **more)
+        out = [getattr(sol, method)(rel[..., k, :], t, **more) for k, sol in enumerate(self._solutions)]
         if method == "value":
             return torch.stack(out, dim=-1)
         return torch.stack([v for v, _ in out], dim=-1), torch.stack([g for _, g in out], dim=-2)
@@ -172,16 +173,18 @@ class PairwiseUnion:
             g[..., 2 * n + i] += g0 * rel[..., k, 1] - g1 * rel[..., k, 0] - g2
         return g
 
-    def value_where_known(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+    def value_where_known(self, x: torch.Tensor, t: float | torch.Tensor, checked: bool = True) -> torch.Tensor:
         """The union's value using only the pairs whose relative state lies inside their grid's box;
         ``+inf`` where none does. An upper bound of the multi-vehicle value that never rests on a
         clamped edge value (which under-states a pair's value beyond the box): what a training
-        penalty may push a network below."""
-        self._check(x)
+        penalty may push a network below. ``checked=False``: as :meth:`GridSolution.value`'s, for a
+        captured training step's own points only."""
+        if checked:
+            self._check(x)
         rel = self.relative_states(x)
         low, high, periodic = self._grid_boxes(rel.dtype, rel.device)
         inside = (periodic | ((rel >= low) & (rel <= high))).all(-1)  # (..., pairs)
-        values = self._per_pair("value", rel, t)
+        values = self._per_pair("value", rel, t, checked)
         return torch.where(inside, values, torch.full_like(values, torch.inf)).min(dim=-1).values
 
     def _grid_boxes(self, dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, ...]:

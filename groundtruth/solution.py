@@ -133,23 +133,26 @@ class GridSolution:
             self._cache[key] = self.times.to(device)
         return self._cache[key]
 
-    def _interpolate(self, table: torch.Tensor, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+    def _interpolate(
+        self, table: torch.Tensor, x: torch.Tensor, t: float | torch.Tensor, checked: bool = True
+    ) -> torch.Tensor:
         n = self.grid.ndim
         if x.shape[-1] != n:
             raise ValueError(f"states must have shape (..., {n}), got {tuple(x.shape)}")
-        if not torch.isfinite(x).all():
+        if checked and not torch.isfinite(x).all():
             bad = x[~torch.isfinite(x).all(-1)][0].tolist()
             raise ValueError(f"states contain NaN or inf, e.g. {bad}")
         batch = x.shape[:-1]
         xf = x.reshape(-1, n).to(table.dtype)
-        if not torch.isfinite(xf).all():  # a float64 state can overflow a float32 table
+        if checked and not torch.isfinite(xf).all():  # a float64 state can overflow a float32 table
             bad = x.reshape(-1, n)[~torch.isfinite(xf).all(-1)][0].tolist()
             raise ValueError(f"states overflow {table.dtype}, e.g. {bad}")
         m = xf.shape[0]
         tt = torch.as_tensor(t, dtype=torch.float64, device=x.device)
         tt = torch.broadcast_to(tt, batch).reshape(-1) if tt.ndim else tt.expand(m)
         times = self._times_on(x.device)
-        check_time(tt, *self.time_range)
+        if checked:
+            check_time(tt, *self.time_range)
         # time bracket
         # one bracket for a scalar time (the common case); searchsorted over an expanded tensor is slow
         lookup = tt[:1].contiguous() if (isinstance(t, (int, float)) or torch.as_tensor(t).ndim == 0) else tt
@@ -200,9 +203,14 @@ class GridSolution:
         out = (w.reshape((m, 2**n, *extra)) * torch.lerp(v0, v1, wt.reshape((m, 1, *extra)))).sum(1)
         return out.reshape((*batch, *table.shape[1 + n :])).to(x.dtype)
 
-    def value(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
-        """``V(x, t)`` for states ``(..., n)``; returns ``(...)``."""
-        return self._interpolate(self._table("value", x.dtype, x.device), x, t)
+    def value(self, x: torch.Tensor, t: float | torch.Tensor, checked: bool = True) -> torch.Tensor:
+        """``V(x, t)`` for states ``(..., n)``; returns ``(...)``.
+
+        ``checked=False`` skips the finite-state and time-range checks, which read a value back from
+        the device: only for points the caller built inside the domain and horizon itself (a training
+        step captured as a CUDA graph, which cannot read back). Times are still clamped to the stored
+        range, states to the grid (``outside='error'`` still raises, so it cannot be captured)."""
+        return self._interpolate(self._table("value", x.dtype, x.device), x, t, checked)
 
     def gradient(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
         """``grad_x V(x, t)``, shape ``(..., n)``."""

@@ -54,16 +54,11 @@ def run(args: argparse.Namespace) -> int:
     from safety.certify import certify
     from safety.sources import load_value_function
 
-    if args.dt is None:
-        from reach_envs.scenes import Scene  # lazy: the env stack (gymnasium) only for this default
-
-        args.dt = default(Scene, "dt")
-
     if args.check is not None:
         if args.out is not None or args.level is not None:
             raise ValueError("--check re-verifies a file as it is: give no --level or --out with it")
         value_function = load_value_function(args.source).value_function
-        certificate = check_certificate(args.check, value_function)
+        certificate = check_certificate(args.check, value_function, args.device)
         s = certificate.settings
         print(
             f"{args.check}: holds for {args.source}: {len(certificate.kept_lo)} boxes certified at level {s.level:g}, "
@@ -74,6 +69,10 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("give --level and --out (or --check CERT to re-verify a file)")
     if not str(args.out).endswith(".npz"):
         raise ValueError(f"--out: a certificate file ends in .npz, got {args.out!r}")
+    if args.dt is None:
+        from reach_envs.scenes import Scene  # lazy: the env stack (gymnasium) only for this default
+
+        args.dt = default(Scene, "dt")
     value_function = load_value_function(args.source).value_function
     given = {field: getattr(args, field) for _, field, _, _ in CERTIFY_OPTIONS if getattr(args, field) is not None}
     time_to_go = args.time_to_go if args.time_to_go is not None else value_function.system.horizon

@@ -197,7 +197,7 @@ def save_certificate(path: str | Path, certificate: Certificate) -> Path:
         "resolution": certificate.resolution,
     }
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        np.savez(
+        np.savez_compressed(  # dyadic box corners compress well: an Air3D certificate holds ~1M boxes
             f,
             header=np.array(json.dumps(header)),
             kept_lo=certificate.kept_lo.numpy(),
@@ -233,12 +233,30 @@ def load_certificate(path: str | Path) -> Certificate:
     )
 
 
-def check_certificate(path: str | Path, value_function: NeuralValueFunction | ValueNetwork) -> Certificate:
-    """Re-verify a certificate file for ``value_function`` from the file alone (module docstring).
-    Raises ``ValueError`` naming the first thing that does not hold; returns the certificate."""
+def check_certificate(
+    path: str | Path, value_function: NeuralValueFunction | ValueNetwork, device: str | torch.device = "cpu"
+) -> Certificate:
+    """Re-verify a certificate file for ``value_function`` from the file alone (module docstring),
+    bounding the network on ``device``. Raises ``ValueError`` naming the first thing that does not
+    hold; returns the certificate."""
     certificate = load_certificate(path)
-    verify_certificate(certificate, value_function, str(path))
+    verify_certificate(certificate, value_function, str(path), device)
     return certificate
+
+
+#: boxes whose value bounds the checker computes at once (its memory grows with the network's width)
+CHECK_CHUNK = 65536
+
+
+def _value_bounds_any(verifier: _Verifier, lo: torch.Tensor, hi: torch.Tensor, fails) -> bool:
+    """Whether ``fails(bounds)`` holds for any box, bounded ``CHECK_CHUNK`` boxes at a time on the
+    verifier's device (a certificate holds up to millions of boxes)."""
+    device = verifier.domain.device
+    for start in range(0, len(lo), CHECK_CHUNK):
+        bounds = verifier.value(lo[start : start + CHECK_CHUNK].to(device), hi[start : start + CHECK_CHUNK].to(device))
+        if bool(fails(bounds).any()):
+            return True
+    return False
 
 
 def check_provenance(certificate: Certificate, network: ValueNetwork, path: str) -> None:
@@ -256,13 +274,18 @@ def check_provenance(certificate: Certificate, network: ValueNetwork, path: str)
 
 
 def verify_certificate(
-    certificate: Certificate, value_function: NeuralValueFunction | ValueNetwork, path: str = "the certificate"
+    certificate: Certificate,
+    value_function: NeuralValueFunction | ValueNetwork,
+    path: str = "the certificate",
+    device: str | torch.device = "cpu",
 ) -> None:
-    """Re-verify ``certificate`` for ``value_function`` (what :func:`check_certificate` does after reading)."""
+    """Re-verify ``certificate`` for ``value_function`` (what :func:`check_certificate` does after
+    reading); the network's bounds are computed on ``device``, everything else on the CPU."""
     network = _network(value_function)
     check_provenance(certificate, network, path)
     settings = certificate.settings
     verifier = _Verifier(network, settings, torch.device("cpu"))
+    on_device = verifier if torch.device(device).type == "cpu" else _Verifier(network, settings, torch.device(device))
     domain = verifier.domain
     grid = _Grid(domain, certificate.resolution)
     for name, lo, hi in (("kept", certificate.kept_lo, certificate.kept_hi),
@@ -272,9 +295,7 @@ def verify_certificate(
         if bool(((lo < domain[:, 0] - 1e-12) | (hi > domain[:, 1] + 1e-12) | (lo > hi)).any()):
             raise ValueError(f"{path}: a {name} box is not a box inside the domain")
         grid.cells(lo, hi, exact=True)
-    if len(certificate.outside_lo) and bool(
-        (verifier.value(certificate.outside_lo, certificate.outside_hi).hi >= settings.level).any()
-    ):
+    if _value_bounds_any(on_device, certificate.outside_lo, certificate.outside_hi, lambda v: v.hi >= settings.level):
         raise ValueError(f"{path}: an outside box is not proven to hold only V < {settings.level:g}")
     lo, hi, u = certificate.kept_lo, certificate.kept_hi, certificate.inputs
     control = network.system.control_bounds
@@ -287,7 +308,7 @@ def verify_certificate(
     n_lo, n_hi, _ = _next_boxes(verifier, lo, hi, u)
     if not bool(verifier.in_domain(n_lo, n_hi).all()):
         raise ValueError(f"{path}: a kept box's next states may leave the domain")
-    if len(n_lo) and bool((verifier.value(n_lo, n_hi).lo < settings.level).any()):
+    if _value_bounds_any(on_device, n_lo, n_hi, lambda v: v.lo < settings.level):
         raise ValueError(f"{path}: a kept box's next states are not proven to stay in V >= {settings.level:g}")
     table = grid.table(torch.cat([lo, certificate.outside_lo]), torch.cat([hi, certificate.outside_hi]))
     if not bool(_closed(grid, table, n_lo, n_hi).all()):

@@ -238,8 +238,6 @@ class TrainConfig(SystemSpecified):
                 f"the {self.parameterisation} parameterisation's boundary term selects its points by a mask "
                 "(a data-dependent count), and it pretrains on another loss"
             )
-        if self.upper_bound is not None:
-            return "upper_bound: the pair union's input checks read its values back from the device"
         if self.gradients != "fused":
             return "gradients='autograd': the graphed step is built and measured for fused gradients only"
         return None

@@ -87,6 +87,7 @@ class GraphedStep:
     ) -> None:
         self.sampler, self.objective, self.optimizer = sampler, objective, optimizer
         self.capture = capture
+        objective.check_points = False  # no read-backs in the graph: the points are the sampler's own
         device = sampler.device
         if capture:
             make_capturable(optimizer, device)

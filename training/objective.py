@@ -60,6 +60,10 @@ class Objective(torch.nn.Module):
         #: the gradient bound in the network's normalised coordinates (``gradient_bound`` x l's steepest slope)
         self.gradient_bound = None if config.gradient_bound is None else config.gradient_bound * network.margin_slope()
         self.upper_bound = load_upper_bound(config, network.system)
+        #: whether the union checks its points (finite, within its horizon) before interpolating. A
+        #: step captured as a CUDA graph turns this off, since the checks read back from the device;
+        #: its points are the sampler's own, drawn inside the domain and the time range.
+        self.check_points = True
         self.weights = LossWeights(
             norm=config.loss,
             boundary=config.boundary_weight,
@@ -92,4 +96,5 @@ class Objective(torch.nn.Module):
     def upper_bound_at(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """The union's value at the sampled points (``+inf`` where no pair grid covers them)."""
         with torch.no_grad():  # the pair grids interpolate on the points' own device
-            return self.upper_bound.value_where_known(x.detach(), t.detach()).to(x.dtype)
+            union = self.upper_bound.value_where_known(x.detach(), t.detach(), checked=self.check_points)
+            return union.to(x.dtype)
