@@ -170,10 +170,15 @@ def torus_certificate(torus_network):
     return certified_set(torus_network, certify(torus_network, TORUS))
 
 
-def test_the_certified_set_is_closed_and_its_file_checks(torus_network, torus_certificate, tmp_path):
+@pytest.mark.parametrize("chunk", [65536, 7], ids=["one-chunk", "chunks-of-7"])
+def test_the_certified_set_is_closed_and_its_file_checks(
+    torus_network, torus_certificate, tmp_path, chunk, monkeypatch
+):
     """The shrunk set keeps proven boxes whose next states stay in it (checked at samples: 86.7 % of
     the torus when this was written), its file re-verifies from the file alone, and a changed model,
-    level or box, or junk, is refused naming why."""
+    level or box, or junk, is refused naming why; the same when the checker bounds the network a few
+    boxes at a time."""
+    monkeypatch.setattr("safety.certificate.CHECK_CHUNK", chunk)
     certificate = torus_certificate
     domain = Torus().domain_tensor(torch.float64, "cpu")
     assert certificate.kept_volume_share(domain) > 0.5
