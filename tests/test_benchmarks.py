@@ -10,6 +10,8 @@ import sys
 from pathlib import Path
 from types import SimpleNamespace
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -303,6 +305,14 @@ def test_catalogue_recipe_queue_trains_skips_what_is_done_and_resumes(tmp_path: 
     assert "train --resume" in capsys.readouterr().out
     assert json.loads(meta.read_text())["steps"] == 15
     assert recipes.main(["status"]) == 0 and "15 / 15 steps" in capsys.readouterr().out
+    # --names trains only the recipes it names (a GPU session trains several at once, one process
+    # each) and refuses one that is not in the queue
+    other = recipes.Recipe("other", "air3d", 5, "test", tiny)
+    monkeypatch.setattr(recipes, "RECIPES", (*recipes.RECIPES, other))
+    assert recipes.main(["run", "--threads", "1", "--names", "tiny"]) == 0
+    assert not (tmp_path / "runs" / "catalogue" / "other").exists()
+    with pytest.raises(SystemExit, match="--names: no recipe 'typo'"):
+        recipes.main(["run", "--names", "tiny,typo"])
 
 
 def test_dimension_study_scores_snapshots_and_times_the_false_safe_goal(tmp_path: Path, monkeypatch, capsys, pair_grid):
