@@ -64,9 +64,10 @@ def test_a_section_per_system_with_its_spaces_envs_and_model(tmp_path):
     assert "`pretrained:multivehicle9d`" in nine and "(gallery/multivehicle9d.png)" in nine
     passage = system_section("narrowpassage", "DeepReach", tmp_path)
     assert "A **reach-avoid** problem in 10D" in passage and "constraint margin g" in passage
-    assert "Shipped model: none yet." in passage and "gallery/narrowpassage.png" not in passage
+    assert "`pretrained:narrowpassage`" in passage and "gallery/narrowpassage.png" not in passage
     assert "`car_2` (inputs [2, 3])" in passage
     assert {n for n, _ in GALLERY} >= {"dubins3d", "narrowpassage", "quadrotor", "multivehicle12d", "multivehicle15d"}
     assert any("Dubins4D" in what for what, _ in MISSING)
     rocket = system_section("rocketlanding", "DeepReach", tmp_path)
     assert "control inputs (2): the disc |u - (0, 0)| <= 250" in rocket and "`RocketLanding-v0`" in rocket
+    assert "Shipped model: none yet." in rocket  # the reach rocket ships none (its reach-avoid twin does)

@@ -68,8 +68,9 @@ def test_model_reproduces_its_card(name: str) -> None:
     n = SMALL_SAMPLE.get(name, DEFAULT_SMALL_SAMPLE)
     settings = VerifySettings(samples=n, certify_samples=0, robust_samples=0, seed=card.evaluation["seed"] + 7919)
     row = verify(vf, sample_states(vf.system, n, settings.seed), settings, progress=False)
-    # false safe is an avoid problem's rate (a reach-avoid row has violations and failures only)
-    rates = [k for k in ("violation_rate", "false_safe_rate", "collision_rate") if k in metrics]
+    # false safe is an avoid problem's wrong claim, false reachable a reach or reach-avoid problem's
+    keys = ("violation_rate", "false_safe_rate", "false_reachable_rate", "failure_rate", "collision_rate")
+    rates = [k for k in keys if k in metrics]
     assert {"violation_rate", "collision_rate"} <= set(rates), f"{name}: the card lacks rates: {sorted(metrics)}"
     for key in rates:
         low, high = wilson_interval(round(row[key] * n), n, z=Z)

@@ -109,6 +109,8 @@ class ModelCard:
 _CARD_METRICS = (
     ("violation_rate", "violation %", 100.0),
     ("false_safe_rate", "false safe %", 100.0),
+    ("false_reachable_rate", "false reachable %", 100.0),
+    ("failure_rate", "failure %", 100.0),
     ("collision_rate", "collision %", 100.0),
     ("delta", "delta", 1.0),
     ("certified_volume", "certified vol.", 1.0),
