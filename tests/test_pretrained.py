@@ -81,6 +81,7 @@ def test_model_reproduces_its_card(name: str) -> None:
 ALSO_EVALUATED = [(c.name, i) for c in pretrained.cards() for i in range(len(c.also_evaluated))]
 
 
+@pytest.mark.slow  # about 25 s (the 9D card's three other evaluations): run by name in .ci/run's slow step
 @pytest.mark.parametrize(("name", "index"), ALSO_EVALUATED)
 def test_model_reproduces_its_other_evaluations(name: str, index: int, pair_grid, tmp_path) -> None:
     """Each evaluation a card records besides its main one (capped by the union of pairwise BRTs,
