@@ -24,16 +24,13 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from reach_cli import main as reach_main
+from reach_cli.train import train_flags
 from training.config import parse_duration
 from training.recipes import AIR3D_FAST
 
 #: what each row trains besides ``--system air3d --budget B --seed S``
 RECIPES = {"defaults": {}, "fast (AIR3D_FAST)": AIR3D_FAST}
 GOAL = {"iou_volume": 0.96, "mse_volume": 1.8e-4}
-
-
-def _flags(fields: dict) -> list[str]:
-    return [item for k, v in fields.items() for item in (f"--{k.replace('_', '-')}", str(v))]
 
 
 def _score(run: Path, gt: Path) -> dict:
@@ -68,7 +65,7 @@ def main() -> int:
             if not scored.exists():
                 if not (run / "checkpoint.pt").exists():
                     command = ["--threads", str(args.threads), "train", "--system", "air3d", "--budget", args.budget]
-                    command += ["--seed", str(seed), *_flags(fields), "--out", str(run)]
+                    command += ["--seed", str(seed), *train_flags(fields), "--out", str(run)]
                     print("reach " + " ".join(command), flush=True)
                     if reach_main(command):
                         return 1

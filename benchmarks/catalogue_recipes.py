@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from reach.threads import thread_policy
+from reach_cli.train import train_flags
 from studies.step_budget_study import ensure_pairwise, train_or_resume
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -73,8 +74,8 @@ class Recipe:
 
     def command(self, threads: int) -> list[str]:
         """The ``reach train`` command line of this recipe (what ``run`` trains, in this process)."""
-        options = [item for k, v in self.fields().items() for item in (f"--{k.replace('_', '-')}", str(v))]
-        command = ["reach", "--threads", str(threads), "train", *options, "--steps", str(self.steps), "--seed", "0"]
+        command = ["reach", "--threads", str(threads), "train", *train_flags(self.fields())]
+        command += ["--steps", str(self.steps), "--seed", "0"]
         return [*command, "--out", str(self.out)]
 
 

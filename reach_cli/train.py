@@ -143,6 +143,17 @@ TRAIN_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
 AUTO_ON_OFF = {"auto": None, "on": True, "off": False}
 
 
+def train_flags(fields: dict[str, Any]) -> list[str]:
+    """The ``reach train`` options that set these :class:`~training.TrainConfig` fields, for a script
+    that prints or runs the command (a field's flag is not always its name: ``checkpoint_every_s`` is
+    ``--checkpoint-every``). A field no option sets raises ``ValueError`` naming it."""
+    flags = {field: flag for flag, field, _, _ in TRAIN_OPTIONS}
+    missing = sorted(set(fields) - set(flags))
+    if missing:
+        raise ValueError(f"no reach train option sets {', '.join(missing)}")
+    return [item for field, value in fields.items() for item in (flags[field], str(value))]
+
+
 def add_parser(sub: Any) -> None:
     p = add_subparser(sub, "train", help="train a value network of any activation layout")
     for option, field, kwargs, text in TRAIN_OPTIONS:

@@ -289,6 +289,14 @@ def test_catalogue_recipe_queue_trains_skips_what_is_done_and_resumes(tmp_path: 
     for recipe in recipes.RECIPES:  # the shipped queue: registered systems, two hours of steps each
         assert recipe.steps == 120 * recipe.steps_per_minute > 0 and make_system(recipe.system).state_dim >= 6
     assert next(r for r in recipes.RECIPES if r.system == "multivehicle9d").steps == 92_400  # the shipped card's
+    # each recipe's command line names its fields by their `reach train` flags (reach_cli.train.train_flags)
+    nine = next(r for r in recipes.RECIPES if r.system == "multivehicle9d").command(2)
+    assert nine[nine.index("--upper-bound") + 1] == "runs/pair_gt.npz" and "--upper_bound" not in nine
+    from reach_cli.train import train_flags
+
+    assert train_flags({"checkpoint_every_s": 5.0}) == ["--checkpoint-every", "5.0"]  # a flag is not always the name
+    with pytest.raises(ValueError, match="no reach train option sets budget_s"):
+        train_flags({"budget_s": 60.0})
     tiny = (("width", 8), ("points", 64), ("layout", "ssl"))
     monkeypatch.setattr(recipes, "ROOT", tmp_path)
     monkeypatch.setattr(recipes, "MINUTES", 2)
