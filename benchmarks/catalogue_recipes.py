@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from reach.threads import thread_policy
+from reach.validation import device_arg
 from reach_cli.train import train_flags
 from studies.step_budget_study import ensure_pairwise, train_or_resume
 
@@ -187,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
         if name == "run":
             # the recipe is its step count: a GPU trains the same steps (issue 42, point 6), and a run
             # may move between devices when it resumes
-            s.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
+            s.add_argument("--device", type=device_arg, default="cpu", help="cpu or cuda (default: cpu)")
         s.set_defaults(func=func)
     args = p.parse_args(argv)
     return int(args.func(args))

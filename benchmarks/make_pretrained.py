@@ -48,7 +48,7 @@ import tempfile
 from pathlib import Path
 
 from reach.atomic import atomic_path
-from reach.validation import positive_int_arg
+from reach.validation import device_arg, positive_int_arg
 from training import pretrained
 from training.checkpoint import ARCHITECTURE_KEYS, network_from_payload, read_checkpoint, save_checkpoint
 
@@ -302,7 +302,7 @@ def main() -> int:
     v.add_argument("--chunk-size", type=positive_int_arg, default=None, help="states per rollout batch (memory only)")
     v.add_argument("--ground-truth", default=None)
     v.add_argument("--pairwise", default=None)
-    v.add_argument("--device", default="cpu", help="cpu or cuda: where the rollouts run")
+    v.add_argument("--device", type=device_arg, default="cpu", help="cpu or cuda: where the rollouts run")
     v.add_argument("--hardware", default="2 CPU cores (shared VM), torch 2.13.0+cpu")
     v.set_defaults(func=evaluate)
     r = sub.add_parser("record", help="add a reach evaluate run of the shipped file (its JSON) to the card")

@@ -321,6 +321,9 @@ def test_catalogue_recipe_queue_trains_skips_what_is_done_and_resumes(tmp_path: 
     assert not (tmp_path / "runs" / "catalogue" / "other").exists()
     with pytest.raises(SystemExit, match="--names: no recipe 'typo'"):
         recipes.main(["run", "--names", "tiny,typo"])
+    with pytest.raises(SystemExit) as refused:  # a device that does not exist here: argparse's error
+        recipes.main(["run", "--names", "tiny", "--device", "tpu"])
+    assert refused.value.code == 2 and "--device" in capsys.readouterr().err
 
 
 def test_dimension_study_scores_snapshots_and_times_the_false_safe_goal(tmp_path: Path, monkeypatch, capsys, pair_grid):

@@ -209,3 +209,8 @@ def test_maintainers_record_another_evaluation_in_a_card(tmp_path, monkeypatch) 
     monkeypatch.setattr(sys, "argv", [*record[:3], str(tmp_path / "another.json"), *record[4:]])
     with pytest.raises(SystemExit, match=r"expected one scored row of pretrained:air3d .*found \[\]"):
         make_pretrained.main()
+    # a device that does not exist here is refused by the parser, before any rollout, naming it
+    monkeypatch.setattr(sys, "argv", ["make_pretrained.py", "evaluate", "air3d", "--device", "tpu"])
+    with pytest.raises(SystemExit) as refused:
+        make_pretrained.main()
+    assert refused.value.code == 2
