@@ -24,6 +24,7 @@ a dimension; not the 6D and 9D systems, whose certified sets need another closur
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
@@ -31,6 +32,7 @@ import numpy as np
 import torch
 
 from reach.atomic import atomic_path
+from reach.intervals import Interval
 from safety.certify import OUTSIDE, PROVEN, CertificationResult, CertifySettings, _network, _Verifier, margin_bounds
 from training.checkpoint import network_digest
 from training.network import NeuralValueFunction, ValueNetwork
@@ -248,7 +250,9 @@ def check_certificate(
 CHECK_CHUNK = 65536
 
 
-def _value_bounds_any(verifier: _Verifier, lo: torch.Tensor, hi: torch.Tensor, fails) -> bool:
+def _value_bounds_any(
+    verifier: _Verifier, lo: torch.Tensor, hi: torch.Tensor, fails: Callable[[Interval], torch.Tensor]
+) -> bool:
     """Whether ``fails(bounds)`` holds for any box, bounded ``CHECK_CHUNK`` boxes at a time on the
     verifier's device (a certificate holds up to millions of boxes)."""
     device = verifier.domain.device
