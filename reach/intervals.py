@@ -33,6 +33,10 @@ _TWO_PI = 2.0 * math.pi
 _TINY = 1e-300  # an absolute widening that also covers underflow to zero
 
 
+#: below this magnitude 1 / x overflows float64
+_RECIPROCAL_OVERFLOWS_BELOW = 1.0 / 1.7976931348623157e308
+
+
 def _pad(value: torch.Tensor, ulps: float = 2.0) -> torch.Tensor:
     """The rounding error bound of one operation whose result is ``value``."""
     return ulps * UNIT_ROUNDOFF * value.abs() + _TINY
@@ -139,9 +143,12 @@ class Interval:
     __rmul__ = __mul__
 
     def reciprocal(self) -> Interval:
-        """``1 / x``; refuses an interval that contains 0 (the real result is unbounded)."""
+        """``1 / x``; refuses an interval that contains 0 (the real result is unbounded) or comes so
+        near it that the reciprocal overflows float64 (an infinite bound would turn ``0 * inf`` into NaN)."""
         if bool(((self.lo <= 0) & (self.hi >= 0)).any()):
             raise ZeroDivisionError("interval division by an interval that contains 0")
+        if bool(((self.lo.abs() < _RECIPROCAL_OVERFLOWS_BELOW) | (self.hi.abs() < _RECIPROCAL_OVERFLOWS_BELOW)).any()):
+            raise ZeroDivisionError("interval division by an interval so near 0 that its reciprocal overflows")
         lo, hi = 1.0 / self.hi, 1.0 / self.lo
         return Interval(lo - _pad(lo), hi + _pad(hi))
 
