@@ -22,6 +22,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from reach.validation import device_arg
+
 ROOT = Path(__file__).resolve().parents[1]
 #: (cars, registered system, run directory of its recipe)
 FLEETS = (
@@ -44,12 +46,16 @@ def score(args: argparse.Namespace) -> int:
 
     settings = VerifySettings(samples=args.samples, certify_samples=0, robust_samples=0, seed=args.seed)
     for cars, system, run in FLEETS:
+        if args.fleets and system not in args.fleets.split(","):
+            continue
         snapshots = _snapshots(run)
         if not snapshots:
             print(f"{cars} cars: no snapshots in {run} yet")
             continue
         out = ROOT / OUT / f"{system}.csv"
-        rows = evaluate_many([str(p) for p in snapshots], out, settings, system=system, pairwise=args.pairwise)
+        rows = evaluate_many(
+            [str(p) for p in snapshots], out, settings, system=system, pairwise=args.pairwise, device=args.device
+        )
         print(f"{cars} cars: {len(rows)} snapshots scored into {out.relative_to(ROOT)}")
     return 0
 
@@ -134,6 +140,8 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--samples", type=int, default=20_000)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--pairwise", default="runs/pair_gt.npz", help="the pair grid whose union rows are checked against")
+    s.add_argument("--fleets", default="", help="comma-separated systems to score (default: all three)")
+    s.add_argument("--device", type=device_arg, default="cpu", help="where the rollouts run (cpu, cuda)")
     s.set_defaults(func=score)
     r = sub.add_parser("report")
     r.add_argument("--certified", default=None, help="a reach evaluate CSV of the final checkpoints (card protocol)")

@@ -40,6 +40,7 @@ rates on a fresh small sample.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import shlex
@@ -194,10 +195,13 @@ def evaluate(args: argparse.Namespace) -> int:
         command += ["--pairwise", args.pairwise]
     if args.device != "cpu":
         command += ["--device", args.device]
-    with tempfile.TemporaryDirectory() as tmp:
+    with contextlib.ExitStack() as stack:
+        # --out keeps the results (and, until the row is in, the rollout store): a run stopped
+        # part-way resumes from its finished blocks when started again with the same --out
+        out = Path(args.out) if args.out else Path(stack.enter_context(tempfile.TemporaryDirectory())) / "card.csv"
         rows = evaluate_many(
             [source],
-            Path(tmp) / "card.csv",
+            out,
             settings,
             system=card.system,
             ground_truth=args.ground_truth,
@@ -304,6 +308,7 @@ def main() -> int:
     v.add_argument("--pairwise", default=None)
     v.add_argument("--device", type=device_arg, default="cpu", help="cpu or cuda: where the rollouts run")
     v.add_argument("--hardware", default="2 CPU cores (shared VM), torch 2.13.0+cpu")
+    v.add_argument("--out", default=None, help="keep the results here; a stopped run resumes from its rollout store")
     v.set_defaults(func=evaluate)
     r = sub.add_parser("record", help="add a reach evaluate run of the shipped file (its JSON) to the card")
     r.add_argument("name")
