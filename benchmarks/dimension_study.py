@@ -10,10 +10,11 @@ Every fleet trains by the same recipe (:mod:`catalogue_recipes`: two hours of it
 rate, under the union of pairwise BRTs), and keeps a snapshot of its network every 5 quiet minutes.
 ``score`` verifies each snapshot as ``reach evaluate`` does (``--samples`` uniform states, the
 gradient policy, no certification), so its false-safe rate is a statistical estimate with a Wilson
-interval; ``report`` gives, per fleet, the first quiet minute at which the false-safe rate is at
-most 0.1 %, the rate at two hours, and the certified volume of the final model where its card-style
-evaluation (``--certified CSV``, ``reach evaluate`` of the final checkpoint) is at hand. Minutes are
-quiet minutes (snapshot index x 5), not the wall time of a shared machine.
+interval; ``report`` gives, per fleet, the first quiet minute from which the false-safe rate stays at
+most 0.1 % (a young network calls nearly every state unsafe, so the first crossing would say
+nothing), the rates at two hours, and the card-protocol volumes of the final model: a ``reach
+evaluate`` of the run directory given by ``--certified``, else the shipped card trained into it.
+Minutes are quiet minutes (snapshot index x 5), not the wall time of a shared machine.
 """
 
 from __future__ import annotations
@@ -60,8 +61,8 @@ def score(args: argparse.Namespace) -> int:
     return 0
 
 
-def _curve(system: str) -> list[tuple[float, float, int]]:
-    """(quiet minutes, false-safe rate, samples) per scored snapshot, in order."""
+def _curve(system: str) -> list[tuple[float, float, int, float]]:
+    """(quiet minutes, false-safe rate, samples, false-unsafe rate) per scored snapshot, in order."""
     from studies.batch_verification import load_results
 
     path = ROOT / OUT / f"{system}.csv"
@@ -72,35 +73,71 @@ def _curve(system: str) -> list[tuple[float, float, int]]:
         if row.get("error"):
             continue
         index = int(Path(str(row["source"])).stem)
-        points.append((index * MINUTES_PER_SNAPSHOT, float(row["false_safe_rate"]), int(row["samples"])))
+        minutes = index * MINUTES_PER_SNAPSHOT
+        points.append((minutes, float(row["false_safe_rate"]), int(row["samples"]), float(row["false_unsafe_rate"])))
     return sorted(points)
+
+
+def minutes_to_stay_below(curve: list[tuple[float, float, int, float]], goal: float = GOAL) -> float | None:
+    """The first snapshot's minutes from which every later snapshot's false-safe rate is at most
+    ``goal`` (None if the last one is above it).
+
+    Not the first crossing: a young network calls nearly every state unsafe, so its false-safe
+    rate starts near 0 while it is useless (its false-unsafe rate is tens of percent); the rate
+    climbs as the safe set grows and only then settles."""
+    first = None
+    for minutes, rate, _, _ in curve:
+        if rate > goal:
+            first = None
+        elif first is None:
+            first = minutes
+    return first
+
+
+def _final_scores(run: Path, extra: list[str]) -> dict | None:
+    """The card-protocol metrics of ``run``'s final model: a ``reach evaluate`` results file among
+    ``extra`` whose row scored the run directory, else the shipped card trained into that run."""
+    from studies.batch_verification import load_results
+    from training import pretrained
+
+    for path in extra:
+        for row in load_results(path):
+            if str(row.get("source", "")).rstrip("/") == str(run) and not row.get("error"):
+                return {"metrics": row, "from": f"`{Path(path).name}`"}
+    for name in pretrained.names():
+        card = pretrained.card(name)
+        if f"--out {run}" in card.training.get("command", "") and card.evaluation:
+            return {"metrics": card.evaluation["metrics"], "from": f"card of `pretrained:{name}`"}
+    return None
 
 
 def report(args: argparse.Namespace) -> int:
     from safety.metrics import wilson_interval
 
-    certified = {}
-    if args.certified:
-        from studies.batch_verification import load_results
-
-        for row in load_results(args.certified):
-            certified[str(row["source"]).rstrip("/")] = row.get("certified_volume")
-    print("| cars | state dim | minutes to false safe <= 0.1 % | false safe % at 120 min [95 % CI] | certified vol. |")
-    print("|---:|---:|---:|---:|---:|")
+    print(
+        "| cars | state dim | minutes until false safe stays <= 0.1 % | false safe % at 120 min [95 % CI] "
+        "| false unsafe % at 120 min | delta-level vol. (1M) | robust vol. [eps] | final scores from |"
+    )
+    print("|---:|---:|---:|---:|---:|---:|---:|---|")
     curves = {}
     for cars, system, run in FLEETS:
         curve = curves[cars] = _curve(system)
         if not curve:
-            print(f"| {cars} | {3 * cars} | (not scored) | | |")
+            print(f"| {cars} | {3 * cars} | (not scored) | | | | | |")
             continue
-        first = next((m for m, rate, _ in curve if rate <= GOAL), None)
-        minutes, rate, n = curve[-1]
+        stays = minutes_to_stay_below(curve)
+        _, rate, n, unsafe = curve[-1]
         low, high = wilson_interval(round(rate * n), n)
-        volume = certified.get(str(run))
+        final = _final_scores(run, args.certified)
+        metrics = {} if final is None else final["metrics"]
+        volume = metrics.get("certified_volume")
+        robust, robust_eps = metrics.get("robust_certified_volume"), metrics.get("robust_eps")
         print(
-            f"| {cars} | {3 * cars} | {'not reached' if first is None else f'{first:.0f}'} | "
-            f"{100 * rate:.3f} [{100 * low:.3f}, {100 * high:.3f}] at {minutes:.0f} min | "
-            f"{'-' if volume is None else f'{volume:.3f}'} |"
+            f"| {cars} | {3 * cars} | {'not by 120' if stays is None else f'{stays:.0f}'} | "
+            f"{100 * rate:.3f} [{100 * low:.3f}, {100 * high:.3f}] | {100 * unsafe:.2f} | "
+            f"{'-' if volume is None else f'{volume:.3f}'} | "
+            f"{'none found' if robust is None else f'{robust:.3f} [{robust_eps:.2e}]'} | "
+            f"{'-' if final is None else final['from']} |"
         )
     if args.plot and any(curves.values()):
         _plot(curves, ROOT / args.plot)
@@ -108,7 +145,7 @@ def report(args: argparse.Namespace) -> int:
     return 0
 
 
-def _plot(curves: dict[int, list[tuple[float, float, int]]], path: Path) -> None:
+def _plot(curves: dict[int, list[tuple[float, float, int, float]]], path: Path) -> None:
     # lazy: matplotlib only when drawing
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -119,8 +156,8 @@ def _plot(curves: dict[int, list[tuple[float, float, int]]], path: Path) -> None
     for cars, curve in sorted(curves.items()):
         if curve:
             ax.plot(
-                [m for m, _, _ in curve],
-                [100 * max(r, 1e-5) for _, r, _ in curve],
+                [m for m, _, _, _ in curve],
+                [100 * max(r, 1e-5) for _, r, _, _ in curve],
                 marker="o",
                 label=f"{cars} cars ({3 * cars}D)",
             )
@@ -144,7 +181,12 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--device", type=device_arg, default="cpu", help="where the rollouts run (cpu, cuda)")
     s.set_defaults(func=score)
     r = sub.add_parser("report")
-    r.add_argument("--certified", default=None, help="a reach evaluate CSV of the final checkpoints (card protocol)")
+    r.add_argument(
+        "--certified",
+        action="append",
+        default=[],
+        help="a reach evaluate results file of a final run directory (card protocol); else its shipped card",
+    )
     r.add_argument("--plot", default="docs/dimension_study.png")
     r.set_defaults(func=report)
     args = p.parse_args(argv)
