@@ -98,7 +98,9 @@ def _model(name: str) -> list[str]:
             for key, label, scale in (
                 ("violation_rate", "violation %", 100),
                 ("false_safe_rate", "false safe %", 100),
+                ("false_reachable_rate", "false reachable %", 100),
                 ("certified_volume", "certified volume", 1),
+                ("robust_certified_volume", "robust volume", 1),
                 ("iou_volume", "IoU vs grid", 1),
             )
             if isinstance(m.get(key), (int, float))
