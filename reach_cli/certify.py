@@ -45,6 +45,12 @@ def add_parser(sub: Any) -> None:
         "--device", type=device_arg, default="cpu", help="where boxes are bounded (a GPU: many more a second)"
     )
     p.add_argument("--out", default=None, help="the certificate file to write (.npz)")
+    p.add_argument(
+        "--resume",
+        metavar="PROGRESS",
+        default=None,
+        help="keep the verifier's progress in this .npz file; run again with it to continue a stopped run",
+    )
     p.set_defaults(func=run)
 
 
@@ -55,8 +61,8 @@ def run(args: argparse.Namespace) -> int:
     from safety.sources import load_value_function
 
     if args.check is not None:
-        if args.out is not None or args.level is not None:
-            raise ValueError("--check re-verifies a file as it is: give no --level or --out with it")
+        if args.out is not None or args.level is not None or args.resume is not None:
+            raise ValueError("--check re-verifies a file as it is: give no --level, --out or --resume with it")
         value_function = load_value_function(args.source).value_function
         certificate = check_certificate(args.check, value_function, args.device)
         s = certificate.settings
@@ -77,12 +83,14 @@ def run(args: argparse.Namespace) -> int:
     given = {field: getattr(args, field) for _, field, _, _ in CERTIFY_OPTIONS if getattr(args, field) is not None}
     time_to_go = args.time_to_go if args.time_to_go is not None else value_function.system.horizon
     settings = CertifySettings(level=args.level, time_to_go=time_to_go, dt=args.dt, **given)
-    result = certify(value_function, settings, device=args.device)
+    result = certify(value_function, settings, device=args.device, resume=args.resume)
     certificate = certified_set(value_function, result)
     path = save_certificate(args.out, certificate)
     shares = result.volume_shares()
     domain = value_function.system.domain_tensor()
     ended = "finished" if result.finished else "stopped"
+    if not result.finished and args.resume:
+        ended += f" (continue with --resume {args.resume})"
     print(
         f"{ended} after {result.boxes_handled} boxes in {result.wall_time:.1f} s: "
         + ", ".join(f"{name} {share:.4f}" for name, share in shares.items())

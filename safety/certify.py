@@ -29,6 +29,7 @@ from __future__ import annotations
 import copy
 import itertools
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -40,7 +41,9 @@ from reach.intervals import INTERVAL, Interval, IntervalBackend, box_columns
 from reach.systems import ControlAffineSystem
 from reach.systems.arrays import TORCH
 from reach.validation import positive_finite
+from safety.certify_progress import SAVE_EVERY_S, VerifierProgress, load_progress, save_progress
 from safety.linear_bounds import linear_bounds
+from training.checkpoint import network_digest
 from training.network import NeuralValueFunction, ValueNetwork
 
 __all__ = ["CertificationResult", "CertifySettings", "certify", "value_bounds"]
@@ -309,19 +312,48 @@ class _Verifier:
         ]
         return refuted, found
 
-    def run(self, progress: bool = False) -> CertificationResult:
-        s, start = self.settings, time.perf_counter()
-        n = self.system.state_dim
+    def first_cover(self) -> VerifierProgress:
+        """The state before any box is handled: the first cover queued, nothing decided."""
+        s, n = self.settings, self.system.state_dim
         grid = torch.linspace(0, 1, s.initial_splits + 1, dtype=torch.float64)
         cells = torch.cartesian_prod(*[torch.arange(s.initial_splits)] * n).reshape(-1, n)
-        queue_lo = self.domain[:, 0] + grid[cells] * self.span
-        queue_hi = self.domain[:, 0] + grid[cells + 1] * self.span
-        done_lo, done_hi, done_status, done_backup = [], [], [], []
-        counterexamples: list[dict] = []
-        handled = 0
+        empty = torch.empty(0, n, dtype=torch.float64)
+        none = torch.empty(0, dtype=torch.long)
+        return VerifierProgress(
+            self.domain[:, 0] + grid[cells] * self.span,
+            self.domain[:, 0] + grid[cells + 1] * self.span,
+            empty, empty, none, none,
+        )  # fmt: skip
+
+    def run(
+        self,
+        progress: bool = False,
+        state: VerifierProgress | None = None,
+        save: Callable[[VerifierProgress], None] | None = None,
+    ) -> CertificationResult:
+        """Handle boxes from ``state`` (default: the first cover) until every box is decided or the
+        budget is spent; ``save`` is given the state every :data:`SAVE_EVERY_S` seconds and at the end."""
+        s, start = self.settings, time.perf_counter()
+        state = self.first_cover() if state is None else state
+        device = self.domain.device
+        queue_lo, queue_hi = state.queue_lo.to(device), state.queue_hi.to(device)
+        done_lo, done_hi = [state.done_lo.to(device)], [state.done_hi.to(device)]
+        done_status, done_backup = [state.done_status.to(device)], [state.done_backup.to(device)]
+        counterexamples: list[dict] = list(state.counterexamples)
+        handled, last_save = state.handled, start
+
+        def snapshot() -> VerifierProgress:
+            return VerifierProgress(
+                queue_lo, queue_hi, torch.cat(done_lo), torch.cat(done_hi), torch.cat(done_status),
+                torch.cat(done_backup), counterexamples, handled, state.seconds + time.perf_counter() - start,
+            )  # fmt: skip
+
         while len(queue_lo) and handled < s.max_boxes:
             if s.max_seconds is not None and time.perf_counter() - start > s.max_seconds:
                 break
+            if save is not None and time.perf_counter() - last_save > SAVE_EVERY_S:
+                save(snapshot())
+                last_save = time.perf_counter()
             lo, hi = queue_lo[: s.batch], queue_hi[: s.batch]
             queue_lo, queue_hi = queue_lo[s.batch :], queue_hi[s.batch :]
             handled += len(lo)
@@ -364,21 +396,25 @@ class _Verifier:
             done_status.append(status[keep]), done_backup.append(backup[keep])
             if progress:
                 print(f"{handled} boxes handled, {len(queue_lo)} queued", flush=True)
+        final = snapshot()
+        if save is not None:
+            save(final)
         finished = len(queue_lo) == 0
+        lo, hi, status, backup = final.done_lo, final.done_hi, final.done_status, final.done_backup
         if not finished:  # what is left counts as unknown: never reported as proven
-            done_lo.append(queue_lo), done_hi.append(queue_hi)
-            done_status.append(torch.full((len(queue_lo),), UNKNOWN, dtype=torch.long))
-            done_backup.append(torch.full((len(queue_lo),), -1, dtype=torch.long))
+            lo, hi = torch.cat([lo, queue_lo]), torch.cat([hi, queue_hi])
+            status = torch.cat([status, torch.full((len(queue_lo),), UNKNOWN, dtype=torch.long)])
+            backup = torch.cat([backup, torch.full((len(queue_lo),), -1, dtype=torch.long)])
         return CertificationResult(
             s,
-            torch.cat(done_lo).cpu(),
-            torch.cat(done_hi).cpu(),
-            torch.cat(done_status).cpu(),
-            torch.cat(done_backup).cpu(),
+            lo.cpu(),
+            hi.cpu(),
+            status.cpu(),
+            backup.cpu(),
             self.candidates.cpu(),
             counterexamples,
             finished,
-            time.perf_counter() - start,
+            final.seconds,
             handled,
         )
 
@@ -388,13 +424,29 @@ def certify(
     settings: CertifySettings,
     progress: bool = False,
     device: str | torch.device = "cpu",
+    resume: str | os.PathLike | None = None,
 ) -> CertificationResult:
     """Prove (or refute) that ``{V(x, T) >= c}`` is a safe, robustly invariant set (module docstring),
-    bounding boxes on ``device`` (a GPU bounds many more boxes a second; float64 throughout)."""
+    bounding boxes on ``device`` (a GPU bounds many more boxes a second; float64 throughout).
+
+    ``resume``: a progress file (``.npz``, :mod:`safety.certify_progress`). The run saves its state
+    there as it goes and when it stops, and a run started again with the same file continues from
+    it; a file made for another value function, system or proof is refused, naming the difference.
+    The result's ``wall_time`` and ``boxes_handled`` then count every run."""
     network = _network(value_function)
     if settings.time_to_go > network.system.horizon:
         raise ValueError(
             f"time_to_go {settings.time_to_go:g} is beyond the value function's horizon {network.system.horizon:g}"
         )
+    save, state = None, None
+    if resume is not None:
+        if not str(resume).endswith(".npz"):
+            raise ValueError(f"a verifier progress file ends in .npz, got {str(resume)!r}")
+        provenance = (asdict(settings), network.system.config(), network_digest(network))
+        state = load_progress(resume, *provenance)
+
+        def save(snapshot: VerifierProgress) -> None:
+            save_progress(resume, snapshot, *provenance)
+
     with torch.device(device):
-        return _Verifier(network, settings, torch.device(device)).run(progress)
+        return _Verifier(network, settings, torch.device(device)).run(progress, state, save)

@@ -36,12 +36,23 @@ filter checks the state after the step and a rollout of the backup policy after 
 threshold is 0 (on Air3D, 1,000 attacked episodes: no collision with the grid truth or the
 10-minute network).
 
+Certificate: ``certificate=CERT`` (a :class:`~safety.certificate.Certificate` or its ``.npz`` file,
+:mod:`safety.certify`) filters with :class:`~safety.certified_filter.CertifiedFilter` instead: inside
+the certified set the nominal action is kept only where it is proven to stay in the set, otherwise
+the certificate's backup input is applied, so an episode that starts in the set stays safe for all
+time, by proof. The certificate is re-verified for ``value_function`` first, and refused, naming the
+mismatch, when it was made for another model or system, when the env steps with another ``dt`` or
+integrator than it assumed, or when the scene adds process noise (an effect it does not cover).
+The filter settings do not apply to it, and are refused beside it. ``info`` then also holds
+``filter_certified``: whether the pre-step state lay in the certified set.
+
 ``info`` gains ``filter_value`` (``V`` at the pre-step state), ``filter_intervened``,
 ``nominal_action`` and ``applied_action`` (normalised units).
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import gymnasium as gym
@@ -130,6 +141,53 @@ class _Adapter:
         return (applied.astype(dtype) if dtype.kind == "f" else applied), info
 
 
+class _CertifiedAdapter:
+    """The adapter of a certificate: :class:`~safety.certified_filter.CertifiedFilter` in the env's
+    units, refused where the env breaks one of the certificate's assumptions."""
+
+    def __init__(self, system: Any, value_function: ValueFunction | str, scene: Any, certificate: Any) -> None:
+        # lazy: the certificate machinery (bounds, intervals) only for a certified wrapper
+        from safety.certificate import Certificate, load_certificate
+        from safety.certified_filter import CertifiedFilter
+
+        label = str(certificate) if not isinstance(certificate, Certificate) else "the certificate"
+        cert = certificate if isinstance(certificate, Certificate) else load_certificate(certificate)
+        assumed = cert.settings
+        if not math.isclose(float(scene.dt), assumed.dt, rel_tol=1e-12) or scene.integrator != assumed.integrator:
+            raise ValueError(
+                f"{label} proves steps of dt {assumed.dt:g} ({assumed.integrator}); the environment steps "
+                f"dt {scene.dt:g} ({scene.integrator}): make the env with the certificate's dt and integrator"
+            )
+        if scene.process_noise is not None and bool(np.any(np.asarray(scene.process_noise) != 0)):
+            raise ValueError(
+                f"{label} covers the model's dynamics and disturbances only; the scene adds process noise "
+                f"{scene.process_noise!r}, which it does not"
+            )
+        if isinstance(value_function, ValueFunction):
+            require_served_kind(system, value_function.system)
+        what = "value function (the environment simulates another system)"
+        vf = as_value_function(value_function, system, "cpu", what)
+        self.filter = CertifiedFilter(cert, vf)
+        self.settings = None
+        self.bounds = system.control_bounds
+        self.centre = np.array(system.control_bounds.center)
+        self.half = np.array(system.control_bounds.half_width)
+
+    def apply(self, state: np.ndarray, elapsed: np.ndarray | float, action: np.ndarray) -> tuple[np.ndarray, Any]:
+        """Filtered normalised actions for float64 ``state`` and normalised ``action`` (same batch)."""
+        a = np.asarray(action, dtype=np.float64)
+        if not np.isfinite(a).all():
+            raise ValueError(f"action contains a non-finite value (NaN or inf): {action!r}")
+        x = torch.as_tensor(state, dtype=torch.float64)
+        u_nominal = torch.as_tensor(inputs_of_actions(a, self.bounds), dtype=torch.float64)
+        applied_u, info = self.filter(x, u_nominal)
+        star = (applied_u.numpy() - self.centre) / self.half
+        keep = ~info.intervened.numpy().reshape(a.shape[:-1])  # one state: the filter's batch of one
+        applied = np.where(keep[..., None], a, star)
+        dtype = np.asarray(action).dtype
+        return (applied.astype(dtype) if dtype.kind == "f" else applied), info
+
+
 def _env_id(env: Any) -> str | None:
     """The Gymnasium id of ``env`` (from its spec, else from its named scene), or None."""
     from reach_envs import ENV_SCENES  # lazy: registers the envs only when an id is looked up
@@ -161,33 +219,52 @@ class _FilterAdapterMixin:
         device: str = "cpu",
         *,
         settings: FilterSettings | None = None,
+        certificate: Any = None,
         **options: Any,
     ) -> None:
+        if certificate is not None:
+            given = {"threshold": threshold, "time_to_go": time_to_go, "settings": settings, **options}
+            named = sorted(k for k, v in given.items() if v is not None)
+            if named:
+                raise ValueError(f"a certificate decides by its own proof; filter settings do not apply to it: {named}")
+            if device != "cpu":
+                raise ValueError(f"a certified filter bounds its boxes on the CPU; got device {device!r}")
         settings = make_filter_settings(settings, threshold=threshold, time_to_go=time_to_go, **options)
-        self._record(value_function, device, settings)
+        self._record(value_function, device, settings, certificate)
         super().__init__(env)  # the wrapper base class of the env kind
-        self._attach_filter(env, value_function, device, settings)
+        self._attach_filter(env, value_function, device, settings, certificate)
 
-    def _record(self, value_function: ValueFunction | str | None, device: str, settings: FilterSettings) -> None:
+    def _record(
+        self, value_function: ValueFunction | str | None, device: str, settings: FilterSettings, certificate: Any
+    ) -> None:
         """Where a wrapper that records its constructor's arguments does so (Gymnasium's)."""
 
     def _attach_filter(
-        self, env: Any, value_function: ValueFunction | str | None, device: str, settings: FilterSettings
+        self,
+        env: Any,
+        value_function: ValueFunction | str | None,
+        device: str,
+        settings: FilterSettings,
+        certificate: Any = None,
     ) -> None:
         base = env.unwrapped
         if value_function is None:
             value_function = pretrained.for_env(_env_id(env), base.system)
-        self._adapter = _Adapter(base.system, value_function, base.scene, device, settings)
+        if certificate is not None:
+            self._adapter = _CertifiedAdapter(base.system, value_function, base.scene, certificate)
+        else:
+            self._adapter = _Adapter(base.system, value_function, base.scene, device, settings)
 
     @property
-    def safety_filter(self) -> SafetyFilter:
-        """The :class:`SafetyFilter` in use (its ``threshold`` may be changed between steps)."""
+    def safety_filter(self) -> Any:
+        """The filter in use: a :class:`SafetyFilter` (its ``threshold`` may be changed between steps),
+        or the :class:`~safety.certified_filter.CertifiedFilter` of a certificate."""
         return self._adapter.filter
 
     @property
-    def filter_settings(self) -> FilterSettings:
+    def filter_settings(self) -> FilterSettings | None:
         """The :class:`FilterSettings` this wrapper was made with (``threshold=None``: the default
-        rule, resolved in ``safety_filter.threshold``)."""
+        rule, resolved in ``safety_filter.threshold``); None for a certificate's filter."""
         return self._adapter.settings
 
 
@@ -205,10 +282,11 @@ class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordCons
     the settings field by field, as keywords.
     """
 
-    def _record(self, value_function: ValueFunction | str | None, device: str, settings: FilterSettings) -> None:
-        gym.utils.RecordConstructorArgs.__init__(
-            self, value_function=value_function, device=device, **settings.keywords()
-        )
+    def _record(
+        self, value_function: ValueFunction | str | None, device: str, settings: FilterSettings, certificate: Any
+    ) -> None:
+        recorded = {"certificate": certificate} if certificate is not None else settings.keywords()
+        gym.utils.RecordConstructorArgs.__init__(self, value_function=value_function, device=device, **recorded)
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         base = self.env.unwrapped
@@ -223,6 +301,8 @@ class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordCons
             nominal_action=np.asarray(action),
             applied_action=applied,
         )
+        if hasattr(info, "certified"):
+            step_info["filter_certified"] = bool(info.certified)
         return obs, reward, terminated, truncated, step_info
 
 
@@ -240,10 +320,12 @@ class SafetyFilterVectorWrapper(_FilterAdapterMixin, VectorWrapper):
         step_info.update(
             filter_value=info.value.numpy(),
             filter_intervened=info.intervened.numpy(),
-            filter_infeasible=None if info.infeasible is None else info.infeasible.numpy(),
+            filter_infeasible=None if getattr(info, "infeasible", None) is None else info.infeasible.numpy(),
             nominal_action=np.asarray(actions),
             applied_action=applied,
         )
+        if hasattr(info, "certified"):
+            step_info["filter_certified"] = info.certified.numpy()
         return obs, reward, terminated, truncated, step_info
 
 

@@ -21,7 +21,7 @@ from reach.systems import Air3D, ControlAffineSystem
 from reach.systems.arrays import TORCH
 from reach.systems.box import Box
 from safety.certificate import certified_set, check_certificate, save_certificate
-from safety.certify import OUTSIDE, PROVEN, REFUTED, CertifySettings, certify
+from safety.certify import OUTSIDE, PROVEN, REFUTED, UNKNOWN, CertifySettings, certify
 from training.network import Encoding, ValueNetwork
 
 
@@ -243,6 +243,11 @@ def test_the_command_line_certifies_and_checks_in_one_line_errors(network, tmp_p
     assert "wrote" in capsys.readouterr().out and out.exists()
     assert main(["certify", str(source), "--check", str(out)]) == 0
     assert "holds for" in capsys.readouterr().out
+    progress = tmp_path / "progress.npz"
+    assert main([*args, "--max-boxes", "16", "--resume", str(progress), "--out", str(out)]) in (0, 3)
+    assert f"stopped (continue with --resume {progress})" in capsys.readouterr().out
+    assert main([*args, "--resume", str(progress), "--out", str(out)]) in (0, 3)
+    assert "finished after" in capsys.readouterr().out
     other = tmp_path / "other.pt"
     save_checkpoint(other, ValueNetwork(Air3D(), "ssl", width=16, w0=3.0))
     for bad in (
@@ -251,6 +256,8 @@ def test_the_command_line_certifies_and_checks_in_one_line_errors(network, tmp_p
         ["certify", str(source), "--level", "0.3", "--out", str(tmp_path / "c.json")],
         ["certify", str(source), "--check", str(out), "--level", "0.1"],
         ["certify", str(source), "--level", "nan", "--out", str(out)],
+        [*args[:3], "0.2", *args[4:], "--resume", str(progress), "--out", str(out)],  # another level
+        ["certify", str(source), "--check", str(out), "--resume", str(progress)],
     ):
         try:
             code = main(bad)
@@ -291,3 +298,99 @@ def test_the_certified_filter_keeps_every_trajectory_safe(torus_network, torus_c
         assert bool(info.intervened[0])
     with pytest.raises(ValueError, match="not finite"):
         filt(torch.tensor([[float("nan"), 0.0]]), torch.zeros(1, 2))
+
+
+def test_the_wrappers_take_a_certificate_and_refuse_one_the_env_breaks(torus_network, torus_certificate):
+    """``SafetyFilterWrapper(env, vf, certificate=...)`` filters with the certificate: an episode from a
+    certified state, its nominal actions heading into the disc and a random disturbance, stays
+    certified and out of the disc; another dt, process noise, filter settings beside it, or another
+    model are refused."""
+    from reach_envs import make_env, make_vector_env
+    from safety import SafetyFilterWrapper
+    from safety.certified_filter import CertifiedFilter
+    from safety.wrappers import SafetyFilterVectorWrapper
+    from training.network import NeuralValueFunction
+
+    vf = NeuralValueFunction(torus_network)
+    scene = {"dt": TORUS.dt, "integrator": TORUS.integrator, "disturbance": "random", "horizon": 5.0}
+    filt = CertifiedFilter(torus_certificate, torus_network, verify=False)
+    x = Torus().sample_states(400, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    start = x[filt(x, torch.zeros(len(x), 2, dtype=torch.float64))[1].certified][0].numpy()
+    env = SafetyFilterWrapper(make_env(Torus(), **scene), vf, certificate=torus_certificate)
+    env.reset(seed=1, options={"state": start})
+    rng = np.random.default_rng(0)
+    intervened = 0
+    for _ in range(60):
+        towards_disc = -env.unwrapped.state / np.linalg.norm(env.unwrapped.state)  # a nominal that would fail
+        action = np.clip(towards_disc + rng.uniform(-0.3, 0.3, 2), -1.0, 1.0).astype(np.float32)
+        _, _, terminated, _, info = env.step(action)
+        assert info["filter_certified"] and not terminated
+        assert float(Torus().failure_margin(torch.as_tensor(env.unwrapped.state)[None])[0]) > 0
+        intervened += info["filter_intervened"]
+    assert intervened > 0
+    vector = SafetyFilterVectorWrapper(make_vector_env(Torus(), 3, **scene), vf, certificate=torus_certificate)
+    vector.reset(seed=2)
+    _, _, _, _, infos = vector.step(np.zeros((3, 2), dtype=np.float32))
+    assert infos["filter_certified"].shape == (3,)
+    with pytest.raises(ValueError, match=r"dt 0\.05 .*dt 0\.02"):
+        SafetyFilterWrapper(make_env(Torus(), **{**scene, "dt": 0.02}), vf, certificate=torus_certificate)
+    with pytest.raises(ValueError, match="process noise"):
+        SafetyFilterWrapper(make_env(Torus(), **scene, process_noise=0.01), vf, certificate=torus_certificate)
+    with pytest.raises(ValueError, match=r"settings do not apply.*kind"):
+        SafetyFilterWrapper(make_env(Torus(), **scene), vf, certificate=torus_certificate, kind="smooth")
+    other = copy.deepcopy(torus_network)
+    with torch.no_grad():
+        next(other.parameters()).add_(1e-3)
+    with pytest.raises(ValueError, match="a changed model needs a new certificate"):
+        SafetyFilterWrapper(make_env(Torus(), **scene), NeuralValueFunction(other), certificate=torus_certificate)
+
+
+def test_a_stopped_verifier_resumes_to_the_same_result_and_refuses_another_proof(
+    network, result, tmp_path, monkeypatch
+):
+    """A run stopped by its budget, or killed between two saves, continues from its progress file to
+    exactly the uninterrupted run's boxes; until then its result claims nothing beyond what was
+    decided (the queued boxes are unknown). A file of another level or model is refused."""
+    import dataclasses
+
+    import safety.certify as certify_module
+
+    path = tmp_path / "progress.npz"
+    stopped = certify(network, dataclasses.replace(SETTINGS, max_boxes=2 * SETTINGS.batch), resume=path)
+    assert not stopped.finished and not stopped.certified
+    assert 2 * SETTINGS.batch <= stopped.boxes_handled < result.boxes_handled
+    assert int((stopped.status == UNKNOWN).sum()) > 0
+    resumed = certify(network, SETTINGS, resume=path)
+    assert resumed.finished and resumed.boxes_handled == result.boxes_handled
+    assert torch.equal(resumed.lo, result.lo) and torch.equal(resumed.status, result.status)
+    assert torch.equal(resumed.backup, result.backup) and resumed.counterexamples == result.counterexamples
+    again = certify(network, SETTINGS, resume=path)  # finished: the same result, no box handled again
+    assert again.boxes_handled == result.boxes_handled and torch.equal(again.status, result.status)
+
+    killed = tmp_path / "killed.npz"
+    saves = []
+
+    def save_then_die(original):
+        def save(*args, **kwargs):
+            original(*args, **kwargs)
+            saves.append(1)
+            if len(saves) == 3:
+                raise KeyboardInterrupt  # as if killed right after the third save
+
+        return save
+
+    monkeypatch.setattr(certify_module, "SAVE_EVERY_S", 0.0)  # a save before every batch
+    monkeypatch.setattr(certify_module, "save_progress", save_then_die(certify_module.save_progress))
+    with pytest.raises(KeyboardInterrupt):
+        certify(network, SETTINGS, resume=killed)
+    monkeypatch.undo()
+    after_kill = certify(network, SETTINGS, resume=killed)
+    assert torch.equal(after_kill.lo, result.lo) and torch.equal(after_kill.status, result.status)
+
+    with pytest.raises(ValueError, match=r"another proof .*level 0\.3, not 0\.4"):
+        certify(network, dataclasses.replace(SETTINGS, level=0.4), resume=path)
+    other = copy.deepcopy(network)
+    with torch.no_grad():
+        next(other.parameters()).add_(1e-3)
+    with pytest.raises(ValueError, match="another value function"):
+        certify(other, SETTINGS, resume=path)
