@@ -4,6 +4,7 @@ Two studies, one command each (docs/export.md holds their tables):
 
     python benchmarks/export_filter.py equivalence --states 100000
     python benchmarks/export_filter.py latency --calls 3000
+    python benchmarks/export_filter.py graph
 
 For each system (Air3D's shipped network, the shipped 9D network, a user's system from
 ``examples/my_systems.py`` trained for a few hundred steps here) and each filter kind, the filter is
@@ -13,6 +14,9 @@ exported with :func:`safety.export.export_filter` and run with :mod:`reach_runti
 nominal inputs uniformly over the control box, and counts decisions that differ (and how many of
 those lie within 1e-4 of the threshold), the largest value and gradient differences, and applied
 inputs that differ where the decision agrees.
+
+``graph`` counts operators: the ONNX nodes of each exported filter, and the ATen operations ``V``
+alone and ``V`` with its gradient trace to (ONNX Runtime spends about a microsecond a node at batch 1).
 
 ``latency`` times one decision at batch 1 on one thread (``torch.set_num_threads(1)``, ONNX
 Runtime with one intra-op thread), per call: the torch filter, the runtime's ``Filter.__call__``
@@ -65,13 +69,18 @@ def sources(folder: Path, user_steps: int) -> dict[str, object]:
     }
 
 
+def export_path(folder: Path, name: str, kind: str, horizon: float) -> Path:
+    """Where the filter of system ``name`` and ``kind`` is exported (and found again)."""
+    return folder / f"{name.split()[0]}-{kind}-{horizon:g}.onnx"
+
+
 def exported(
     vf: object, name: str, kind: str, folder: Path, horizon: float
 ) -> tuple[dict, SafetyFilter, Filter, float | None]:
     """The filter exported to ``folder`` (reused when there: the time is then None), the torch filter
     of the same settings, and the runtime's filter."""
     settings = FilterSettings(kind, backup_horizon=horizon if kind == "lookahead" else None)
-    path = folder / f"{name.split()[0]}-{kind}-{horizon:g}.onnx"
+    path = export_path(folder, name, kind, horizon)
     seconds = None
     if not path.exists():
         start = time.perf_counter()
@@ -178,11 +187,45 @@ def latency(args: argparse.Namespace) -> None:
         print(f"| {name} | {kind} | {cells} | {rates[0]:.0f} | {rates[1]:.0f} |", flush=True)
 
 
+def traced_operations(function: object, *example: torch.Tensor) -> int:
+    """How many ATen operations ``function`` traces to (``make_fx``, symbolic batch), as the export does."""
+    from torch.fx.experimental.proxy_tensor import make_fx
+
+    def run(x: torch.Tensor, t: torch.Tensor) -> object:  # exactly two inputs, whatever ``function`` defaults
+        return function(x, t)
+
+    graph = make_fx(run, tracing_mode="symbolic", _allow_non_fake_inputs=True)(*example)
+    return sum(node.op == "call_function" for node in graph.graph.nodes)
+
+
+def graph(args: argparse.Namespace) -> None:
+    """Operator counts: ONNX nodes of each exported filter, and the ATen operations that ``V`` alone
+    and ``V`` with its gradient trace to. At batch 1 ONNX Runtime spends about a microsecond a node,
+    so these counts bound what the traced path can reach."""
+    import onnx
+
+    from safety.export import graph_value_function
+
+    print("| system | V alone (ops) | V and grad V (ops) | switch (ONNX nodes) | smooth | lookahead |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for name, vf in sources(args.folder, args.user_steps).items():
+        traced = graph_value_function(vf)
+        x = vf.system.sample_states(4, generator=torch.Generator().manual_seed(args.seed))
+        t = torch.full((4,), float(vf.system.horizon))
+        alone = traced_operations(traced.value, x, t)
+        with_gradient = traced_operations(traced.value_and_gradient, x, t)
+        nodes = []
+        for kind in KINDS:
+            exported(vf, name, kind, args.folder, args.horizon)  # exports it where it is not yet
+            nodes.append(len(onnx.load(export_path(args.folder, name, kind, args.horizon)).graph.node))
+        print(f"| {name} | {alone} | {with_gradient} | {' | '.join(map(str, nodes))} |", flush=True)
+
+
 def main() -> None:
     warnings.filterwarnings("ignore")
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="study", required=True)
-    for name in ("equivalence", "latency"):
+    for name in ("equivalence", "latency", "graph"):
         p = sub.add_parser(name)
         p.add_argument("--horizon", type=float, default=0.25, help="the lookahead's backup horizon (s)")
         p.add_argument("--user-steps", type=int, default=300, help="training steps of the user system's network")
@@ -197,7 +240,7 @@ def main() -> None:
             p.add_argument("--calls", type=int, default=3000)
             p.add_argument("--prepare", action="store_true", help="export (or reuse) the filters, time nothing")
     args = parser.parse_args()
-    equivalence(args) if args.study == "equivalence" else latency(args)
+    {"equivalence": equivalence, "latency": latency, "graph": graph}[args.study](args)
 
 
 if __name__ == "__main__":
