@@ -70,4 +70,4 @@ def test_a_section_per_system_with_its_spaces_envs_and_model(tmp_path):
     assert any("Dubins4D" in what for what, _ in MISSING)
     rocket = system_section("rocketlanding", "DeepReach", tmp_path)
     assert "control inputs (2): the disc |u - (0, 0)| <= 250" in rocket and "`RocketLanding-v0`" in rocket
-    assert "Shipped model: none yet." in rocket  # the reach rocket ships none (its reach-avoid twin does)
+    assert "`pretrained:rocketlanding`" in rocket and "false reachable %" in rocket  # a reach model's wrong claim
