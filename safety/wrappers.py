@@ -77,19 +77,55 @@ __all__ = [
 ]
 
 
-class _Adapter:
-    """Shared unit conversion and time-to-go logic of the three wrappers."""
+class _UnitAdapter:
+    """What every adapter shares: the value function served to the env's system, and the env's
+    normalised actions in and out of the filter (a kept action passes through unchanged, a replaced
+    one is the filter's input normalised). Subclasses decide in :meth:`_decide`."""
+
+    filter: Any
+    settings: FilterSettings | None
+
+    def _serve(self, system: Any, value_function: ValueFunction | str, device: str) -> ValueFunction:
+        """``value_function`` loaded for ``system`` on ``device``, refused (naming both) where it
+        solves another problem kind or another system's physics; also sets the action units."""
+        if isinstance(value_function, ValueFunction):  # a kind mismatch names both kinds, before physics
+            require_served_kind(system, value_function.system)
+        vf = as_value_function(
+            value_function, system, device, "value function (the environment simulates another system)"
+        )
+        self.bounds = system.control_bounds
+        self.centre = np.array(system.control_bounds.center)
+        self.half = np.array(system.control_bounds.half_width)
+        return vf
+
+    def _decide(self, x: torch.Tensor, elapsed: np.ndarray | float, u_nominal: torch.Tensor) -> tuple[Any, Any]:
+        """``(applied inputs, info)`` of the filter for float64 states and nominal inputs."""
+        raise NotImplementedError
+
+    def apply(self, state: np.ndarray, elapsed: np.ndarray | float, action: np.ndarray) -> tuple[np.ndarray, Any]:
+        """Filtered normalised actions for float64 ``state`` and normalised ``action`` (same batch)."""
+        a = np.asarray(action, dtype=np.float64)
+        if not np.isfinite(a).all():
+            raise ValueError(f"action contains a non-finite value (NaN or inf): {action!r}")
+        x = torch.as_tensor(state, dtype=torch.float64)
+        u_nominal = torch.as_tensor(inputs_of_actions(a, self.bounds), dtype=torch.float64)
+        applied_u, info = self._decide(x, elapsed, u_nominal)
+        star = (applied_u.numpy() - self.centre) / self.half
+        keep = ~info.intervened.numpy().reshape(a.shape[:-1])  # one state: the filter's batch of one
+        applied = np.where(keep[..., None], a, star)
+        dtype = np.asarray(action).dtype
+        return (applied.astype(dtype) if dtype.kind == "f" else applied), info
+
+
+class _Adapter(_UnitAdapter):
+    """The time-to-go logic of the three wrappers around a :class:`SafetyFilter`."""
 
     def __init__(
         self, system: Any, value_function: ValueFunction | str, scene: Any, device: str, settings: FilterSettings
     ) -> None:
         episode_horizon = scene.episode_horizon
-        if isinstance(value_function, ValueFunction):  # a kind mismatch names both kinds, before physics
-            require_served_kind(system, value_function.system)
         threshold = settings.threshold_for(system, scene.dt)  # None: the rule for a filter acting every dt
-        vf = as_value_function(
-            value_function, system, device, "value function (the environment simulates another system)"
-        )
+        vf = self._serve(system, value_function, device)
         self.filter = SafetyFilter(
             vf,
             settings=make_filter_settings(settings, threshold=threshold),
@@ -111,9 +147,6 @@ class _Adapter:
         self.settings = settings
         self.time_to_go = time_to_go
         self.episode_horizon = episode_horizon
-        self.bounds = system.control_bounds
-        self.centre = np.array(system.control_bounds.center)
-        self.half = np.array(system.control_bounds.half_width)
 
     def times(self, elapsed: np.ndarray | float) -> float | torch.Tensor:
         """The time-to-go the filter evaluates ``V`` at, after ``elapsed`` seconds of the episode."""
@@ -123,27 +156,16 @@ class _Adapter:
             return torch.as_tensor(np.maximum(self.episode_horizon - np.asarray(elapsed, dtype=np.float64), 0.0))
         return float(self.time_to_go)
 
-    def apply(
-        self, state: np.ndarray, elapsed: np.ndarray | float, action: np.ndarray
-    ) -> tuple[np.ndarray, FilterInfo]:
-        """Filtered normalised actions for float64 ``state`` and normalised ``action`` (same batch)."""
-        a = np.asarray(action, dtype=np.float64)
-        if not np.isfinite(a).all():
-            raise ValueError(f"action contains a non-finite value (NaN or inf): {action!r}")
-        x = torch.as_tensor(state, dtype=torch.float64)
-        u_nominal = torch.as_tensor(inputs_of_actions(a, self.bounds))
-        t = self.times(elapsed)
-        _, info = self.filter(x, t, u_nominal)
-        star = (info.applied.numpy() - self.centre) / self.half
-        keep = ~info.intervened.numpy()
-        applied = np.where(keep[..., None], a, star)
-        dtype = np.asarray(action).dtype
-        return (applied.astype(dtype) if dtype.kind == "f" else applied), info
+    def _decide(
+        self, x: torch.Tensor, elapsed: np.ndarray | float, u_nominal: torch.Tensor
+    ) -> tuple[torch.Tensor, FilterInfo]:
+        _, info = self.filter(x, self.times(elapsed), u_nominal)
+        return info.applied, info
 
 
-class _CertifiedAdapter:
-    """The adapter of a certificate: :class:`~safety.certified_filter.CertifiedFilter` in the env's
-    units, refused where the env breaks one of the certificate's assumptions."""
+class _CertifiedAdapter(_UnitAdapter):
+    """The adapter of a certificate: :class:`~safety.certified_filter.CertifiedFilter`, refused where
+    the env breaks one of the certificate's assumptions."""
 
     def __init__(self, system: Any, value_function: ValueFunction | str, scene: Any, certificate: Any) -> None:
         # lazy: the certificate machinery (bounds, intervals) only for a certified wrapper
@@ -163,29 +185,11 @@ class _CertifiedAdapter:
                 f"{label} covers the model's dynamics and disturbances only; the scene adds process noise "
                 f"{scene.process_noise!r}, which it does not"
             )
-        if isinstance(value_function, ValueFunction):
-            require_served_kind(system, value_function.system)
-        what = "value function (the environment simulates another system)"
-        vf = as_value_function(value_function, system, "cpu", what)
-        self.filter = CertifiedFilter(cert, vf)
+        self.filter = CertifiedFilter(cert, self._serve(system, value_function, "cpu"))
         self.settings = None
-        self.bounds = system.control_bounds
-        self.centre = np.array(system.control_bounds.center)
-        self.half = np.array(system.control_bounds.half_width)
 
-    def apply(self, state: np.ndarray, elapsed: np.ndarray | float, action: np.ndarray) -> tuple[np.ndarray, Any]:
-        """Filtered normalised actions for float64 ``state`` and normalised ``action`` (same batch)."""
-        a = np.asarray(action, dtype=np.float64)
-        if not np.isfinite(a).all():
-            raise ValueError(f"action contains a non-finite value (NaN or inf): {action!r}")
-        x = torch.as_tensor(state, dtype=torch.float64)
-        u_nominal = torch.as_tensor(inputs_of_actions(a, self.bounds), dtype=torch.float64)
-        applied_u, info = self.filter(x, u_nominal)
-        star = (applied_u.numpy() - self.centre) / self.half
-        keep = ~info.intervened.numpy().reshape(a.shape[:-1])  # one state: the filter's batch of one
-        applied = np.where(keep[..., None], a, star)
-        dtype = np.asarray(action).dtype
-        return (applied.astype(dtype) if dtype.kind == "f" else applied), info
+    def _decide(self, x: torch.Tensor, elapsed: np.ndarray | float, u_nominal: torch.Tensor) -> tuple[Any, Any]:
+        return self.filter(x, u_nominal)
 
 
 def _env_id(env: Any) -> str | None:
@@ -208,7 +212,7 @@ class _FilterAdapterMixin:
     (:func:`~safety.filter_settings.make_filter_settings`); ``None`` leaves it as ``settings`` has it.
     """
 
-    _adapter: _Adapter
+    _adapter: _UnitAdapter
 
     def __init__(
         self,
