@@ -220,8 +220,9 @@ def load_certificate(path: str | Path) -> Certificate:
                       ("kept_lo", "kept_hi", "inputs", "outside_lo", "outside_hi")}  # fmt: skip
     except (OSError, ValueError, KeyError, json.JSONDecodeError) as err:
         raise ValueError(f"{path}: not a reach certificate file ({err})") from None
-    if not isinstance(header, dict) or header.get("format") != FORMAT:
-        raise ValueError(f"{path}: not a reach certificate file (format {header.get('format')!r})")
+    found = header.get("format") if isinstance(header, dict) else None
+    if found != FORMAT:
+        raise ValueError(f"{path}: not a reach certificate file (format {found!r})")
     return Certificate(
         CertifySettings(**header["settings"]),
         header["system"],

@@ -94,8 +94,9 @@ def load_progress(
             arrays = {name: torch.from_numpy(np.array(data[name])) for name in _ARRAYS}
     except (OSError, ValueError, KeyError, json.JSONDecodeError) as err:
         raise ValueError(f"{path}: not a verifier progress file ({err})") from None
-    if not isinstance(header, dict) or header.get("format") != FORMAT:
-        raise ValueError(f"{path}: not a verifier progress file (format {header.get('format')!r})")
+    found = header.get("format") if isinstance(header, dict) else None
+    if found != FORMAT:
+        raise ValueError(f"{path}: not a verifier progress file (format {found!r})")
     ours = _header(settings, system, fingerprint)
     if header["fingerprint"] != fingerprint:
         raise ValueError(

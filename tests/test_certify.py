@@ -387,6 +387,14 @@ def test_a_stopped_verifier_resumes_to_the_same_result_and_refuses_another_proof
     after_kill = certify(network, SETTINGS, resume=killed)
     assert torch.equal(after_kill.lo, result.lo) and torch.equal(after_kill.status, result.status)
 
+    junk = tmp_path / "junk.npz"
+    arrays = ("queue_lo", "queue_hi", "done_lo", "done_hi", "done_status", "done_backup", "kept_lo", "kept_hi")
+    arrays += ("inputs", "outside_lo", "outside_hi")
+    np.savez(junk, header=np.array("[1, 2]"), **{k: np.zeros(1) for k in arrays})  # JSON, but not a header
+    with pytest.raises(ValueError, match="not a verifier progress file"):
+        certify(network, SETTINGS, resume=junk)
+    with pytest.raises(ValueError, match="not a reach certificate file"):
+        check_certificate(junk, network)
     with pytest.raises(ValueError, match=r"another proof .*level 0\.3, not 0\.4"):
         certify(network, dataclasses.replace(SETTINGS, level=0.4), resume=path)
     other = copy.deepcopy(network)
