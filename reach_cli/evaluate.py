@@ -63,6 +63,13 @@ VERIFY_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
         {"type": nonnegative_int_arg},
         "robust certification: fresh states for the search and again for the check (None: as certify; 0 skips)",
     ),
+    (
+        "--share-samples",
+        "share_samples",
+        {"action": "store_true"},
+        "the delta-level's check reuses the robust check's states in {V > delta} (the same guarantees from "
+        "fewer rollouts)",
+    ),
 )
 
 

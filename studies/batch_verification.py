@@ -157,7 +157,9 @@ def _previous(out: Path, header: dict[str, Any], keep_errors: bool = False) -> d
         return {}
     data = read_json(path, "existing results", hint="; move the file away to start over")
     if isinstance(data.get("settings"), dict):  # files from before these settings existed used these values
-        data["settings"] = _resolved({"matmul_precision": "float32", "policy": "gradient", **data["settings"]})
+        data["settings"] = _resolved(
+            {"matmul_precision": "float32", "policy": "gradient", "share_samples": False, **data["settings"]}
+        )
     if any(
         data.get(key) != header[key]
         for key in ("format", "settings", "system", "ground_truth", "ground_truth_time", "pairwise")
@@ -286,7 +288,10 @@ def evaluate_many(
             if isinstance(loaded.value_function, GridSolution):
                 loaded.value_function.outside = "clamp"  # rollouts may leave the grid; documented
             row.update(label=loaded.label, layout=loaded.layout, kind=loaded.kind)
-            key = {"source": path, "fingerprint": fp, "device": device, **header}
+            # what the rollouts depend on: sharing samples reuses outcomes and changes no rollout, so a
+            # shared run loads the blocks of an unshared one (and the reverse) and older stores stay valid
+            rolled = {k: v for k, v in header["settings"].items() if k != "share_samples"}
+            key = {"source": path, "fingerprint": fp, "device": device, **header, "settings": rolled}
             with RolloutStore(_store_directory(out, path), key) as store:
                 vf = loaded.value_function
                 row.update(verify(vf, states, settings, device=device, progress=progress, store=store, backend=backend))

@@ -231,3 +231,20 @@ def test_chunk_size_follows_the_device_unless_given(checkpoints: Path, monkeypat
     for extra in ([], ["--chunk-size", "999"]):
         main(["evaluate", source, "--samples", "10", "--out", str(checkpoints / "r.csv"), *extra])
     assert [s.chunk_size for s in used] == [16384, 999]
+
+
+def test_share_samples_is_a_setting_of_the_table(air3d_grid, tmp_path: Path):
+    """``--share-samples`` is recorded with the table's settings, its rows say how many of the
+    delta-level's states were reused, and a table of unshared rows refuses shared ones."""
+    grid = tmp_path / "air3d.npz"
+    air3d_grid.save(grid)
+    counts = ["--samples", "300", "--certify-samples", "200", "--robust-samples", "2000", "--target-eps", "0.05"]
+    args = ["evaluate", str(grid), *counts, "--dt", "0.01"]
+    assert main([*args, "--out", str(tmp_path / "alone.csv")]) == 0
+    assert main([*args, "--out", str(tmp_path / "alone.csv"), "--share-samples"]) == 2  # other settings: refused
+    out = tmp_path / "shared.csv"
+    assert main([*args, "--out", str(out), "--share-samples"]) == 0
+    (alone,), (shared,) = load_results(tmp_path / "alone.csv"), load_results(out)
+    assert json.loads(out.with_suffix(".json").read_text())["settings"]["share_samples"] is True
+    assert 0 < shared["certify_reused"] <= 200 and "certify_reused" not in alone
+    assert shared["robust_certified_volume"] == alone["robust_certified_volume"]

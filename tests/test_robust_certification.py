@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import math
 
 import pytest
@@ -78,3 +79,65 @@ def test_verify_says_why_when_no_level_qualifies(air3d_grid):
 def test_bad_robust_settings_are_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
         VerifySettings(**kwargs)
+
+
+def _counting(monkeypatch) -> list[int]:
+    """Count the states every rollout of a verification simulates."""
+    verify_module = importlib.import_module("safety.verify")  # the package's `verify` is the function
+
+    counts: list[int] = []
+    real = verify_module.rollout
+
+    def counted(vf, states, *args, **kwargs):
+        counts.append(int(states.shape[0]))
+        return real(vf, states, *args, **kwargs)
+
+    monkeypatch.setattr(verify_module, "rollout", counted)
+    return counts
+
+
+def test_a_shared_delta_check_reuses_the_robust_checks_states_and_counts_the_same_failures(air3d_grid, monkeypatch):
+    from safety.rollout import rollout
+    from safety.verify import sample_superlevel_set
+
+    counts = _counting(monkeypatch)
+    states = sample_states(air3d_grid.system, 400, 0)
+    common = dict(samples=400, certify_samples=1000, robust_samples=3000, target_eps=0.05, dt=0.01)
+    alone = verify(air3d_grid, states, VerifySettings(**common), progress=False)
+    rolled_alone = sum(counts)
+    counts.clear()
+    shared = verify(air3d_grid, states, VerifySettings(**common, share_samples=True), progress=False)
+    used = shared["certify_reused"]
+    assert alone["robust_level"] <= alone["delta"] and 0 < used <= 1000
+    # the same statistics and robust columns; only the delta-level's check differs, by its reuse
+    for key in ("delta", "violation_rate", "robust_level", "robust_failures", "robust_eps", "certified_volume"):
+        assert shared[key] == alone[key]
+    assert shared["certified_samples"] == 1000 and sum(counts) == rolled_alone - used
+    # its failures are those of the robust check's first `used` states in {V > delta}, plus the top-up's
+    horizon = air3d_grid.system.horizon
+    check, _ = sample_superlevel_set(air3d_grid, alone["robust_level"], 3000, 0 + 3, horizon)
+    outcome = rollout(air3d_grid, check, dt=0.01, progress=False)
+    inside = outcome.oriented_value > alone["delta"]
+    expected = int(outcome.failed[inside][:used].sum())
+    if used < 1000:
+        top_up, _ = sample_superlevel_set(air3d_grid, alone["delta"], 1000 - used, 0 + 1, horizon)
+        expected += int(rollout(air3d_grid, top_up, dt=0.01, progress=False).failed.sum())
+    assert shared["certified_failures"] == expected
+    assert shared["eps"] == pytest.approx(scenario_epsilon(expected, 1000, 1e-16))
+
+
+def test_a_robust_level_above_delta_shares_nothing(air3d_grid, monkeypatch):
+    verify_module = importlib.import_module("safety.verify")  # the package's `verify` is the function
+
+    states = sample_states(air3d_grid.system, 400, 0)
+    common = dict(samples=400, certify_samples=500, robust_samples=3000, target_eps=0.05, dt=0.01, share_samples=True)
+    delta = verify(air3d_grid, states, VerifySettings(**common), progress=False)["delta"]
+    # a level above delta: its superlevel set misses part of {V > delta}, so its states are not reused
+    monkeypatch.setattr(verify_module, "robust_level_search", lambda v, f, eps, beta: (delta + 0.05, 1, 0))
+    row = verify(air3d_grid, states, VerifySettings(**common), progress=False)
+    assert row["robust_level"] == delta + 0.05 and row["certify_reused"] == 0 and row["certified_samples"] == 500
+
+
+def test_share_samples_must_be_a_bool():
+    with pytest.raises(ValueError, match="share_samples"):
+        VerifySettings(share_samples="yes")
