@@ -195,12 +195,17 @@ class GridSolution:
             nodes = torch.stack([idx0[i][0], idx0[i][1]], -1) * stride
             lin = (lin[:, :, None] + nodes[:, None, :]).reshape(m, -1)
         flat = table.reshape(len(self.times), -1, *table.shape[1 + n :])
-        if lookup.shape[0] == 1:  # one time for every state: gather from one or two slices
-            v0, v1 = flat[k0[0]][lin], flat[k1[0]][lin]  # (m, 2^n, ...)
+        extra = (1,) * (flat.ndim - 2)  # a table's own trailing dimensions (the gradient's components)
+        if lookup.shape[0] == 1 and m * 2**n >= flat[0].numel():
+            # one time for every state, and more corners than nodes: blend the two time slices once
+            # and gather from the blend (the same lerp of the same numbers, so the same bits), not twice
+            blend = torch.lerp(flat[k0[0]], flat[k1[0]], wt[0])
+            corners = blend[lin]  # (m, 2^n, ...)
+        elif lookup.shape[0] == 1:  # one time for every state: gather from one or two slices
+            corners = torch.lerp(flat[k0[0]][lin], flat[k1[0]][lin], wt.reshape((m, 1, *extra)))
         else:
-            v0, v1 = flat[k0[:, None], lin], flat[k1[:, None], lin]
-        extra = (1,) * (v0.ndim - 2)
-        out = (w.reshape((m, 2**n, *extra)) * torch.lerp(v0, v1, wt.reshape((m, 1, *extra)))).sum(1)
+            corners = torch.lerp(flat[k0[:, None], lin], flat[k1[:, None], lin], wt.reshape((m, 1, *extra)))
+        out = (w.reshape((m, 2**n, *extra)) * corners).sum(1)
         return out.reshape((*batch, *table.shape[1 + n :])).to(x.dtype)
 
     def value(self, x: torch.Tensor, t: float | torch.Tensor, checked: bool = True) -> torch.Tensor:

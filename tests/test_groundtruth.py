@@ -150,6 +150,18 @@ def test_interpolation_is_exact_for_multilinear_tables_and_a_time_per_state():
     torch.testing.assert_close(sol.value(x, 0.25), want.new_tensor(1.5) * (want / (1 + 2 * t)), atol=1e-12, rtol=0)
 
 
+def test_a_large_batch_blends_the_time_slices_first_with_the_same_bits(air3d_coarse):
+    """At one time for every state, a batch with more cell corners than the table has nodes blends
+    the two stored time slices once and gathers from the blend; a small batch gathers from both
+    slices and blends the corners. The same lerp of the same numbers: equal to the bit."""
+    x = Air3D().sample_states(30_000, generator=torch.Generator().manual_seed(2))
+    for t in (0.37, 0.25, 0.9):
+        whole = air3d_coarse.value(x, t), air3d_coarse.gradient(x, t)
+        parts = [(air3d_coarse.value(c, t), air3d_coarse.gradient(c, t)) for c in x.split(500)]
+        assert torch.equal(whole[0], torch.cat([v for v, _ in parts]))
+        assert torch.equal(whole[1], torch.cat([g for _, g in parts]))
+
+
 def test_grid_solution_is_a_value_function(air3d_coarse):
     from reach.systems import ValueFunction
 
