@@ -235,16 +235,16 @@ def _verify(
     row["work_fraction"] = result.work_fraction
     row["state_steps_per_second"] = result.state_steps / max(result.wall_time, 1e-12)
     row.update(certified_samples=0, certified_failures=None, eps=math.nan, certified_volume=math.nan)
-    robust: tuple[dict[str, Any], torch.Tensor | None, RolloutResult | None] | None = None
+    robust: tuple[dict[str, Any], RolloutResult | None] | None = None
     if settings.robust_sample_count:
         # first where the delta-level's check may reuse the robust check's states
         robust = _robust_certification(vf, settings, horizon, common, device, store)
     if settings.fresh_samples:
         reused = None
         # only a level at or below delta makes {V > delta} part of the set the robust check sampled
-        shareable = settings.share_samples and robust is not None and robust[2] is not None
-        if shareable and robust[0]["robust_level"] <= row["delta"]:
-            reused = robust[2].failed[robust[2].oriented_value > row["delta"]]
+        check = None if robust is None else robust[1]
+        if settings.share_samples and check is not None and robust[0]["robust_level"] <= row["delta"]:
+            reused = check.failed[check.oriented_value > row["delta"]]
         try:
             k, n, used = _delta_check(vf, row["delta"], settings, horizon, common, device, store, reused)
         except ValueError as err:
@@ -314,7 +314,7 @@ def _robust_certification(
     common: dict[str, Any],
     device: str | torch.device,
     store: RolloutStore | None = None,
-) -> tuple[dict[str, Any], torch.Tensor | None, RolloutResult | None]:
+) -> tuple[dict[str, Any], RolloutResult | None]:
     """Robust scenario certification (Lin & Bansal, L4DC 2024, Thm 2), in two independent samples.
 
     1. *Search*: ``N`` fresh uniform states (seed + 2) are rolled out, and
@@ -324,7 +324,7 @@ def _robust_certification(
        failures give ``robust_eps``, the bound that holds with confidence ``1 - beta`` (a level
        chosen on one sample means nothing until a second one certifies it).
 
-    Returns the columns, and the check's states and outcomes (None where no level was found)."""
+    Returns the columns, and the check's outcomes (None where no level was found)."""
     n = settings.robust_sample_count
     out: dict[str, Any] = {
         "robust_target_eps": settings.target_eps,
@@ -342,13 +342,13 @@ def _robust_certification(
         out["robust_error"] = (
             f"no level is certified at eps {settings.target_eps:g} by {n} samples (k = 0 needs at least {need})"
         )
-        return out, None, None
+        return out, None
     level, inside, _ = found
     try:
         fresh, _ = sample_superlevel_set(vf, level, n, settings.seed + 3, horizon, device=device)
     except ValueError as err:
         out["robust_error"] = str(err)
-        return out, None, None
+        return out, None
     check = _rollout(store, "robust-check", vf, fresh, common)
     k = int(check.failed.sum())
     out.update(
@@ -357,4 +357,4 @@ def _robust_certification(
         robust_failures=k,
         robust_certified_volume=inside / n,
     )
-    return out, fresh, check
+    return out, check
