@@ -56,7 +56,7 @@ class VerifySettings:
     #: about 2^m_u + 1 times the network work per step)
     policy: str = "gradient"
     #: the delta-level's check reuses the robust check's states that lie in {V > delta} and draws
-    #: fresh ones only for the rest (:func:`shared_delta_check`): the same guarantees from about a
+    #: fresh ones only for the rest (:func:`_delta_check`): the same guarantees from about a
     #: third fewer rollouts under the card's protocol. Off by default, so rows keep their meaning.
     share_samples: bool = False
 
