@@ -46,9 +46,9 @@ def main() -> None:
     args = parser.parse_args()
     print(
         "| model | box half-width / span | IBP / linear range | mean-value / linear range | CROWN-style / linear range "
-        "| ms a box: IBP + mean-value, CROWN-style |"
+        "| forward intervals / linear range | ms a box: IBP + mean-value, CROWN-style, forward |"
     )
-    print("|---|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|---:|---:|")
     for source in args.source:
         network = load_value_function(source).value_function.network.double()
         for k in args.sizes:
@@ -60,6 +60,9 @@ def main() -> None:
             start = time.perf_counter()
             crown = linear_bounds(network, x_lo, x_hi, t_lo, t_hi)
             ms_crown = (time.perf_counter() - start) / args.boxes * 1e3
+            start = time.perf_counter()
+            forward = linear_bounds(network, x_lo, x_hi, t_lo, t_hi, intermediate="forward")
+            ms_forward = (time.perf_counter() - start) / args.boxes * 1e3
             x = (0.5 * (x_lo + x_hi)).requires_grad_(True)
             t = (0.5 * (t_lo + t_hi)).requires_grad_(True)
             gx, gt = torch.autograd.grad(network.raw(x, t).sum(), (x, t))
@@ -67,8 +70,10 @@ def main() -> None:
             r_ibp = statistics.median(((ibp[1] - ibp[0]) / linear).tolist())
             r_mvf = statistics.median(((mvf[1] - mvf[0]) / linear).tolist())
             r_crown = statistics.median(((crown[1] - crown[0]) / linear).tolist())
+            r_forward = statistics.median(((forward[1] - forward[0]) / linear).tolist())
             print(
-                f"| {source} | up to 1e{k:g} | {r_ibp:.1f} | {r_mvf:.2f} | {r_crown:.2f} | {ms:.2f}, {ms_crown:.2f} |",
+                f"| {source} | up to 1e{k:g} | {r_ibp:.1f} | {r_mvf:.2f} | {r_crown:.2f} | {r_forward:.2f} "
+                f"| {ms:.2f}, {ms_crown:.2f}, {ms_forward:.2f} |",
                 flush=True,
             )
 

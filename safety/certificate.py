@@ -16,9 +16,9 @@ must bound ``V < c``; every kept box must prove inclusion and invariance with it
 its next states must lie within the file's boxes. The checker reuses the bounds
 (:mod:`safety.linear_bounds`, :mod:`reach.intervals`), not the search.
 
-Closure is checked on the cell grid of the boxes (the verifier's cover is dyadic), with a table of
-cumulative counts: one array of ``R**n`` cells, so up to :data:`MAX_GRID_CELLS` (Air3D at 256 cells
-a dimension; not the 6D and 9D systems, whose certified sets need another closure check).
+Closure is checked on the cell grid of the boxes (the verifier's cover is dyadic), held sparsely by
+:class:`safety.dyadic_cover.DyadicCover`: its cost grows with the boxes, not with the ``R**n`` cells,
+so the 6D and 9D systems' covers are closed as Air3D's are (grids up to ``2**62`` cells).
 """
 
 from __future__ import annotations
@@ -34,13 +34,12 @@ import torch
 from reach.atomic import atomic_path
 from reach.intervals import Interval
 from safety.certify import OUTSIDE, PROVEN, CertificationResult, CertifySettings, _network, _Verifier, margin_bounds
+from safety.dyadic_cover import DyadicCover
 from training.checkpoint import network_digest
 from training.network import NeuralValueFunction, ValueNetwork
 
 __all__ = ["Certificate", "certified_set", "check_certificate", "load_certificate", "save_certificate"]
 
-#: the largest cell grid the closure check builds (int32 cumulative counts: 256 MB)
-MAX_GRID_CELLS = 2**26
 FORMAT = "reach-certificate/1"
 
 
@@ -72,17 +71,10 @@ class Certificate:
 
 
 class _Grid:
-    """The dyadic cell grid of a cover: box corners to integer cells, and counts of marked cells in
-    any range (a cumulative table, one extra layer of zeros at the start of every dimension)."""
+    """The dyadic cell grid of a cover: box corners to integer cell ranges, and covers of boxes."""
 
     def __init__(self, domain: torch.Tensor, resolution: int) -> None:
-        n = domain.shape[0]
-        if resolution**n > MAX_GRID_CELLS:
-            raise ValueError(
-                f"closure on a grid of {resolution}^{n} cells exceeds {MAX_GRID_CELLS} cells: this certificate "
-                "check covers low-dimensional systems (Air3D) for now"
-            )
-        self.domain, self.resolution, self.n = domain, resolution, n
+        self.domain, self.resolution, self.n = domain, resolution, domain.shape[0]
         self.span = domain[:, 1] - domain[:, 0]
 
     def cells(self, lo: torch.Tensor, hi: torch.Tensor, exact: bool) -> tuple[torch.Tensor, torch.Tensor]:
@@ -99,34 +91,9 @@ class _Grid:
             a, b = torch.floor(a - 1e-9), torch.ceil(b + 1e-9)
         return a.long().clamp(0, self.resolution), b.long().clamp(0, self.resolution)
 
-    def table(self, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
-        """The cumulative count table of the cells the grid boxes ``[lo, hi]`` cover: each box adds
-        +-1 at its ``2**n`` corners of a difference array, whose running sums give the coverage."""
-        a, b = self.cells(lo, hi, exact=True)
-        r, n = self.resolution, self.n
-        diff = torch.zeros((r + 1,) * n, dtype=torch.int32)
-        for corner in range(2**n):
-            pick = [(corner >> d) & 1 for d in range(n)]
-            index = tuple(b[:, d] if p else a[:, d] for d, p in enumerate(pick))
-            sign = -1 if sum(pick) % 2 else 1
-            diff.index_put_(index, torch.full((len(a),), sign, dtype=torch.int32), accumulate=True)
-        coverage = diff
-        for d in range(n):
-            coverage = coverage.cumsum(d, dtype=torch.int32)
-        table = (coverage[(slice(0, r),) * n] > 0).to(torch.int32)
-        for d in range(n):
-            table = torch.nn.functional.pad(table.cumsum(d, dtype=torch.int32), [0, 0] * (n - 1 - d) + [1, 0])
-        return table
-
-    def count(self, table: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        """Marked cells in each range ``[a, b)`` (inclusion and exclusion over the ``2**n`` corners)."""
-        total = torch.zeros(len(a), dtype=torch.long)
-        for corner in range(2**self.n):
-            pick = [(corner >> d) & 1 for d in range(self.n)]
-            index = tuple(b[:, d] if p else a[:, d] for d, p in enumerate(pick))
-            sign = -1 if (self.n - sum(pick)) % 2 else 1
-            total += sign * table[index].long()
-        return total
+    def cover(self, lo: torch.Tensor, hi: torch.Tensor) -> DyadicCover:
+        """The grid boxes ``[lo, hi]`` as a sparse cover of cells."""
+        return DyadicCover(*self.cells(lo, hi, exact=True), self.resolution)
 
 
 def _resolution(result: CertificationResult, domain: torch.Tensor) -> int:
@@ -142,10 +109,9 @@ def _next_boxes(verifier: _Verifier, lo: torch.Tensor, hi: torch.Tensor, inputs:
     return n_lo, n_hi, piece // len(verifier.d_lo)
 
 
-def _closed(grid: _Grid, table: torch.Tensor, n_lo: torch.Tensor, n_hi: torch.Tensor) -> torch.Tensor:
-    """Whether each next-state box lies within the marked cells."""
-    a, b = grid.cells(n_lo.cpu(), n_hi.cpu(), exact=False)
-    return grid.count(table, a, b) == (b - a).prod(-1)
+def _closed(grid: _Grid, cover: DyadicCover, n_lo: torch.Tensor, n_hi: torch.Tensor) -> torch.Tensor:
+    """Whether each next-state box lies within the cover's cells."""
+    return cover.covers(*grid.cells(n_lo.cpu(), n_hi.cpu(), exact=False))
 
 
 def certified_set(value_function: NeuralValueFunction | ValueNetwork, result: CertificationResult) -> Certificate:
@@ -159,18 +125,22 @@ def certified_set(value_function: NeuralValueFunction | ValueNetwork, result: Ce
     inputs = result.candidates[result.backup.clamp(min=0)]
     rows = keep.nonzero().squeeze(-1)
     n_lo, n_hi, owner = _next_boxes(verifier, result.lo[rows], result.hi[rows], inputs[rows])
+    n_a, n_b = grid.cells(n_lo.cpu(), n_hi.cpu(), exact=False)
+    a, b = grid.cells(result.lo, result.hi, exact=True)
     alive = torch.ones(len(rows), dtype=torch.bool)
-    while True:
-        allowed = alive.clone()
-        cover_lo = torch.cat([result.lo[rows][allowed], result.lo[outside]])
-        cover_hi = torch.cat([result.hi[rows][allowed], result.hi[outside]])
-        table = grid.table(cover_lo, cover_hi)
-        closed = _closed(grid, table, n_lo, n_hi)
-        holds = torch.ones(len(rows), dtype=torch.long)
-        holds.scatter_reduce_(0, owner, closed.long(), reduce="amin")
-        now = alive & holds.bool()
-        if bool((now == alive).all()):
-            break
+    # the boxes are a partition of the state box, so a next-state box lies within the kept and outside
+    # boxes exactly when no other box meets it. Boxes drop out in rounds; each round checks the
+    # survivors against only the boxes dropped in the round before (the rest they already passed).
+    dropped = ~(keep | outside)
+    while bool(dropped.any()):
+        live = alive[owner]
+        hit = torch.zeros(len(owner), dtype=torch.bool)
+        hit[live] = DyadicCover(a[dropped], b[dropped], grid.resolution).meets(n_a[live], n_b[live])
+        fails = torch.zeros(len(rows), dtype=torch.long)
+        fails.scatter_reduce_(0, owner, hit.long(), reduce="amax")
+        now = alive & ~fails.bool()
+        dropped = torch.zeros_like(keep)
+        dropped[rows[alive & ~now]] = True
         alive = now
     kept = rows[alive]
     return Certificate(
@@ -315,6 +285,6 @@ def verify_certificate(
         raise ValueError(f"{path}: a kept box's next states may leave the domain")
     if _value_bounds_any(on_device, n_lo, n_hi, lambda v: v.lo < settings.level):
         raise ValueError(f"{path}: a kept box's next states are not proven to stay in V >= {settings.level:g}")
-    table = grid.table(torch.cat([lo, certificate.outside_lo]), torch.cat([hi, certificate.outside_hi]))
-    if not bool(_closed(grid, table, n_lo, n_hi).all()):
+    cover = grid.cover(torch.cat([lo, certificate.outside_lo]), torch.cat([hi, certificate.outside_hi]))
+    if not bool(_closed(grid, cover, n_lo, n_hi).all()):
         raise ValueError(f"{path}: a kept box's next states may leave the certified boxes")

@@ -29,7 +29,7 @@ from torch import nn
 from safety.bounds import FUNCTION_ULPS, UNIT_ROUNDOFF, Interval, _check_box, interval_bounds, on_network_device
 from training.network import Sine, ValueNetwork
 
-__all__ = ["linear_bounds"]
+__all__ = ["INTERMEDIATE", "linear_bounds"]
 
 _TWO_PI = 2.0 * math.pi
 
@@ -189,23 +189,80 @@ def _magnitudes(layer: _Layer, lines: tuple, previous: torch.Tensor) -> torch.Te
     return slope.abs() * z + torch.maximum(low.abs(), high.abs()) + z
 
 
+def _forward_pre_activations(layers: list[_Layer], inputs: Interval, magnitude: torch.Tensor) -> tuple[list, list]:
+    """Every layer's lines, with each pre-activation interval from linear bounds carried *forward*.
+
+    Each unit's output is kept between two affine functions of the input's offset from the box's
+    centre, ``A_lo d + c_lo <= h <= A_hi d + c_hi`` (``A`` ``(B, width, d)``), and a linear layer maps
+    them on by splitting its weights by sign. This costs ``O(width^2 d)`` a layer and box, against
+    back-substitution's ``O(width^3)`` per layer and layer below, so it is far cheaper when the input
+    dimension ``d`` (time and state) is small against the width. It is looser on wide boxes: the gap
+    between the two functions grows through ``|W|`` at every layer (measured in
+    ``benchmarks/bound_tightness.py``). Rounding: each interval is widened by the same a-priori bound
+    as back-substitution's (``_magnitudes`` bounds the absolute values of every product on the way).
+    Returns the lines and the magnitudes per layer."""
+    lo, hi = inputs
+    centre, radius = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    batch, d = centre.shape
+    a_lo = torch.eye(d, dtype=centre.dtype, device=centre.device).expand(batch, d, d)
+    a_hi, c_lo, c_hi = a_lo, centre, centre
+    lines: list[tuple] = []
+    magnitudes: list[torch.Tensor] = []
+    depth = 0
+    for layer in layers:
+        w, b = layer.weight, layer.bias
+        w_pos, w_neg = w.clamp(min=0.0), w.clamp(max=0.0)
+        z_a_lo, z_a_hi = w_pos @ a_lo + w_neg @ a_hi, w_pos @ a_hi + w_neg @ a_lo
+        z_c_lo = c_lo @ w_pos.T + c_hi @ w_neg.T + b
+        z_c_hi = c_hi @ w_pos.T + c_lo @ w_neg.T + b
+        z_lo = z_c_lo - (z_a_lo.abs() @ radius.unsqueeze(-1)).squeeze(-1)
+        z_hi = z_c_hi + (z_a_hi.abs() @ radius.unsqueeze(-1)).squeeze(-1)
+        depth += w.shape[0] + w.shape[1] + 8
+        k = depth + d + 8
+        total = magnitude @ w.abs().T + b.abs()
+        error = (k * UNIT_ROUNDOFF / (1 - k * UNIT_ROUNDOFF)) * 4 * total
+        slope, low, high = _relax_layer(layer, z_lo - error, z_hi + error)
+        lines.append((slope, low, high))
+        magnitude = _magnitudes(layer, lines[-1], magnitude)
+        magnitudes.append(magnitude)
+        rising = (slope >= 0).unsqueeze(-1)
+        s = slope.unsqueeze(-1)
+        a_lo, a_hi = torch.where(rising, s * z_a_lo, s * z_a_hi), torch.where(rising, s * z_a_hi, s * z_a_lo)
+        c_lo = torch.where(slope >= 0, slope * z_c_lo, slope * z_c_hi) + low
+        c_hi = torch.where(slope >= 0, slope * z_c_hi, slope * z_c_lo) + high
+    return lines, magnitudes
+
+
+#: how each layer's pre-activation intervals are found: carried back through the layers below
+#: (tightest, ``O(width^3)`` a layer) or forward from the input (``O(width^2 d)``, looser on wide boxes)
+INTERMEDIATE = ("backward", "forward")
+
+
 @on_network_device
-def linear_bounds(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi) -> Interval:
+def linear_bounds(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi, intermediate: str = "backward") -> Interval:
     """Sound bounds of ``network.raw(x, t)`` over each box (``(B, n)`` corners, times scalars or
     ``(B,)``), by linear relaxations carried back through the layers; intersected with
-    :func:`safety.bounds.interval_bounds`. Costs ``O(layers^2 width^3)`` per box (each layer's
-    pre-activation bounds are back-substituted too)."""
+    :func:`safety.bounds.interval_bounds`. The output is always bounded by back-substitution; the
+    pre-activation intervals of the layers below, which the relaxations need, are back-substituted
+    too (``intermediate="backward"``, ``O(layers^2 width^3)`` per box) or carried forward
+    (``"forward"``, ``O(layers width^2 d)`` for ``d`` inputs, :func:`_forward_pre_activations`)."""
+    if intermediate not in INTERMEDIATE:
+        raise ValueError(f"intermediate must be one of {INTERMEDIATE}, got {intermediate!r}")
     x_lo, x_hi, t_lo, t_hi = _check_box(network, x_lo, x_hi, t_lo, t_hi)
     inputs = (torch.cat([t_lo.unsqueeze(-1), x_lo], -1), torch.cat([t_hi.unsqueeze(-1), x_hi], -1))
     layers, output = _layers(network)
     batch = x_lo.shape[0]
-    lines: list[tuple] = []
     magnitude = torch.maximum(inputs[0].abs(), inputs[1].abs())
-    for j, layer in enumerate(layers):
-        spec = layer.weight.expand(batch, -1, -1)
-        pre = _back_substitute(spec, layer.bias, layers[:j], lines, inputs, magnitude)
-        lines.append(_relax_layer(layer, *pre))
-        magnitude = _magnitudes(layer, lines[-1], magnitude)
+    if intermediate == "forward":
+        lines, magnitudes = _forward_pre_activations(layers, inputs, magnitude)
+        magnitude = magnitudes[-1]
+    else:
+        lines = []
+        for j, layer in enumerate(layers):
+            spec = layer.weight.expand(batch, -1, -1)
+            pre = _back_substitute(spec, layer.bias, layers[:j], lines, inputs, magnitude)
+            lines.append(_relax_layer(layer, *pre))
+            magnitude = _magnitudes(layer, lines[-1], magnitude)
     spec = output.weight.detach().to(torch.float64).expand(batch, -1, -1)
     bias = output.bias.detach().to(torch.float64)
     lo, hi = _back_substitute(spec, bias, layers, lines, inputs, magnitude)

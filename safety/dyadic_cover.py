@@ -1,0 +1,166 @@
+"""Boxes on a dyadic cell grid, held sparsely: which cells they cover, at any dimension.
+
+A certificate's boxes (:mod:`safety.certificate`) come from branch and bound: a first cover cut into
+halves again and again, so every box's corners are whole cells of a grid of ``R`` cells a dimension,
+and each box is a union of aligned cubes of ``2**level`` cells a side. Checking that a next-state box
+lies within the certified boxes needs "which boxes does this range of cells meet?". A dense table of
+``R**n`` cells answers that only in low dimension (Air3D at 256 cells a dimension: 16M cells; the 9D
+system at 8 a dimension already 134M). Here each box is recorded as its aligned cubes at its own
+level, and as the (few) larger cubes that contain parts of it at every coarser level, in sorted keys
+per level. A query descends from the one cube that holds the whole grid: a cube inside a box
+answers at once, a cube no box meets answers at once, and only a cube that boxes meet in part is cut
+into its ``2**n`` children. The work grows with the boxes near a query's edge, not with ``R**n``.
+
+Sound for any boxes on the grid: "inside a box" is only recorded for a cube that is, and the cells a
+query range names are all examined down to single cells where needed. Keys are ``int64``, so the
+grid may hold up to ``2**62`` cells (9D at 64 cells a dimension).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+__all__ = ["DyadicCover"]
+
+#: the most aligned cubes one box may split into (a branch-and-bound box makes at most 2**n)
+MAX_CUBES_PER_BOX = 4096
+#: queries answered at once (the frontier of a descent grows with the cubes near each query's edge)
+QUERY_CHUNK = 16384
+
+
+def _trailing_zeros(v: torch.Tensor, cap: int) -> torch.Tensor:
+    """How many times 2 divides each entry (``cap`` for 0)."""
+    out = torch.full_like(v, cap)
+    for level in range(cap - 1, -1, -1):
+        out = torch.where((v % (1 << (level + 1))) != 0, torch.full_like(v, level), out)
+    return out.clamp(max=cap)
+
+
+def _cubes(a: torch.Tensor, b: torch.Tensor, level: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The cubes of side ``2**level`` that meet each cell range ``[a, b)``: ``(cube coordinates, row)``."""
+    lo = a >> level
+    hi = ((b - 1) >> level) + 1
+    counts = hi - lo  # (B, n)
+    per_box = counts.prod(-1)
+    rows = torch.repeat_interleave(torch.arange(len(a)), per_box)
+    if not len(rows):
+        return torch.empty(0, a.shape[1], dtype=torch.long), rows
+    start = torch.cumsum(per_box, 0) - per_box
+    rank = torch.arange(len(rows)) - start[rows]  # mixed-radix digits of each cube in its box
+    coords = torch.empty(len(rows), a.shape[1], dtype=torch.long)
+    for d in range(a.shape[1]):
+        coords[:, d] = lo[rows, d] + rank % counts[rows, d]
+        rank = rank // counts[rows, d]
+    return coords, rows
+
+
+class DyadicCover:
+    """Boxes given as cell ranges ``[a, b)`` (``(B, n)`` integers) on a grid of ``resolution`` cells a
+    dimension. :meth:`meets`, :meth:`covers` and :meth:`owner` answer for many queries at once."""
+
+    def __init__(self, a: torch.Tensor, b: torch.Tensor, resolution: int) -> None:
+        a, b = a.long().cpu(), b.long().cpu()
+        n = a.shape[1]
+        if n * math.log2(max(resolution, 2)) > 62:
+            raise ValueError(f"a grid of {resolution}^{n} cells is too fine for 64-bit cell keys")
+        if bool(((a < 0) | (b > resolution) | (b <= a)).any()):
+            raise ValueError("a box is not a non-empty range of the grid's cells")
+        self.n, self.resolution = n, resolution
+        self.top = max(0, math.ceil(math.log2(resolution)))
+        # each box's own level: the largest cube side its corners are all multiples of
+        own = torch.minimum(_trailing_zeros(a, self.top), _trailing_zeros(b, self.top)).amin(-1)
+        pieces = ((b - a) >> own.unsqueeze(-1)).prod(-1)
+        if bool((pieces > MAX_CUBES_PER_BOX).any()):
+            raise ValueError(f"a box splits into more than {MAX_CUBES_PER_BOX} aligned cubes: not a dyadic box")
+        self.inside: list[tuple[torch.Tensor, torch.Tensor]] = []  # per level: sorted keys, box of each
+        self.met: list[torch.Tensor] = []  # per level: sorted keys of cubes some box meets
+        for level in range(self.top + 1):
+            mine = (own == level).nonzero().squeeze(-1)
+            coords, rows = _cubes(a[mine], b[mine], level)
+            keys = self._keys(coords, level)
+            order = torch.argsort(keys)
+            self.inside.append((keys[order], mine[rows[order]]))
+            coarser = (own < level).nonzero().squeeze(-1)
+            met, _ = _cubes(a[coarser], b[coarser], level)
+            self.met.append(torch.unique(torch.cat([keys, self._keys(met, level)])))
+
+    def _keys(self, coords: torch.Tensor, level: int) -> torch.Tensor:
+        side = -(-self.resolution // (1 << level))  # cubes a dimension at this level
+        key = torch.zeros(len(coords), dtype=torch.long)
+        for d in range(self.n - 1, -1, -1):
+            key = key * side + coords[:, d]
+        return key
+
+    @staticmethod
+    def _find(sorted_keys: torch.Tensor, keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Whether each key is among ``sorted_keys``, and where."""
+        if not len(sorted_keys):
+            return torch.zeros(len(keys), dtype=torch.bool), torch.zeros(len(keys), dtype=torch.long)
+        where = torch.searchsorted(sorted_keys, keys).clamp(max=len(sorted_keys) - 1)
+        return sorted_keys[where] == keys, where
+
+    def _descend(self, a: torch.Tensor, b: torch.Tensor, want: str) -> torch.Tensor:
+        """One traversal for the three questions: ``"meets"`` (any box meets the range), ``"covers"``
+        (the boxes cover the range), ``"owner"`` (the box holding a one-cell range, or -1)."""
+        a, b = a.long().cpu(), b.long().cpu()
+        count = len(a)
+        if want == "meets":
+            answer = torch.zeros(count, dtype=torch.bool)
+        elif want == "covers":
+            answer = torch.ones(count, dtype=torch.bool)
+        else:
+            answer = torch.full((count,), -1, dtype=torch.long)
+        query = torch.arange(count)
+        cube = torch.zeros(count, self.n, dtype=torch.long)
+        for level in range(self.top, -1, -1):
+            if not len(query):
+                break
+            keys = self._keys(cube, level)
+            inside_keys, inside_box = self.inside[level]
+            inside, where = self._find(inside_keys, keys)
+            met, _ = self._find(self.met[level], keys)
+            if want == "meets":
+                answer[query[inside]] = True
+            elif want == "covers":
+                answer[query[~met]] = False
+            else:
+                answer[query[inside]] = inside_box[where[inside]]
+            go = met & ~inside
+            if want == "meets":
+                go &= ~answer[query]
+            elif want == "covers":
+                go &= answer[query]
+            query, cube = query[go], cube[go]
+            if level == 0 or not len(query):
+                break
+            # the children (side 2**(level-1)) that meet the query's range, one dimension at a time
+            lo_all, hi_all = a >> (level - 1), (b - 1) >> (level - 1)
+            cube = 2 * cube
+            for d in range(self.n):
+                first = torch.maximum(cube[:, d], lo_all[query, d])
+                last = torch.minimum(cube[:, d] + 1, hi_all[query, d])
+                count_ = last - first + 1  # 1 or 2 (never 0: the parent meets the range)
+                query, cube = query.repeat_interleave(count_), cube.repeat_interleave(count_, 0)
+                offset = torch.arange(len(query)) - (torch.cumsum(count_, 0) - count_).repeat_interleave(count_)
+                cube[:, d] = first.repeat_interleave(count_) + offset
+        return answer
+
+    def _chunked(self, a: torch.Tensor, b: torch.Tensor, want: str) -> torch.Tensor:
+        if not len(a):
+            return self._descend(a, b, want)
+        chunks = range(0, len(a), QUERY_CHUNK)
+        return torch.cat([self._descend(a[i : i + QUERY_CHUNK], b[i : i + QUERY_CHUNK], want) for i in chunks])
+
+    def meets(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """``(Q,)``: whether any box meets each cell range ``[a, b)`` (``(Q, n)``) in a cell."""
+        return self._chunked(a, b, "meets")
+
+    def covers(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """``(Q,)``: whether the boxes together cover every cell of each range ``[a, b)``."""
+        return self._chunked(a, b, "covers")
+
+    def owner(self, cells: torch.Tensor) -> torch.Tensor:
+        """``(Q,)``: the index of a box holding each cell (``(Q, n)``), -1 where none does."""
+        return self._chunked(cells, cells + 1, "owner")
