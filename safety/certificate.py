@@ -114,34 +114,68 @@ def _closed(grid: _Grid, cover: DyadicCover, n_lo: torch.Tensor, n_hi: torch.Ten
     return cover.covers(*grid.cells(n_lo.cpu(), n_hi.cpu(), exact=False))
 
 
+def _fails(owner: torch.Tensor, hit: torch.Tensor, rows: int) -> torch.Tensor:
+    """``(rows,)``: whether any next-state piece of each row hit."""
+    fails = torch.zeros(rows, dtype=torch.long)
+    fails.scatter_reduce_(0, owner, hit.long(), reduce="amax")
+    return fails.bool()
+
+
 def certified_set(value_function: NeuralValueFunction | ValueNetwork, result: CertificationResult) -> Certificate:
     """The largest union of ``result``'s proven boxes whose next states stay within it or in boxes
-    proven outside ``S_c`` (module docstring), as a :class:`Certificate`."""
+    proven outside ``S_c`` (module docstring), as a :class:`Certificate`.
+
+    The boxes are a partition of the state box, so a next-state box lies within the kept and outside
+    boxes exactly when no other box meets it. Boxes drop out in rounds, and each round checks the
+    survivors against only the boxes dropped in the round before (the rest they already passed).
+    A box about to drop first tries the other candidate inputs: one that proves (b) on it and whose
+    next states meet no dropped box becomes its backup input, and the box stays."""
     network = _network(value_function)
     verifier = _Verifier(network, result.settings, torch.device("cpu"))
     grid = _Grid(verifier.domain, _resolution(result, verifier.domain))
     keep = result.status == PROVEN
     outside = result.status == OUTSIDE
-    inputs = result.candidates[result.backup.clamp(min=0)]
     rows = keep.nonzero().squeeze(-1)
-    n_lo, n_hi, owner = _next_boxes(verifier, result.lo[rows], result.hi[rows], inputs[rows])
+    lo, hi = result.lo[rows], result.hi[rows]
+    choice = result.backup[rows].clone()
+    tried = torch.zeros(len(rows), len(result.candidates), dtype=torch.bool)
+    tried[torch.arange(len(rows)), choice] = True
+    n_lo, n_hi, owner = _next_boxes(verifier, lo, hi, result.candidates[choice])
     n_a, n_b = grid.cells(n_lo.cpu(), n_hi.cpu(), exact=False)
     a, b = grid.cells(result.lo, result.hi, exact=True)
     alive = torch.ones(len(rows), dtype=torch.bool)
-    # the boxes are a partition of the state box, so a next-state box lies within the kept and outside
-    # boxes exactly when no other box meets it. Boxes drop out in rounds; each round checks the
-    # survivors against only the boxes dropped in the round before (the rest they already passed).
-    dropped = ~(keep | outside)
+    banned = ~(keep | outside)  # every box a next state may not meet
+    dropped = banned.clone()  # ... of which the ones no survivor has been checked against yet
     while bool(dropped.any()):
         live = alive[owner]
         hit = torch.zeros(len(owner), dtype=torch.bool)
         hit[live] = DyadicCover(a[dropped], b[dropped], grid.resolution).meets(n_a[live], n_b[live])
-        fails = torch.zeros(len(rows), dtype=torch.long)
-        fails.scatter_reduce_(0, owner, hit.long(), reduce="amax")
-        now = alive & ~fails.bool()
+        failing = alive & _fails(owner, hit, len(rows))
+        if bool(failing.any()):
+            everything = DyadicCover(a[banned], b[banned], grid.resolution)
+            for k, u in enumerate(result.candidates):
+                ask = (failing & ~tried[:, k]).nonzero().squeeze(-1)
+                if not len(ask):
+                    continue
+                tried[ask, k] = True
+                ask = ask[verifier.keeps(lo[ask], hi[ask], u.expand(len(ask), -1))]
+                if not len(ask):
+                    continue
+                k_lo, k_hi, k_owner = _next_boxes(verifier, lo[ask], hi[ask], u.expand(len(ask), -1))
+                k_a, k_b = grid.cells(k_lo.cpu(), k_hi.cpu(), exact=False)
+                clear = ~_fails(k_owner, everything.meets(k_a, k_b), len(ask))
+                moved = ask[clear]
+                if not len(moved):
+                    continue
+                choice[moved], failing[moved] = k, False
+                mine = clear[k_owner]  # the new pieces replace the moved rows' old ones
+                stays = ~torch.isin(owner, moved)
+                n_a, n_b = torch.cat([n_a[stays], k_a[mine]]), torch.cat([n_b[stays], k_b[mine]])
+                owner = torch.cat([owner[stays], ask[k_owner[mine]]])
         dropped = torch.zeros_like(keep)
-        dropped[rows[alive & ~now]] = True
-        alive = now
+        dropped[rows[failing]] = True
+        banned |= dropped
+        alive &= ~failing
     kept = rows[alive]
     return Certificate(
         result.settings,
@@ -149,7 +183,7 @@ def certified_set(value_function: NeuralValueFunction | ValueNetwork, result: Ce
         network_digest(network),
         result.lo[kept],
         result.hi[kept],
-        inputs[kept],
+        result.candidates[choice[alive]],
         result.lo[outside],
         result.hi[outside],
         grid.resolution,
