@@ -9,7 +9,11 @@ finishes or its time runs out; what is left counts as unknown. ``certified`` is 
 box is outside the set or proven. Then ``safety.certificate.certified_set`` keeps the largest closed
 union of proven boxes: ``kept`` is its share of the box (the certified set is ``{V >= c}`` within
 it), and with ``--out-dir`` its certificate is written there (the closure holds the boxes sparsely,
-so it runs at 6D and 9D too). ``--resume-dir`` keeps each level's verifier progress, so a second
+so it runs at 6D and 9D too). ``--explain`` says how the closure lost what it lost: the undecided
+boxes from which every candidate input leaves the domain in one step, and the closure round by
+round (boxes dropped, boxes kept by switching input, share of the box still kept).
+
+``--resume-dir`` keeps each level's verifier progress, so a second
 run continues the first (its ``wall s`` and boxes count both): shares against time.
 """
 
@@ -22,9 +26,27 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+import torch
+
 from safety.certificate import certified_set, save_certificate
-from safety.certify import CertifySettings, certify
+from safety.certify import REFUTED, UNKNOWN, CertificationResult, CertifySettings, _network, _Verifier, certify
 from safety.sources import load_value_function
+
+
+def leaving_domain(network: object, result: CertificationResult) -> tuple[float, float]:
+    """The undecided (refuted or unknown) boxes' share of the state box, and the share of those from
+    which every candidate input takes some next state out of the domain in one step."""
+    verifier = _Verifier(_network(network), result.settings, torch.device("cpu"))
+    undecided = ((result.status == UNKNOWN) | (result.status == REFUTED)).nonzero().squeeze(-1)
+    lo, hi = result.lo[undecided], result.hi[undecided]
+    volume = ((hi - lo) / verifier.span).prod(-1)
+    leaves = torch.ones(len(undecided), dtype=torch.bool)
+    for u in verifier.candidates:
+        n_lo, n_hi, piece = verifier.next_boxes(lo, hi, u.expand(len(lo), -1))
+        held = torch.ones(len(lo) * len(verifier.d_lo), dtype=torch.long)
+        held.scatter_reduce_(0, piece, verifier.in_domain(n_lo, n_hi).long(), reduce="amin")
+        leaves &= ~held.reshape(len(lo), -1).bool().all(-1)
+    return float(volume.sum()), float(volume[leaves].sum())
 
 
 def main() -> None:
@@ -41,6 +63,7 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--max-boxes", type=int, default=2_000_000)
     parser.add_argument("--out-dir", type=Path, default=None, help="write each level's certificate here")
+    parser.add_argument("--explain", action="store_true", help="say how the closure lost what it lost")
     parser.add_argument(
         "--resume-dir",
         type=Path,
@@ -74,7 +97,8 @@ def main() -> None:
         result = certify(network, settings, device=args.device, resume=resume)
         shares = result.volume_shares()
         start = time.perf_counter()
-        certificate = certified_set(network, result)
+        rounds: list[dict] = []
+        certificate = certified_set(network, result, rounds)
         closure = f"{time.perf_counter() - start:.1f}"
         kept = f"{certificate.kept_volume_share(network.system.domain_tensor()):.4f}"
         if args.out_dir is not None:
@@ -86,6 +110,13 @@ def main() -> None:
             f"{len(result.counterexamples)} | {kept} | {closure} |",
             flush=True,
         )
+        if args.explain:
+            undecided, leaving = leaving_domain(network, result)
+            print(
+                f"#   c = {level:g}: undecided {undecided:.4f} of the box, of which {leaving:.4f} where every "
+                f"input leaves the domain in one step; closure rounds (dropped / switched input / kept share):"
+            )
+            print("#   " + ", ".join(f"{r['dropped']}/{r['switched']}/{r['kept']:.4f}" for r in rounds), flush=True)
 
 
 if __name__ == "__main__":

@@ -121,7 +121,9 @@ def _fails(owner: torch.Tensor, hit: torch.Tensor, rows: int) -> torch.Tensor:
     return fails.bool()
 
 
-def certified_set(value_function: NeuralValueFunction | ValueNetwork, result: CertificationResult) -> Certificate:
+def certified_set(
+    value_function: NeuralValueFunction | ValueNetwork, result: CertificationResult, rounds: list | None = None
+) -> Certificate:
     """The largest union of ``result``'s proven boxes whose next states stay within it or in boxes
     proven outside ``S_c`` (module docstring), as a :class:`Certificate`.
 
@@ -129,7 +131,10 @@ def certified_set(value_function: NeuralValueFunction | ValueNetwork, result: Ce
     boxes exactly when no other box meets it. Boxes drop out in rounds, and each round checks the
     survivors against only the boxes dropped in the round before (the rest they already passed).
     A box about to drop first tries the other candidate inputs: one that proves (b) on it and whose
-    next states meet no dropped box becomes its backup input, and the box stays."""
+    next states meet no dropped box becomes its backup input, and the box stays.
+
+    ``rounds``, a list, receives one dict a round: the boxes ``dropped`` and ``switched`` (to another
+    input), and the share of the state box still ``kept`` (how a certified set is lost, round by round)."""
     network = _network(value_function)
     verifier = _Verifier(network, result.settings, torch.device("cpu"))
     grid = _Grid(verifier.domain, _resolution(result, verifier.domain))
@@ -151,6 +156,7 @@ def certified_set(value_function: NeuralValueFunction | ValueNetwork, result: Ce
         hit = torch.zeros(len(owner), dtype=torch.bool)
         hit[live] = DyadicCover(a[dropped], b[dropped], grid.resolution).meets(n_a[live], n_b[live])
         failing = alive & _fails(owner, hit, len(rows))
+        switched = 0
         if bool(failing.any()):
             everything = DyadicCover(a[banned], b[banned], grid.resolution)
             for k, u in enumerate(result.candidates):
@@ -168,6 +174,7 @@ def certified_set(value_function: NeuralValueFunction | ValueNetwork, result: Ce
                 if not len(moved):
                     continue
                 choice[moved], failing[moved] = k, False
+                switched += len(moved)
                 mine = clear[k_owner]  # the new pieces replace the moved rows' old ones
                 stays = ~torch.isin(owner, moved)
                 n_a, n_b = torch.cat([n_a[stays], k_a[mine]]), torch.cat([n_b[stays], k_b[mine]])
@@ -176,6 +183,9 @@ def certified_set(value_function: NeuralValueFunction | ValueNetwork, result: Ce
         dropped[rows[failing]] = True
         banned |= dropped
         alive &= ~failing
+        if rounds is not None:
+            share = float(((hi[alive] - lo[alive]) / grid.span).prod(-1).sum())
+            rounds.append({"dropped": int(failing.sum()), "switched": switched, "kept": share})
     kept = rows[alive]
     return Certificate(
         result.settings,

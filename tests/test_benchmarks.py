@@ -353,3 +353,25 @@ def test_dimension_study_scores_snapshots_and_times_the_false_safe_goal(tmp_path
     curve = [(5.0, 0.0, 100, 0.5), (10.0, 0.02, 100, 0.1), (15.0, 0.0005, 100, 0.05), (20.0, 0.001, 100, 0.04)]
     assert study.minutes_to_stay_below(curve) == 15.0  # not 5: the rate left the goal after it
     assert study.minutes_to_stay_below(curve[:2]) is None  # above the goal at the end
+
+
+def test_certify_study_explains_how_the_closure_lost_the_set(tmp_path: Path, capsys, monkeypatch):
+    """A short run prints its row, the undecided share with the part that must leave the domain, and
+    the closure's rounds, whose kept shares only fall."""
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    import certify_study
+
+    argv = ["certify_study.py", "--levels", "0.1", "--max-seconds", "20", "--initial-splits", "2"]
+    argv += ["--min-width", "0.125", "--explain", "--out-dir", str(tmp_path)]
+    monkeypatch.setattr(sys, "argv", argv)
+    certify_study.main()
+    out = capsys.readouterr().out
+    explained = [line for line in out.splitlines() if "where every input leaves the domain" in line]
+    assert len(explained) == 1
+    words = explained[0].split()
+    undecided, leaving = float(words[words.index("undecided") + 1]), float(words[words.index("which") + 1])
+    assert 0.0 <= leaving <= undecided <= 1.0
+    rounds = out.splitlines()[out.splitlines().index(explained[0]) + 1].lstrip("# ").split(", ")
+    kept = [float(r.split("/")[2]) for r in rounds if r]
+    assert all(a >= b for a, b in itertools.pairwise(kept))
+    assert (tmp_path / "level-0.1.npz").exists()
