@@ -49,6 +49,13 @@ VERIFY_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
         "the induced policy rolled out: the bang-bang u* of grad V, or the held candidate input that leaves the "
         "most value (slower)",
     ),
+    (
+        "--control-period",
+        "control_period",
+        {"type": positive_float_arg},
+        "the policy decides every this many seconds and holds its input in between (a multiple of --dt; "
+        "None: every step)",
+    ),
     ("--horizon", "horizon", {"type": positive_float_arg}, "time-to-go of the check (None: the system's)"),
     (
         "--chunk-size",

@@ -136,6 +136,11 @@ class RolloutSettings:
             functions only): faster on CPUs and GPUs with bf16 units, and not exact: outcomes can
             differ from float32 near the BRT boundary (measured in ``benchmarks/bench_rollouts.py``).
         early_exit: stop trajectories whose outcome is decided (see the module docstring).
+        control_period: how often the policy decides, in seconds: its input is held in between, as
+            a controller acting every ``control_period`` holds it (a whole multiple of ``dt``; None:
+            every step). The disturbance still acts at every step. A greedy policy held for its own
+            lookahead (:data:`~safety.value_policies.GREEDY_STEP`) applies each input exactly as long
+            as it looked ahead, at a fraction of the cost.
 
     Every field is checked at construction and a bad one raises ``ValueError`` naming it; NumPy and
     0-d tensor reals are taken (and stored as Python numbers).
@@ -148,6 +153,7 @@ class RolloutSettings:
     chunk_size: int = 16384
     matmul_precision: str = "float32"
     early_exit: bool = True
+    control_period: float | None = None
 
     def __post_init__(self) -> None:
         horizon = None if self.horizon is None else positive_finite("horizon", self.horizon)
@@ -160,6 +166,11 @@ class RolloutSettings:
             raise ValueError(f"matmul_precision must be 'float32' or 'bfloat16', got {self.matmul_precision!r}")
         if not isinstance(self.early_exit, bool):
             raise ValueError(f"early_exit must be True or False, got {self.early_exit!r}")
+        if self.control_period is not None:
+            period = positive_finite("control_period", self.control_period)
+            if abs(period / dt - round(period / dt)) > 1e-6 or round(period / dt) < 1:
+                raise ValueError(f"control_period must be a whole multiple of dt ({dt:g} s), got {period:g} s")
+            object.__setattr__(self, "control_period", period)
         object.__setattr__(self, "horizon", horizon)
         object.__setattr__(self, "dt", dt)
         object.__setattr__(self, "chunk_size", check_int("chunk_size", self.chunk_size, 1))
@@ -262,20 +273,26 @@ def rollout(
     advance = make_stepper(system, dt, integrator, TORCH)
     greedy = GreedyPolicy(value_function, dt=dt, integrator=integrator) if policy == "greedy" else None
 
-    def step(x: torch.Tensor, t: float) -> torch.Tensor:
+    hold = None if settings.control_period is None else round(settings.control_period / dt)
+
+    def step(x: torch.Tensor, t: float, held: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The next states, and the inputs applied: ``held`` where given, else the policy's now."""
         # the gradient where u* or d* needs it: networks fuse it with the value; grids interpolate it alone
-        p = value_function.gradient(x, t) if greedy is None or (disturbance == "optimal" and use_disturbance) else None
+        wants_p = (greedy is None and held is None) or (disturbance == "optimal" and use_disturbance)
+        p = value_function.gradient(x, t) if wants_p else None
         if not use_disturbance:
             d = None
         elif disturbance == "optimal":
             d = system.optimal_disturbance(x, p)
         else:
             d = disturbance(x, torch.full(x.shape[:-1], t, dtype=x.dtype, device=x.device))
-        u = system.optimal_control(x, p) if greedy is None else greedy.control(x, t, d)
+        u = held
+        if u is None:
+            u = system.optimal_control(x, p) if greedy is None else greedy.control(x, t, d)
         cols = TORCH.unbind(x)
         uc = system.input_columns(u, system.control_bounds, "u")
         dc = system.input_columns(d, system.disturbance_bounds, "d")
-        return TORCH.stack(advance(cols, uc, dc), like=cols[0])  # integrates and wraps headings
+        return TORCH.stack(advance(cols, uc, dc), like=cols[0]), u  # integrates and wraps headings
 
     n = states.shape[0]
     initial_value = torch.empty(n, dtype=dtype)
@@ -323,12 +340,14 @@ def rollout(
             if bool(done0.any()):
                 settle(idx[hit0].cpu(), None if in_target is None else idx[in_target].cpu(), 0.0)
                 x, idx = x[~done0], idx[~done0]
+            held = None  # the inputs being held (a control period longer than dt)
             for k in range(n_steps):
                 if idx.numel() == 0:
                     bar.update(n_steps - k)
                     break
                 t_go = max(horizon - k * dt, 0.0)
-                x = step(x, t_go)
+                x, u = step(x, t_go, None if hold is None or k % hold == 0 else held)
+                held = None if hold is None else u
                 state_steps += int(idx.numel())
                 elapsed = min((k + 1) * dt, horizon)
                 if record:
@@ -346,6 +365,7 @@ def rollout(
                         decided_time[idx[safe].cpu()] = elapsed
                     keep = ~done
                     x, idx = x[keep], idx[keep]
+                    held = None if held is None else held[keep]
                 bar.update(1)
     return RolloutResult(
         initial_value=initial_value,

@@ -59,6 +59,9 @@ class VerifySettings:
     #: fresh ones only for the rest (:func:`_delta_check`): the same guarantees from about a
     #: third fewer rollouts under the card's protocol. Off by default, so rows keep their meaning.
     share_samples: bool = False
+    #: how often the policy decides, in seconds (a whole multiple of dt), its input held in between;
+    #: None: at every step. Every number then speaks of that held policy (RolloutSettings.control_period)
+    control_period: float | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.samples, bool) or not isinstance(self.samples, int) or self.samples < 1:
@@ -86,6 +89,7 @@ class VerifySettings:
             policy=self.policy,
             chunk_size=self.chunk_size,
             matmul_precision=self.matmul_precision if matmul_precision is None else matmul_precision,
+            control_period=self.control_period,
         )
 
     @property

@@ -158,7 +158,13 @@ def _previous(out: Path, header: dict[str, Any], keep_errors: bool = False) -> d
     data = read_json(path, "existing results", hint="; move the file away to start over")
     if isinstance(data.get("settings"), dict):  # files from before these settings existed used these values
         data["settings"] = _resolved(
-            {"matmul_precision": "float32", "policy": "gradient", "share_samples": False, **data["settings"]}
+            {
+                "matmul_precision": "float32",
+                "policy": "gradient",
+                "share_samples": False,
+                "control_period": None,
+                **data["settings"],
+            }
         )
     if any(
         data.get(key) != header[key]
@@ -289,8 +295,12 @@ def evaluate_many(
                 loaded.value_function.outside = "clamp"  # rollouts may leave the grid; documented
             row.update(label=loaded.label, layout=loaded.layout, kind=loaded.kind)
             # what the rollouts depend on: sharing samples reuses outcomes and changes no rollout, so a
-            # shared run loads the blocks of an unshared one (and the reverse) and older stores stay valid
-            rolled = {k: v for k, v in header["settings"].items() if k != "share_samples"}
+            # shared run loads the blocks of an unshared one (and the reverse) and older stores stay valid;
+            # a policy deciding at every step keys as stores did before the control period existed
+            settings_now = header["settings"].items()
+            rolled = {
+                k: v for k, v in settings_now if k != "share_samples" and not (k == "control_period" and v is None)
+            }
             key = {"source": path, "fingerprint": fp, "device": device, **header, "settings": rolled}
             with RolloutStore(_store_directory(out, path), key) as store:
                 vf = loaded.value_function
