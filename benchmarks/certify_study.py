@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import torch
 
-from safety.certificate import certified_set, save_certificate
+from safety.certificate import _fails, _next_boxes, certified_set, save_certificate
 from safety.certify import REFUTED, UNKNOWN, CertificationResult, CertifySettings, _network, _Verifier, certify
 from safety.sources import load_value_function
 
@@ -42,10 +42,8 @@ def leaving_domain(network: object, result: CertificationResult) -> tuple[float,
     volume = ((hi - lo) / verifier.span).prod(-1)
     leaves = torch.ones(len(undecided), dtype=torch.bool)
     for u in verifier.candidates:
-        n_lo, n_hi, piece = verifier.next_boxes(lo, hi, u.expand(len(lo), -1))
-        held = torch.ones(len(lo) * len(verifier.d_lo), dtype=torch.long)
-        held.scatter_reduce_(0, piece, verifier.in_domain(n_lo, n_hi).long(), reduce="amin")
-        leaves &= ~held.reshape(len(lo), -1).bool().all(-1)
+        n_lo, n_hi, owner = _next_boxes(verifier, lo, hi, u.expand(len(lo), -1))
+        leaves &= _fails(owner, ~verifier.in_domain(n_lo, n_hi), len(lo))
     return float(volume.sum()), float(volume[leaves].sum())
 
 

@@ -73,12 +73,12 @@ class CertifiedFilter:
         self._verifier = _Verifier(network, certificate.settings, torch.device("cpu"))
         self._network64 = self._verifier.network
         self._grid = _Grid(self._verifier.domain, certificate.resolution)
+        # the kept boxes first, then the outside ones: a state's box below its number of kept boxes is
+        # the kept box that holds it, whose backup input applies
         self._allowed = self._grid.cover(
             torch.cat([certificate.kept_lo, certificate.outside_lo]),
             torch.cat([certificate.kept_hi, certificate.outside_hi]),
         )
-        # the kept boxes alone, to find a state's box and its backup input
-        self._kept = self._grid.cover(certificate.kept_lo, certificate.kept_hi) if len(certificate.kept_lo) else None
 
     def __call__(self, x: torch.Tensor, u_nominal: torch.Tensor) -> tuple[torch.Tensor, CertifiedInfo]:
         """The applied inputs for states ``(B, n)`` (or ``(n,)``) and nominal inputs ``(B, m)`` (or ``(m,)``)."""
@@ -96,10 +96,10 @@ class CertifiedFilter:
         domain = self._verifier.domain
         inside = ((x >= domain[:, 0]) & (x <= domain[:, 1])).all(-1)
         box = torch.full((len(x),), -1, dtype=torch.long)
-        if bool(inside.any()) and self._kept is not None:
+        if bool(inside.any()):
             a, _ = self._grid.cells(x[inside], x[inside], exact=False)
-            cell = a.clamp(max=self._grid.resolution - 1)
-            box[inside] = self._kept.owner(cell)
+            owner = self._allowed.owner(a.clamp(max=self._grid.resolution - 1))
+            box[inside] = torch.where(owner < len(self.certificate.kept_lo), owner, -1)
         certified = inside & (value >= s.level) & (box >= 0)
         keep = certified & self._admissible(u) & self._keeps_set(x, u)
         applied = u.clone()
