@@ -91,6 +91,13 @@ def test_evaluate_errors_are_clear(tmp_path: Path, capsys):
     (tmp_path / "dr.pth").write_bytes(b"x")
     assert main(["evaluate", str(tmp_path / "dr.pth"), "--out", str(tmp_path / "r.csv")]) == 2
     assert "stores neither system nor layout" in capsys.readouterr().err
+    # a control period that is not a whole number of steps is refused in one line, before any rollout
+    out = tmp_path / "held.csv"
+    held = ["--control-period", "0.003", "--samples", "10", "--out", str(out)]
+    assert main(["evaluate", "pretrained:air3d", *held]) == 2
+    err = capsys.readouterr().err
+    assert "control_period must be a whole multiple of dt" in err and "Traceback" not in err
+    assert not out.exists()
 
 
 def test_grid_solution_evaluates_as_control_experiment(air3d_grid, tmp_path: Path):
