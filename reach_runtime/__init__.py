@@ -16,7 +16,11 @@ output); a state outside the domain keeps no nominal input (``info.outside_domai
 ``info.intervened`` says where the nominal input was overridden.
 
 This package imports only the standard library, NumPy and ONNX Runtime: copy its folder next to
-your controller and ``pip install numpy onnxruntime``.
+your controller and ``pip install numpy onnxruntime``. ``Filter.load(path, engine="native")``
+compiles the graph to C instead (:mod:`reach_runtime.native`: a fraction of the latency at batch 1;
+it needs a C compiler, and the ``onnx`` package to read the graph), checked against ONNX Runtime
+on sampled states before it decides; ``reach_runtime.native.c_source(path)`` is the C file alone,
+for a controller without Python.
 """
 
 from reach_runtime.filter import Filter, FilterInfo, FilterMetadata

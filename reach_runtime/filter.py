@@ -15,10 +15,13 @@ from typing import Any
 import numpy as np
 import onnxruntime
 
-__all__ = ["FORMAT", "Filter", "FilterInfo", "FilterMetadata"]
+__all__ = ["ENGINES", "FORMAT", "Filter", "FilterInfo", "FilterMetadata"]
 
 #: the exported format this runtime reads (``reach.format`` in the file's metadata)
 FORMAT = "reach-filter/1"
+
+#: how a filter's graph can run (``Filter.load(..., engine=)``)
+ENGINES = ("onnxruntime", "native")
 
 #: relative slack on the time-to-go range: times summed in float32 (``k * dt``) may overshoot it
 _TIME_TOLERANCE = 1e-6
@@ -108,12 +111,16 @@ class Filter:
 
     ``Filter.load(path)`` opens the file; ``filter(x, u_nominal, t=None) -> (u, info)`` decides.
     ``threads`` (default 1: a control loop's filter should not compete for cores) sets ONNX
-    Runtime's intra-op threads.
+    Runtime's intra-op threads. ``engine="native"`` runs the graph compiled to C instead
+    (:mod:`reach_runtime.native`: the same decision, a fraction of the latency at batch 1), behind
+    the same checks.
     """
 
-    def __init__(self, session: onnxruntime.InferenceSession, metadata: FilterMetadata) -> None:
+    def __init__(self, session: onnxruntime.InferenceSession, metadata: FilterMetadata, native: Any = None) -> None:
         self.session = session
         self.metadata = metadata
+        self.engine = "onnxruntime" if native is None else "native"
+        self._native = native
         self._outputs = [o.name for o in session.get_outputs()]
         names = [i.name for i in session.get_inputs()]
         if names != ["state", "time_to_go", "u_nominal"]:
@@ -123,8 +130,14 @@ class Filter:
             raise ValueError(f"the graph lacks outputs {sorted(expected - set(self._outputs))}")
 
     @classmethod
-    def load(cls, path: str | os.PathLike, threads: int = 1) -> Filter:
-        """Open an exported filter; ``ValueError`` names a missing, unreadable or foreign file."""
+    def load(cls, path: str | os.PathLike, threads: int = 1, engine: str = "onnxruntime") -> Filter:
+        """Open an exported filter; ``ValueError`` names a missing, unreadable or foreign file.
+
+        ``engine``: ``"onnxruntime"`` (the default) runs the graph with ONNX Runtime; ``"native"``
+        compiles it to C with the system's C compiler (once, cached; it needs the ``onnx`` package
+        to read the graph) and calls that (``threads`` is then unused: the C code is one thread)."""
+        if engine not in ENGINES:
+            raise ValueError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
         where = os.fspath(path)
         if not os.path.isfile(where):
             raise ValueError(f"{where}: no such file (an exported filter is one .onnx file)")
@@ -140,7 +153,16 @@ class Filter:
         except Exception as error:  # ONNX Runtime raises its own exception types for unreadable files
             raise ValueError(f"{where}: not a readable ONNX model ({type(error).__name__}: {error})") from None
         props = session.get_modelmeta().custom_metadata_map
-        return cls(session, FilterMetadata.from_properties(props, where))
+        metadata = FilterMetadata.from_properties(props, where)
+        native = None
+        if engine == "native":
+            from reach_runtime.native import NativeGraph  # lazy: only this engine reads the graph (onnx) and compiles
+
+            native = NativeGraph(where)
+            if native.input_names != ["state", "time_to_go", "u_nominal"]:
+                raise ValueError(f"{where}: the compiled graph's inputs are {native.input_names}")
+            _check_native(session, native, metadata, where)
+        return cls(session, metadata, native)
 
     # ------------------------------------------------------------------ deciding
     def __call__(self, x: Any, u_nominal: Any, t: float | Any | None = None) -> tuple[np.ndarray, FilterInfo]:
@@ -162,7 +184,8 @@ class Filter:
             "time_to_go": ts.reshape(-1),
             "u_nominal": us.reshape(-1, meta.control_dim),
         }
-        out = dict(zip(self._outputs, self.session.run(None, flat)))
+        results = self.session.run(None, flat) if self._native is None else self._native.run(flat)
+        out = dict(zip(self._outputs, results))
         if bool(np.asarray(out["untrusted"]).any()):
             raise ValueError(
                 "the value function returned a non-finite value, gradient or optimal input in this batch; "
@@ -230,3 +253,59 @@ class Filter:
         meta = self.metadata
         dt = "" if meta.dt is None or math.isnan(meta.dt) else f", dt={meta.dt:g}"
         return f"Filter({meta.kind} of {meta.system_name}, threshold={meta.threshold:g}{dt}, source={meta.source!r})"
+
+
+#: states on which a compiled filter is checked against ONNX Runtime when it is loaded
+NATIVE_CHECK_STATES = 256
+
+
+def _check_native(session: onnxruntime.InferenceSession, native: Any, meta: FilterMetadata, where: str) -> None:
+    """Refuse a compiled graph that does not decide as ONNX Runtime does on sampled states.
+
+    ``NATIVE_CHECK_STATES`` states drawn uniformly from the domain (and a little beyond it, where the
+    filter must intervene), times-to-go over the range, nominal inputs over the input set, one
+    batch: so a graph that mixes rows, or any miscompilation, is caught before the first decision.
+    Values and gradients must agree to float32 rounding (matrix sums run in another order), the
+    flags exactly, and the decision on all but 1 % of the states (a state within rounding of the
+    threshold may go either way)."""
+    rng = np.random.default_rng(0)
+    count = NATIVE_CHECK_STATES
+    low, high = np.array(meta.domain, dtype=np.float64).T
+    span = high - low
+    x = rng.uniform(low - 0.05 * span, high + 0.05 * span, size=(count, meta.state_dim))
+    t = rng.uniform(*meta.time_range, size=count)
+    box = meta.control_set.get("box")
+    if box is not None:
+        u = rng.uniform(
+            np.array(box["low"], dtype=np.float64),
+            np.array(box["high"], dtype=np.float64),
+            size=(count, meta.control_dim),
+        )
+    else:
+        ball = meta.control_set["ball"]
+        direction = rng.normal(size=(count, meta.control_dim))
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        u = np.array(ball["center"]) + float(ball["radius"]) * rng.uniform(0, 1, (count, 1)) * direction
+    feeds = {"state": x.astype(np.float32), "time_to_go": t.astype(np.float32), "u_nominal": u.astype(np.float32)}
+    names = [o.name for o in session.get_outputs()]
+    expected = dict(zip(names, session.run(None, feeds)))
+    got = dict(zip(names, native.run(feeds)))
+    trusted = not bool(expected["untrusted"]) and not bool(got["untrusted"])
+    problems = []
+    if bool(expected["untrusted"]) != bool(got["untrusted"]):
+        problems.append("its untrusted flag")
+    if trusted:
+        if not np.allclose(got["value"], expected["value"], rtol=1e-4, atol=1e-4):
+            problems.append("values")
+        if not np.allclose(got["gradient"], expected["gradient"], rtol=1e-3, atol=1e-3):
+            problems.append("gradients")
+        for flag in ("outside_domain", "infeasible"):
+            if not np.array_equal(got[flag], expected[flag]):
+                problems.append(flag)
+        if (got["intervened"] != expected["intervened"]).mean() > 0.01:
+            problems.append("decisions")
+    if problems:
+        raise ValueError(
+            f"{where}: the compiled filter disagrees with ONNX Runtime on {', '.join(problems)} over "
+            f"{count} sampled states; it is not used (load it with engine='onnxruntime')"
+        )

@@ -256,3 +256,81 @@ def test_the_runtime_installs_with_pip_in_a_fresh_venv(exported, tmp_path):
     pip = [str(venv / "bin" / "python"), "-m", "pip", "install", "-q", "--disable-pip-version-check"]
     subprocess.run([*pip, "numpy", "onnxruntime"], check=True, timeout=600)
     _run_in_fresh_venv(venv, tmp_path / "app", exported["switch"].path)
+
+
+# ---------------------------------------------------------------------------------------------
+# the native engine: the same filter compiled to C (reach_runtime.native), behind the same checks
+needs_compiler = pytest.mark.skipif(
+    not any(shutil.which(c) for c in ("cc", "gcc", "clang")), reason="the native engine needs a C compiler"
+)
+
+
+@pytest.fixture(scope="module")
+def native_cache(tmp_path_factory):
+    """One build cache for this module (a build takes several seconds): XDG_CACHE_HOME, restored after."""
+    before = os.environ.get("XDG_CACHE_HOME")
+    os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("native-cache"))
+    yield
+    if before is None:
+        os.environ.pop("XDG_CACHE_HOME", None)
+    else:
+        os.environ["XDG_CACHE_HOME"] = before
+
+
+@needs_compiler
+def test_the_native_engine_decides_as_onnx_runtime_and_fails_closed(exported, air3d, native_cache):
+    """On 2,000 random states, the compiled switch decides as ONNX Runtime runs the same file: values
+    within float32 rounding, the same decisions and applied inputs; and its bad input is refused,
+    its states outside the domain overridden, exactly as with ONNX Runtime."""
+    path = exported["switch"].path
+    reference, native = Filter.load(path), Filter.load(path, engine="native")
+    assert native.engine == "native" and reference.engine == "onnxruntime"
+    x, t, u = _inputs(air3d.system, 2000, 5)
+    expected, expected_info = reference(x.numpy(), u.numpy(), t.numpy())
+    got, got_info = native(x.numpy(), u.numpy(), t.numpy())
+    np.testing.assert_allclose(got_info.value, expected_info.value, atol=2e-6, rtol=1e-6)
+    np.testing.assert_allclose(got_info.gradient, expected_info.gradient, atol=2e-5, rtol=1e-5)
+    differ = got_info.intervened != expected_info.intervened
+    assert not (differ & (np.abs(expected_info.value - native.metadata.threshold) > 1e-4)).any()
+    assert np.isclose(got[~differ], expected[~differ], atol=1e-5).all(-1).mean() > 0.999
+    one, _ = native(x[0].numpy(), u[0].numpy(), t=float(t[0]))
+    assert one.shape == (1,) and np.allclose(one, got[0], atol=1e-6)
+    bad = x.numpy()[:3].copy()
+    bad[1, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN or inf"):
+        native(bad, u.numpy()[:3])
+    with pytest.raises(ValueError, match=r"t = 1.5 lies outside"):
+        native(x.numpy()[:3], u.numpy()[:3], t=1.5)
+    far = x.numpy()[:3].copy()
+    far[:, 0] = 5.0
+    _, info = native(far, np.zeros((3, 1), np.float32))
+    assert info.outside_domain.all() and info.intervened.all()
+    with pytest.raises(ValueError, match="engine must be one of onnxruntime, native"):
+        Filter.load(path, engine="tvm")
+
+
+@needs_compiler
+def test_a_compiled_filter_that_disagrees_with_onnx_runtime_is_refused(exported, native_cache, monkeypatch):
+    """The load-time check: a compiled graph whose values are off (here: shifted by 1e-3 after the
+    C call) is refused before it decides anything."""
+    from reach_runtime import native
+
+    real = native.NativeGraph.run
+
+    def shifted(self, feeds):
+        out = real(self, feeds)
+        out[1] = out[1] + 1e-3  # the value output
+        return out
+
+    monkeypatch.setattr(native.NativeGraph, "run", shifted)
+    with pytest.raises(ValueError, match="disagrees with ONNX Runtime on values"):
+        Filter.load(exported["switch"].path, engine="native")
+
+
+@needs_compiler
+@pytest.mark.slow
+def test_an_untrusted_value_raises_in_the_native_engine(exported, air3d, tmp_path, nan_weights, native_cache):
+    nan_weights(exported["switch"].path, tmp_path / "nan.onnx")
+    x, _, u = _inputs(air3d.system, 2, 4)
+    with pytest.raises(ValueError, match="non-finite value"):
+        Filter.load(tmp_path / "nan.onnx", engine="native")(x.numpy(), u.numpy(), t=0.5)
