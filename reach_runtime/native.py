@@ -69,15 +69,19 @@ _BINARY = {
     "LessOrEqual": "{a} <= {b}", "And": "{a} && {b}", "Or": "{a} || {b}",
     "Max": "RMAX({a}, {b})", "Min": "RMIN({a}, {b})",
 }  # fmt: skip
-#: unary operators defined on float32 only (their C functions are the float ones)
+#: unary operators whose C functions are float32 ones
 _FLOAT_ONLY = {"Sin", "Cos", "Sqrt", "Round"}
+#: the same in float64 (the smooth filter's projection is solved in float64): the C library's own
+_DOUBLE = {"Sin": "sin({a})", "Cos": "cos({a})", "Sqrt": "sqrt({a})", "Round": "rint({a})"}
 _MOVES = {"Slice", "Transpose", "Expand", "Tile", "Reshape", "Squeeze", "Unsqueeze", "Identity", "Gather", "GatherND"}
-_REDUCTIONS = {"ReduceMin": "RMIN", "ReduceMax": "RMAX"}
+#: reductions: how an accumulator m takes in the next operand v
+_REDUCTIONS = {"ReduceMin": "RMIN({m}, {v})", "ReduceMax": "RMAX({m}, {v})", "ReduceSum": "{m} + {v}"}
 
 #: every operator the compiler reads (what exported filters are made of)
 SUPPORTED_OPS = frozenset(
     set(_UNARY) | set(_BINARY) | _MOVES | set(_REDUCTIONS)
-    | {"Where", "Cast", "Clip", "Concat", "Gemm", "MatMul", "ArgMax", "Shape", "Constant"}
+    | {"Where", "Cast", "Clip", "Concat", "Gemm", "MatMul", "ArgMax", "ArgMin", "Shape", "Constant", "Range"}
+    | {"GatherElements", "TopK"}
 )  # fmt: skip
 
 _PRELUDE = """\
@@ -201,12 +205,25 @@ def _evaluate(op: str, attrs: dict[str, Any], xs: list[np.ndarray | None]) -> np
             axis = None
         else:
             axis = _axes(axes, a.ndim)
-        fn = np.min if op == "ReduceMin" else np.max
-        return np.asarray(fn(a, axis=axis, keepdims=bool(attrs.get("keepdims", 1))))
-    if op == "ArgMax":
+        fn = {"ReduceMin": np.min, "ReduceMax": np.max, "ReduceSum": np.sum}[op]
+        return np.asarray(fn(a, axis=axis, keepdims=bool(attrs.get("keepdims", 1)))).astype(a.dtype, copy=False)
+    if op in ("ArgMax", "ArgMin"):
         axis = attrs.get("axis", 0) % a.ndim
-        out = np.argmax(a, axis=axis).astype(np.int64)
+        out = (np.argmax if op == "ArgMax" else np.argmin)(a, axis=axis).astype(np.int64)
         return np.expand_dims(out, axis) if attrs.get("keepdims", 1) else out
+    if op == "Range":
+        return np.arange(a, xs[1], xs[2]).astype(a.dtype)
+    if op == "GatherElements":
+        axis = attrs.get("axis", 0) % a.ndim
+        indices = np.where(xs[1] < 0, xs[1] + a.shape[axis], xs[1])
+        return np.take_along_axis(a, indices, axis=axis)
+    if op == "TopK":
+        axis = attrs.get("axis", -1) % a.ndim
+        k = int(np.asarray(xs[1]).reshape(-1)[0])
+        # ties keep the lower index first (the ONNX rule): a stable sort, of -a for the largest
+        order = np.argsort(-a if attrs.get("largest", 1) else a, axis=axis, kind="stable")
+        indices = np.take(order, np.arange(k), axis=axis).astype(np.int64)
+        return np.take_along_axis(a, indices, axis=axis), indices
     if op == "Gemm":
         left = a.T if attrs.get("transA", 0) else a
         right = xs[1].T if attrs.get("transB", 0) else xs[1]
@@ -302,6 +319,7 @@ class _Emitter:
         self.decls: list[str] = []
         self.body: list[str] = []
         self._count = 0
+        self._constants: dict[tuple[str, str], str] = {}
         for init in graph.initializer:
             self.tensors[init.name] = _Tensor(init.name, numpy_helper.to_array(init), True)
         self.inputs: list[_Tensor] = []
@@ -328,10 +346,15 @@ class _Emitter:
         return f"{prefix}{self._count}"
 
     def _c(self, tensor: _Tensor) -> str:
-        """The C name of a tensor, emitting a constant's array on first use."""
+        """The C name of a tensor, emitting a constant's array on first use (once per distinct
+        content: a lookahead's backup steps fold the same weights many times over)."""
         if not tensor.c_name:
-            tensor.c_name = self._new("k")
             values = np.ascontiguousarray(tensor.value).reshape(-1)
+            key = (values.dtype.str, hashlib.sha256(values.tobytes()).hexdigest())
+            if key in self._constants:
+                tensor.c_name = self._constants[key]
+                return tensor.c_name
+            tensor.c_name = self._constants[key] = self._new("k")
             self.decls.append(
                 f"static const {tensor.ctype} {tensor.c_name}[{max(values.size, 1)}] = "
                 f"{_array_literal(values if values.size else np.zeros(1, values.dtype))};"
@@ -353,13 +376,13 @@ class _Emitter:
         strided = _strided(np.asarray(index, dtype=np.int64))
         if strided is not None:
             return strided
-        name = self._new("ix")
-        kind = "int32_t" if flat.size == 0 or flat.max(initial=0) < 2**31 else "int64_t"
-        self.decls.append(
-            f"static const {kind} {name}[{max(flat.size, 1)}] = "
-            f"{_array_literal(flat.astype(np.int64)) if flat.size else '{0}'};"
-        )
-        return f"{name}[i]"
+        return f"{self._table(flat)}[i]"
+
+    def _table(self, values: np.ndarray) -> str:
+        """A static index table (int32 where the positions allow), shared by equal tables."""
+        flat = np.asarray(values, dtype=np.int64).reshape(-1)
+        small = flat.size == 0 or (flat.min(initial=0) >= -(2**31) and flat.max(initial=0) < 2**31)
+        return self._c(_Tensor("table", flat.astype(np.int32 if small else np.int64), True))
 
     # -------------------------------------------------------------- nodes
     def _node(self, node: Any) -> None:
@@ -380,16 +403,24 @@ class _Emitter:
             raise ValueError(
                 f"{self.where}: node {node.name or op} ({op}) cannot be evaluated at batch 1: {error}"
             ) from None
-        out = _Tensor(node.output[0], np.asarray(out_value), True)
-        self.tensors[node.output[0]] = out
-        if len(node.output) > 1 and any(node.output[1:]):
-            raise ValueError(f"{self.where}: node {node.name or op} ({op}) has several outputs")
+        values_out = out_value if isinstance(out_value, tuple) else (out_value,)
+        if len([name for name in node.output if name]) > len(values_out):
+            raise ValueError(f"{self.where}: node {node.name or op} ({op}) has more outputs than it computes")
+        outs = [_Tensor(name, np.asarray(v), True) for name, v in zip(node.output, values_out)]
+        for t in outs:
+            self.tensors[t.name] = t
         dynamic = [t for t in ins if t is not None and not t.constant]
         if op == "Shape" or not dynamic:
             return  # folded: its value is known here
-        out.constant = False
-        out.value = np.zeros(out.value.shape, out.value.dtype)
-        getattr(self, f"_emit_{self._family(op)}")(op, attrs, ins, out)
+        for t in outs:
+            t.constant = False
+            t.value = np.zeros(t.value.shape, t.value.dtype)
+        if op == "TopK":
+            self._emit_topk(attrs, ins, outs)
+            return
+        if op == "Range":
+            raise ValueError(f"{self.where}: Range over computed bounds is not handled")
+        getattr(self, f"_emit_{self._family(op)}")(op, attrs, ins, outs[0])
 
     @staticmethod
     def _family(op: str) -> str:
@@ -399,7 +430,8 @@ class _Emitter:
             return "gather"
         if op in _MOVES:
             return "move"
-        return {"Concat": "concat", "Gemm": "gemm", "MatMul": "matmul", "ArgMax": "argmax"}.get(op, "reduce")
+        families = {"Concat": "concat", "Gemm": "gemm", "MatMul": "matmul", "ArgMax": "argmax", "ArgMin": "argmax"}
+        return families.get(op, "gather_elements" if op == "GatherElements" else "reduce")
 
     def _operand(self, tensor: _Tensor, shape: tuple[int, ...]) -> str:
         """``name[index]`` reading ``tensor`` broadcast to ``shape`` at output position ``i``."""
@@ -426,9 +458,12 @@ class _Emitter:
             for t in ins[1:]:
                 expr = f"R{op.upper()}({expr}, {self._operand(t, shape)})"  # type: ignore[arg-type]
         elif op in _UNARY:
-            if op in _FLOAT_ONLY and out.value.dtype != np.float32:
+            template = _UNARY[op]
+            if op in _FLOAT_ONLY and out.value.dtype == np.float64:
+                template = _DOUBLE[op]
+            elif op in _FLOAT_ONLY and out.value.dtype != np.float32:
                 raise ValueError(f"{self.where}: {op} on {out.value.dtype} is not handled")
-            expr = _UNARY[op].format(a=self._operand(ins[0], shape))  # type: ignore[arg-type]
+            expr = template.format(a=self._operand(ins[0], shape))  # type: ignore[arg-type]
         else:
             expr = _BINARY[op].format(a=self._operand(ins[0], shape), b=self._operand(ins[1], shape))  # type: ignore[arg-type]
         self.body.append(f"for (i = 0; i < {out.value.size}; ++i) {name}[i] = ({out.ctype})({expr});")
@@ -497,13 +532,9 @@ class _Emitter:
             assert t is not None
             where = np.nonzero((placed >= starts[k]) & (placed < starts[k + 1]))[0]
             source = placed[where] - starts[k]
-            table_out = self._new("ix")
-            self.decls.append(
-                f"static const int32_t {table_out}[{max(where.size, 1)}] = {_array_literal(where.astype(np.int64))};"
-            )
             self.body.append(
                 f"for (i = 0; i < {where.size}; ++i) "
-                f"{name}[{table_out}[i]] = {self._c(t)}[{self._index_table(source)}];"
+                f"{name}[{self._index_table(where)}] = {self._c(t)}[{self._index_table(source)}];"
             )
 
     def _emit_reduce(self, op: str, attrs: dict[str, Any], ins: list[_Tensor | None], out: _Tensor) -> None:
@@ -524,10 +555,11 @@ class _Emitter:
         groups = np.transpose(np.arange(source.value.size).reshape(shape), kept + reduced).reshape(out.value.size, -1)
         name = self._buffer(out)
         table = self._index_table_2d(groups)
-        fn = _REDUCTIONS[op]
+        combine = _REDUCTIONS[op]
         self.body.append(
             f"for (i = 0; i < {out.value.size}; ++i) {{ {out.ctype} m = {source.c_name}[{table.format(g=0)}]; "
-            f"for (long g = 1; g < {groups.shape[1]}; ++g) m = {fn}(m, {source.c_name}[{table.format(g='g')}]); "
+            f"for (long g = 1; g < {groups.shape[1]}; ++g) "
+            f"m = {combine.format(m='m', v=source.c_name + '[' + table.format(g='g') + ']')}; "
             f"{name}[i] = m; }}"
         )
 
@@ -535,19 +567,71 @@ class _Emitter:
         source = ins[0]
         assert source is not None
         if attrs.get("select_last_index", 0):
-            raise ValueError(f"{self.where}: ArgMax with select_last_index is not handled")
+            raise ValueError(f"{self.where}: {op} with select_last_index is not handled")
         axis = attrs.get("axis", 0) % source.value.ndim
         positions = np.moveaxis(np.arange(source.value.size).reshape(source.value.shape), axis, -1)
         groups = positions.reshape(-1, source.value.shape[axis])
         name = self._buffer(out)
         table = self._index_table_2d(groups)
-        # the first largest, NaN counting as largest (as NumPy and ONNX Runtime pick it)
+        # the first largest (smallest), a NaN counting as both, as NumPy and torch pick it
+        better = "v > m" if op == "ArgMax" else "v < m"
         self.body.append(
             f"for (i = 0; i < {out.value.size}; ++i) {{ long best = 0; "
             f"{source.ctype} m = {source.c_name}[{table.format(g=0)}]; "
             f"for (long g = 1; g < {groups.shape[1]}; ++g) {{ "
             f"{source.ctype} v = {source.c_name}[{table.format(g='g')}]; "
-            f"if (m == m && (v > m || v != v)) {{ m = v; best = g; }} }} {name}[i] = best; }}"
+            f"if (m == m && ({better} || v != v)) {{ m = v; best = g; }} }} {name}[i] = best; }}"
+        )
+
+    def _emit_gather_elements(self, op: str, attrs: dict[str, Any], ins: list[_Tensor | None], out: _Tensor) -> None:
+        """``out[..., j, ...] = data[..., index[..., j, ...], ...]`` along ``axis``: the position with
+        the axis coordinate set to 0 (strided) plus the index times the axis stride."""
+        data, indices = ins[0], ins[1]
+        assert data is not None and indices is not None
+        if indices.constant:
+            self._emit_move(op, attrs, ins, out)
+            return
+        axis = attrs.get("axis", 0) % data.value.ndim
+        dims = data.value.shape
+        stride = int(np.prod(dims[axis + 1 :], dtype=np.int64))
+        origin = np.ravel_multi_index(
+            tuple(np.zeros_like(c) if k == axis else c for k, c in enumerate(np.indices(out.value.shape))), dims
+        )
+        name = self._buffer(out)
+        self.body.append(
+            f"for (i = 0; i < {out.value.size}; ++i) {{ long j = (long){indices.c_name}[i]; "
+            f"if (j < 0) j += {dims[axis]}; if (j < 0 || j >= {dims[axis]}) return 2; "
+            f"{name}[i] = {self._c(data)}[{self._index_table(origin)} + j * {stride}]; }}"
+        )
+
+    def _emit_topk(self, attrs: dict[str, Any], ins: list[_Tensor | None], outs: list[_Tensor]) -> None:
+        """The k smallest (largest) along ``axis``, sorted, ties in index order: a stable insertion
+        sort of each group's positions (groups are a handful of breakpoints in exported filters)."""
+        source, k_input = ins[0], ins[1]
+        assert source is not None and k_input is not None
+        if not k_input.constant:
+            raise ValueError(f"{self.where}: TopK with a computed k is not handled")
+        if not attrs.get("sorted", 1):
+            raise ValueError(f"{self.where}: TopK unsorted is not handled")
+        axis = attrs.get("axis", -1) % source.value.ndim
+        n = source.value.shape[axis]
+        k = int(np.asarray(k_input.value).reshape(-1)[0])
+        before = "w < u" if not attrs.get("largest", 1) else "w > u"
+        groups = np.moveaxis(np.arange(source.value.size).reshape(source.value.shape), axis, -1).reshape(-1, n)
+        placed = np.moveaxis(np.arange(outs[0].value.size).reshape(outs[0].value.shape), axis, -1).reshape(-1, k)
+        read, write = self._index_table_2d(groups), self._index_table_2d(placed)
+        values = self._buffer(outs[0])
+        positions = self._buffer(outs[1]) if len(outs) > 1 else self._new("unused")
+        if len(outs) < 2:
+            self.decls.append(f"static int64_t {positions}[{max(outs[0].value.size, 1)}];")
+        src = source.c_name
+        self.body.append(
+            f"for (i = 0; i < {groups.shape[0]}; ++i) {{ long order[{n}]; "
+            f"for (long g = 0; g < {n}; ++g) {{ long c = g; {source.ctype} w = {src}[{read.format(g='g')}]; "
+            f"while (c > 0) {{ {source.ctype} u = {src}[{read.format(g='order[c - 1]')}]; if (!({before})) break; "
+            f"order[c] = order[c - 1]; --c; }} order[c] = g; }} "
+            f"for (long g = 0; g < {k}; ++g) {{ {values}[{write.format(g='g')}] = {src}[{read.format(g='order[g]')}]; "
+            f"{positions}[{write.format(g='g')}] = order[g]; }} }}"
         )
 
     def _index_table_2d(self, groups: np.ndarray) -> str:
@@ -559,9 +643,7 @@ class _Emitter:
             stride = int(steps[0][1] - steps[0][0]) if size > 1 else 0
             start = self._index_table(base[:, 0])
             return f"{start} + {{g}} * {stride}"
-        name = self._new("ix")
-        self.decls.append(f"static const int32_t {name}[{groups.size}] = {_array_literal(groups.astype(np.int64))};")
-        return f"{name}[i * {size} + {{g}}]"
+        return f"{self._table(groups)}[i * {size} + {{g}}]"
 
     def _matrix(self, tensor: _Tensor, transpose: bool) -> tuple[str, int, int, str]:
         """(name, rows, cols, index pattern) of a 2-D operand, read as row-major after ``transpose``."""
