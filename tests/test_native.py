@@ -187,3 +187,38 @@ def test_what_cannot_be_compiled_is_refused_by_name(tmp_path, monkeypatch):
     monkeypatch.setenv("CC", "no-such-compiler-here")
     with pytest.raises(ValueError, match="no-such-compiler-here"):
         NativeGraph(tmp_path / "sin.onnx", cache=tmp_path / "cache")
+
+
+def test_the_smooth_and_lookahead_operators_compute_what_onnx_runtime_computes(tmp_path):
+    """TopK (sorted, ties in index order, both directions), GatherElements with computed indices,
+    ReduceSum, ArgMin, and float64 sine, cosine and square root, as the smooth filter's projection
+    and the lookahead's rollout use them."""
+    i64 = lambda *v: np.array(v, np.int64)  # noqa: E731
+    nodes = [
+        helper.make_node("TopK", ["x", "k"], ["low", "low_i"], axis=-1, largest=0, sorted=1),
+        helper.make_node("TopK", ["x", "k"], ["high", "high_i"], axis=1, largest=1, sorted=1),
+        helper.make_node("GatherElements", ["x", "high_i"], ["again"], axis=-1),
+        helper.make_node("ReduceSum", ["x", "ax1"], ["total"], keepdims=0),
+        helper.make_node("ArgMin", ["x"], ["first_low"], axis=1, keepdims=0),
+        helper.make_node("Cast", ["x"], ["x64"], to=TensorProto.DOUBLE),
+        helper.make_node("Sin", ["x64"], ["s64"]),
+        helper.make_node("Abs", ["x64"], ["a64"]),
+        helper.make_node("Sqrt", ["a64"], ["r64"]),
+        helper.make_node("Cos", ["r64"], ["c64"]),
+        helper.make_node("Add", ["s64", "c64"], ["sc64"]),
+    ]
+    outputs = [
+        ("low", TensorProto.FLOAT, ["b", 3]), ("low_i", TensorProto.INT64, ["b", 3]),
+        ("high", TensorProto.FLOAT, ["b", 3]), ("high_i", TensorProto.INT64, ["b", 3]),
+        ("again", TensorProto.FLOAT, ["b", 3]), ("total", TensorProto.FLOAT, ["b"]),
+        ("first_low", TensorProto.INT64, ["b"]), ("sc64", TensorProto.DOUBLE, ["b", 6]),
+    ]  # fmt: skip
+    model = _model(nodes, [("x", ["b", 6])], outputs, [("k", i64(3)), ("ax1", i64(1))])
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(40, 6)).astype(np.float32)
+    x[::3, 4] = x[::3, 1]  # ties: the lower index comes first
+    x[::5, :] = 0.5  # a row of equal values
+    expected, got = _both(model, {"x": x}, tmp_path)
+    for (name, _, _), e, g in zip(outputs, expected, got):
+        assert e.shape == g.shape and e.dtype == g.dtype, name
+        np.testing.assert_allclose(g, e, rtol=1e-6, atol=1e-6, err_msg=name)
