@@ -2,7 +2,7 @@
 
 Two studies, one command each (docs/export.md holds their tables):
 
-    python benchmarks/export_filter.py equivalence --states 100000
+    python benchmarks/export_filter.py equivalence --states 100000 [--engine native]
     python benchmarks/export_filter.py latency --calls 3000
     python benchmarks/export_filter.py graph
 
@@ -20,8 +20,11 @@ alone and ``V`` with its gradient trace to (ONNX Runtime spends about a microsec
 
 ``latency`` times one decision at batch 1 on one thread (``torch.set_num_threads(1)``, ONNX
 Runtime with one intra-op thread), per call: the torch filter, the runtime's ``Filter.__call__``
-(its NumPy checks and the graph) and the graph alone (``session.run``); then states per second at
-batch 1024. Run it on a quiet machine: nothing else may run beside it.
+(its NumPy checks and the graph) and the graph alone (``session.run``), then the same two for the
+native engine (``engine="native"``: the graph compiled to C, :mod:`reach_runtime.native`); then
+states per second at batch 1024. Run it on a quiet machine: nothing else may run beside it.
+
+``--engine native`` makes ``equivalence`` compare the native engine with the torch filter.
 """
 
 from __future__ import annotations
@@ -75,7 +78,7 @@ def export_path(folder: Path, name: str, kind: str, horizon: float) -> Path:
 
 
 def exported(
-    vf: object, name: str, kind: str, folder: Path, horizon: float
+    vf: object, name: str, kind: str, folder: Path, horizon: float, engine: str = "onnxruntime"
 ) -> tuple[dict, SafetyFilter, Filter, float | None]:
     """The filter exported to ``folder`` (reused when there: the time is then None), the torch filter
     of the same settings, and the runtime's filter."""
@@ -86,7 +89,7 @@ def exported(
         start = time.perf_counter()
         export_filter(vf, path, settings, dt=DT, check_states=0)
         seconds = time.perf_counter() - start
-    runtime = Filter.load(path)
+    runtime = Filter.load(path, engine=engine)
     meta = runtime.metadata
     torch_filter = SafetyFilter(vf, meta.threshold, settings=FilterSettings(**meta.settings), dt=DT)
     return meta.raw, torch_filter, runtime, seconds
@@ -97,7 +100,7 @@ def filters(args: argparse.Namespace) -> Iterator[tuple[str, str, object, tuple]
     args.folder.mkdir(parents=True, exist_ok=True)
     for name, vf in sources(args.folder, args.user_steps).items():
         for kind in KINDS:
-            yield name, kind, vf, exported(vf, name, kind, args.folder, args.horizon)
+            yield name, kind, vf, exported(vf, name, kind, args.folder, args.horizon, args.engine)
 
 
 def draws(system: object, count: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -111,7 +114,10 @@ def draws(system: object, count: int, seed: int) -> tuple[torch.Tensor, torch.Te
 
 
 def equivalence(args: argparse.Namespace) -> None:
-    print(f"# equivalence: {args.states} states per system and kind, dt {DT}, lookahead backup {args.horizon} s")
+    print(
+        f"# equivalence: {args.states} states per system and kind, dt {DT}, lookahead backup {args.horizon} s, "
+        f"engine {args.engine}"
+    )
     print("| system | filter | export s | differ | near threshold | max dV | max dgrad | applied differ | max du |")
     print("|---|---|---|---|---|---|---|---|---|")
     for name, kind, vf, (meta, torch_filter, runtime, seconds) in filters(args):
@@ -150,9 +156,10 @@ def percentiles(fn: object, calls: int) -> tuple[float, float]:
 
 
 def timings(
-    system: object, torch_filter: SafetyFilter, runtime: Filter, args: argparse.Namespace
+    system: object, torch_filter: SafetyFilter, runtime: Filter, native: Filter, args: argparse.Namespace
 ) -> tuple[list[tuple[float, float]], list[float]]:
-    """Per-call percentiles at batch 1 (torch, runtime, graph alone) and states/s at batch 1024."""
+    """Per-call percentiles at batch 1 (torch; ONNX Runtime: the runtime's call, the graph alone; the
+    native engine: the same two) and states/s at batch 1024 (torch, ONNX Runtime, native)."""
     x, _, u = draws(system, 1024, args.seed)
     horizon = float(system.horizon)
     x1, u1 = x[:1], u[:1]
@@ -162,9 +169,15 @@ def timings(
         percentiles(lambda: torch_filter(x1, horizon, u1), args.calls),
         percentiles(lambda: runtime(xn, un, horizon), args.calls),
         percentiles(lambda: runtime.session.run(None, feed), args.calls),
+        percentiles(lambda: native(xn, un, horizon), args.calls),
+        percentiles(lambda: native._native.run(feed), args.calls),
     ]
     rates = []
-    for fn in (lambda: torch_filter(x, horizon, u), lambda: runtime(x.numpy(), u.numpy(), horizon)):
+    for fn in (
+        lambda: torch_filter(x, horizon, u),
+        lambda: runtime(x.numpy(), u.numpy(), horizon),
+        lambda: native(x.numpy(), u.numpy(), horizon),
+    ):
         fn()
         start = time.perf_counter()
         for _ in range(10):
@@ -177,14 +190,18 @@ def latency(args: argparse.Namespace) -> None:
     torch.set_num_threads(1)
     print(f"# latency: batch 1, one thread, {args.calls} calls each (p50 / p99 in microseconds); dt {DT}, "
           f"lookahead backup {args.horizon} s; throughput at batch 1024 in states/s")  # fmt: skip
-    print("| system | filter | torch p50 / p99 | runtime p50 / p99 | graph p50 / p99 | torch 1024 | runtime 1024 |")
-    print("|---|---|---|---|---|---|---|")
+    print(
+        "| system | filter | torch p50 / p99 | runtime p50 / p99 | graph p50 / p99 | native p50 / p99 "
+        "| native graph p50 / p99 | torch 1024 | runtime 1024 | native 1024 |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for name, kind, vf, (_, torch_filter, runtime, _) in filters(args):
+        native = Filter.load(export_path(args.folder, name, kind, args.horizon), engine="native")  # built once, cached
         if args.prepare:
             continue
-        row, rates = timings(vf.system, torch_filter, runtime, args)
+        row, rates = timings(vf.system, torch_filter, runtime, native, args)
         cells = " | ".join(f"{a:.0f} / {b:.0f}" for a, b in row)
-        print(f"| {name} | {kind} | {cells} | {rates[0]:.0f} | {rates[1]:.0f} |", flush=True)
+        print(f"| {name} | {kind} | {cells} | {rates[0]:.0f} | {rates[1]:.0f} | {rates[2]:.0f} |", flush=True)
 
 
 def traced_operations(function: object, *example: torch.Tensor) -> int:
@@ -233,12 +250,21 @@ def main() -> None:
         p.add_argument(
             "--folder", type=Path, default=ROOT / "runs" / "export_filter", help="exports kept here and reused"
         )
+        p.set_defaults(engine="onnxruntime")
         if name == "equivalence":
+            p.add_argument(
+                "--engine",
+                choices=("onnxruntime", "native"),
+                default="onnxruntime",
+                help="how the runtime runs the file",
+            )
             p.add_argument("--states", type=int, default=100_000)
             p.add_argument("--chunk", type=int, default=10_000)
         else:
             p.add_argument("--calls", type=int, default=3000)
-            p.add_argument("--prepare", action="store_true", help="export (or reuse) the filters, time nothing")
+            p.add_argument(
+                "--prepare", action="store_true", help="export (or reuse) and compile the filters, time nothing"
+            )
     args = parser.parse_args()
     {"equivalence": equivalence, "latency": latency, "graph": graph}[args.study](args)
 

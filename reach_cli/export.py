@@ -8,8 +8,10 @@ fall back to the dataclass.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
+from reach.atomic import atomic_path
 from reach.validation import nonnegative_float_arg, positive_float_arg
 from reach_cli.filter_eval import FILTER_OPTIONS, add_filter_options, parse_time_to_go
 from reach_cli.options import add_subparser, default, signature_default
@@ -25,6 +27,14 @@ def add_parser(sub: Any) -> None:
     )
     p.add_argument("source", help="value function: a run, .pt, pretrained:NAME, or min:A,B of networks")
     p.add_argument("--out", required=True, help="the .onnx file to write")
+    p.add_argument(
+        "--c",
+        dest="c_file",
+        default=None,
+        metavar="FILE.c",
+        help="also write the filter as one C file (reach_runtime.native: no ONNX Runtime, no Python; "
+        "int reach_filter(n, state, time_to_go, u_nominal, outputs...))",
+    )
     p.add_argument("--kind", choices=list(KINDS), default=default(FilterSettings, "kind"))
     p.add_argument(
         "--dt",
@@ -65,6 +75,8 @@ def add_parser(sub: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.check_states < 0:
         raise ValueError(f"--check-states must be >= 0, got {args.check_states}")
+    if args.c_file is not None:
+        _check_c_path(args.c_file)
     given = {field: getattr(args, field) for _, field, _, _ in FILTER_OPTIONS if getattr(args, field) is not None}
     if args.gamma is not None:
         given["gamma"] = args.gamma
@@ -85,6 +97,13 @@ def run(args: argparse.Namespace) -> int:
         f"{meta['system_name']}, threshold {meta['threshold']:g}, backup {meta['settings']['policy']}, "
         f"source {meta['source']} ({meta['fingerprint'][:19]}...)"
     )
+    if args.c_file is not None:
+        from reach_runtime.native import c_source  # lazy: reads the graph with onnx, only for --c
+
+        source = c_source(result.path)
+        with atomic_path(args.c_file) as tmp, open(tmp, "w") as handle:
+            handle.write(source)
+        print(f"wrote {args.c_file} ({len(source) / 1e6:.2f} MB of C): {c_file_usage()}")
     if result.checked:
         print(
             f"checked on {result.checked} sampled states against the torch filter: "
@@ -92,3 +111,21 @@ def run(args: argparse.Namespace) -> int:
             "threshold's rounding"
         )
     return 0
+
+
+def c_file_usage() -> str:
+    """How to call the written C file, in one line."""
+    return (
+        "int reach_filter(long n, const float *state, const float *time_to_go, const float *u_nominal, "
+        "float *control, float *value, float *gradient, unsigned char *intervened, *infeasible, "
+        "*outside_domain, *untrusted); compile with -O3 -march=native -fno-math-errno -fno-trapping-math -lm"
+    )
+
+
+def _check_c_path(path: str) -> None:
+    """Refuse a --c path that cannot be written, before the export's work."""
+    target = Path(path)
+    if target.suffix != ".c":
+        raise ValueError(f"--c must name a .c file, got {path!r}")
+    if target.exists() and not target.is_file():
+        raise ValueError(f"--c {path} exists and is not a regular file")

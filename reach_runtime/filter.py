@@ -212,8 +212,11 @@ class Filter:
             raise ValueError(f"{what} must be real numbers, got dtype {array.dtype}")
         if array.ndim == 0 or array.shape[-1] != dim:
             raise ValueError(f"{what} must have shape (..., {dim}), got {array.shape}")
-        with np.errstate(over="ignore"):
-            cast = array.astype(np.float32)
+        if array.dtype == np.float32:
+            cast = array.copy()  # the common case, and the fast one: no cast can overflow
+        else:
+            with np.errstate(over="ignore"):
+                cast = array.astype(np.float32)
         finite = np.isfinite(cast)
         if not finite.all():
             bad = array.reshape(-1, dim)[~finite.reshape(-1, dim).all(-1)][0].tolist()
@@ -233,14 +236,20 @@ class Filter:
             t = meta.default_time_to_go
         if isinstance(t, (str, bytes)):
             raise ValueError(f"t must be a time-to-go in seconds or an array of them, got {t!r}")
+        low, high = meta.time_range
+        tol = _TIME_TOLERANCE * max(1.0, abs(high))
+        if type(t) is float or type(t) is int:  # one number (the common call at batch 1): checked without NumPy
+            if not (math.isfinite(t) and low - tol <= t <= high + tol):
+                raise ValueError(
+                    f"time-to-go t = {float(t)} lies outside [{low:g}, {high:g}], the times this value function covers"
+                )
+            return np.full(batch, t, dtype=np.float32)
         times = np.asarray(t)
         if times.dtype.kind not in "fiu" or times.dtype.kind == "b":
             raise ValueError(f"t must be real numbers, got dtype {times.dtype}")
         if times.ndim and times.shape != batch and times.size != 1:
             raise ValueError(f"a per-state t must have shape {batch} (one per state), got {times.shape}")
         times = np.broadcast_to(times.astype(np.float64).reshape(() if times.size == 1 else batch), batch)
-        low, high = meta.time_range
-        tol = _TIME_TOLERANCE * max(1.0, abs(high))
         bad = ~np.isfinite(times) | (times < low - tol) | (times > high + tol)
         if bad.any():
             value = float(times[bad].reshape(-1)[0])
