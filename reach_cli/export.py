@@ -116,9 +116,9 @@ def run(args: argparse.Namespace) -> int:
 def c_file_usage() -> str:
     """How to call the written C file, in one line."""
     return (
-        "int reach_filter(long n, const float *state, const float *time_to_go, const float *u_nominal, "
-        "float *control, float *value, float *gradient, unsigned char *intervened, *infeasible, "
-        "*outside_domain, *untrusted); compile with -O3 -march=native -fno-math-errno -fno-trapping-math -lm"
+        "call reach_filter_checked(n, state, time_to_go, u_nominal, control, value, gradient, intervened, "
+        "infeasible, outside_domain, untrusted), which makes the runtime's checks and returns REACH_OK or why "
+        "not; compile with -O3 -march=native -fno-math-errno -fno-trapping-math -lm (examples/c)"
     )
 
 

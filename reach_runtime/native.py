@@ -37,6 +37,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import hashlib
+import json
 import os
 import shutil
 import subprocess
@@ -48,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["SUPPORTED_OPS", "NativeGraph", "c_source", "compile_filter"]
+__all__ = ["STATUS", "SUPPORTED_OPS", "NativeGraph", "c_source", "compile_filter"]
 
 #: ONNX element types the compiler handles, as NumPy dtypes and C types
 _DTYPES = {
@@ -313,6 +314,7 @@ class _Emitter:
     def __init__(self, model: Any, where: str) -> None:
         from onnx import numpy_helper  # lazy: reading the graph is the only use of onnx (running needs none)
 
+        self.metadata: dict[str, str] = {}  # the model's metadata properties (set by _emitter_for)
         graph = model.graph
         self.where = where
         self.tensors: dict[str, _Tensor] = {}
@@ -760,6 +762,7 @@ def _emitter_for(path: str | os.PathLike) -> _Emitter:
     except Exception as error:  # onnx raises protobuf's own errors for a file it cannot parse
         raise ValueError(f"{where}: not a readable ONNX model ({type(error).__name__}: {error})") from None
     emitter = _Emitter(model, where)
+    emitter.metadata = {prop.key: prop.value for prop in model.metadata_props}
     _check_row_shapes(emitter, where)
     return emitter
 
@@ -779,7 +782,59 @@ def c_source(path: str | os.PathLike, function: str = "reach_filter") -> str:
         "/* inputs: " + ", ".join(f"{t.name} {t.ctype}[{t.value.size}]" for t in emitter.inputs) + " per row */",
         "/* outputs: " + ", ".join(f"{t.name} {t.ctype}[{max(t.value.size, 1)}]" for t in emitter.outputs) + " */",
     ]
-    return "\n".join(header) + "\n" + emitter.source(function)
+    return "\n".join(header) + "\n" + emitter.source(function) + _checked_entry(emitter, function)
+
+
+#: the checked entry point's return codes (``<function>_checked``), as the C file defines them
+STATUS = {
+    "REACH_OK": 0,
+    "REACH_BAD_INPUT": 1,
+    "REACH_INDEX_OUT_OF_RANGE": 2,
+    "REACH_TIME_OUT_OF_RANGE": 3,
+    "REACH_UNTRUSTED": 4,
+}
+
+
+def _checked_entry(emitter: _Emitter, function: str) -> str:
+    """For an exported reach filter: ``<function>_checked``, the runtime's input checks in C (a
+    state, time or nominal input that is NaN or inf; a time-to-go outside the range the value
+    function covers) before the decision, and the batch refused where the graph flags it
+    ``untrusted``; so a controller that calls it fails closed as ``reach_runtime.Filter`` does.
+    Nothing for a graph without the filter's metadata and interface."""
+    meta = emitter.metadata
+    names_in = [t.name for t in emitter.inputs]
+    names_out = [t.name for t in emitter.outputs]
+    if (
+        "reach.time_range" not in meta
+        or names_in != ["state", "time_to_go", "u_nominal"]
+        or "untrusted" not in names_out
+    ):
+        return ""
+    low, high = (float(v) for v in json.loads(meta["reach.time_range"]))
+    tol = 1e-6 * max(1.0, abs(high))  # as the Python runtime's _TIME_TOLERANCE
+    n_state, n_control = emitter.inputs[0].value.shape[1], emitter.inputs[2].value.shape[1]
+    untrusted = names_out.index("untrusted")
+    params = ", ".join(f"{t.ctype} *out_{k}" for k, t in enumerate(emitter.outputs))
+    args = ", ".join(f"out_{k}" for k in range(len(emitter.outputs)))
+    codes = "\n".join(f"#define {name} {code}" for name, code in STATUS.items())
+    return f"""
+/* The runtime's checks, in C: returns REACH_OK, or a code saying why the batch must not be used. */
+{codes}
+#define REACH_STATE_DIM {n_state}
+#define REACH_CONTROL_DIM {n_control}
+static const double reach_time_range[2] = {{{low!r}, {high!r}}};
+int {function}_checked(long n, const float *state, const float *time_to_go, const float *u_nominal, {params}) {{
+  for (long r = 0; r < n * {n_state}; ++r) if (!isfinite(state[r])) return REACH_BAD_INPUT;
+  for (long r = 0; r < n * {n_control}; ++r) if (!isfinite(u_nominal[r])) return REACH_BAD_INPUT;
+  for (long r = 0; r < n; ++r) {{
+    if (!isfinite(time_to_go[r])) return REACH_BAD_INPUT;
+    if (time_to_go[r] < {low!r} - {tol!r} || time_to_go[r] > {high!r} + {tol!r}) return REACH_TIME_OUT_OF_RANGE;
+  }}
+  int status = {function}(n, state, time_to_go, u_nominal, {args});
+  if (status) return status;
+  return *out_{untrusted} ? REACH_UNTRUSTED : REACH_OK;
+}}
+"""
 
 
 def _compiler() -> str:

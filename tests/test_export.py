@@ -187,6 +187,14 @@ def test_reach_export_command_writes_and_refuses_in_one_line(tmp_path, air3d_gri
         [*run, "pretrained:air3d", "--out", str(out), "--kind", "lookahead"], capture_output=True, text=True, env=env
     )
     assert bad.returncode == 2 and "needs a step dt" in bad.stderr and not out.exists()
+    bad = subprocess.run(
+        [*run, "pretrained:air3d", "--out", str(out), "--c", str(tmp_path / "f.h")],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
+    assert bad.returncode == 2 and "--c must name a .c file, got" in bad.stderr and not out.exists()
+    assert len(bad.stderr.strip().splitlines()) == 1
 
 
 #: what the runtime imports: NumPy and ONNX Runtime, and what ONNX Runtime imports or declares
