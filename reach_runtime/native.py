@@ -38,6 +38,7 @@ import ctypes
 import functools
 import hashlib
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -62,18 +63,24 @@ _CTYPES = {"float32": "float", "int32": "int32_t", "int64": "int64_t", "bool": "
 _UNARY = {
     "Abs": "RABS({a})", "Neg": "(-{a})", "Sin": "rsin_q({a}, 0.0f)", "Cos": "rsin_q({a}, 1.0f)", "Sqrt": "sqrtf({a})",
     "Round": "rintf({a})", "Sign": "(({a}) != ({a}) ? ({a}) : (({a}) > 0) - (({a}) < 0))", "Not": "(!{a})",
-    "Identity": "{a}",
+    "Identity": "{a}", "Exp": "expf({a})", "Log": "logf({a})", "Tanh": "tanhf({a})", "Erf": "erff({a})",
+    "Floor": "floorf({a})", "Ceil": "ceilf({a})", "Relu": "RMAX({a}, 0)", "Reciprocal": "(1 / ({a}))",
+    "Sigmoid": "(1 / (1 + expf(-({a}))))",
 }  # fmt: skip
 _BINARY = {
     "Add": "{a} + {b}", "Sub": "{a} - {b}", "Mul": "{a} * {b}", "Div": "{a} / {b}",
     "Equal": "{a} == {b}", "Greater": "{a} > {b}", "Less": "{a} < {b}", "GreaterOrEqual": "{a} >= {b}",
     "LessOrEqual": "{a} <= {b}", "And": "{a} && {b}", "Or": "{a} || {b}",
-    "Max": "RMAX({a}, {b})", "Min": "RMIN({a}, {b})",
+    "Max": "RMAX({a}, {b})", "Min": "RMIN({a}, {b})", "Pow": "powf({a}, {b})",
 }  # fmt: skip
 #: unary operators whose C functions are float32 ones
-_FLOAT_ONLY = {"Sin", "Cos", "Sqrt", "Round"}
+_FLOAT_ONLY = {"Sin", "Cos", "Sqrt", "Round", "Exp", "Log", "Tanh", "Erf", "Floor", "Ceil", "Sigmoid"}
 #: the same in float64 (the smooth filter's projection is solved in float64): the C library's own
-_DOUBLE = {"Sin": "sin({a})", "Cos": "cos({a})", "Sqrt": "sqrt({a})", "Round": "rint({a})"}
+_DOUBLE = {
+    "Sin": "sin({a})", "Cos": "cos({a})", "Sqrt": "sqrt({a})", "Round": "rint({a})", "Exp": "exp({a})",
+    "Log": "log({a})", "Tanh": "tanh({a})", "Erf": "erf({a})", "Floor": "floor({a})", "Ceil": "ceil({a})",
+    "Sigmoid": "(1 / (1 + exp(-({a}))))", "Pow": "pow({a}, {b})",
+}  # fmt: skip
 _MOVES = {"Slice", "Transpose", "Expand", "Tile", "Reshape", "Squeeze", "Unsqueeze", "Identity", "Gather", "GatherND"}
 #: reductions: how an accumulator m takes in the next operand v
 _REDUCTIONS = {"ReduceMin": "RMIN({m}, {v})", "ReduceMax": "RMAX({m}, {v})", "ReduceSum": "{m} + {v}"}
@@ -134,7 +141,10 @@ def _evaluate(op: str, attrs: dict[str, Any], xs: list[np.ndarray | None]) -> np
     if op in _UNARY:
         fn = {
             "Abs": np.abs, "Neg": np.negative, "Sin": np.sin, "Cos": np.cos, "Sqrt": np.sqrt, "Round": np.round,
-            "Sign": np.sign, "Not": np.logical_not, "Identity": np.array,
+            "Sign": np.sign, "Not": np.logical_not, "Identity": np.array, "Exp": np.exp, "Log": np.log,
+            "Tanh": np.tanh, "Erf": np.vectorize(math.erf, otypes=[np.float64]), "Floor": np.floor, "Ceil": np.ceil,
+            "Relu": lambda v: np.where(v < 0, 0, v), "Reciprocal": np.reciprocal,
+            "Sigmoid": lambda v: 1 / (1 + np.exp(-v)),
         }[op]  # fmt: skip
         return np.asarray(fn(a)).astype(a.dtype, copy=False)
     if op in ("Max", "Min"):
@@ -146,7 +156,7 @@ def _evaluate(op: str, attrs: dict[str, Any], xs: list[np.ndarray | None]) -> np
         fn = {
             "Add": np.add, "Sub": np.subtract, "Mul": np.multiply, "Div": np.divide, "Equal": np.equal,
             "Greater": np.greater, "Less": np.less, "GreaterOrEqual": np.greater_equal, "LessOrEqual": np.less_equal,
-            "And": np.logical_and, "Or": np.logical_or,
+            "And": np.logical_and, "Or": np.logical_or, "Pow": np.power,
         }[op]  # fmt: skip
         out = np.asarray(fn(a, b))
         return out if out.dtype == np.bool_ else out.astype(a.dtype, copy=False)
@@ -467,7 +477,12 @@ class _Emitter:
                 raise ValueError(f"{self.where}: {op} on {out.value.dtype} is not handled")
             expr = template.format(a=self._operand(ins[0], shape))  # type: ignore[arg-type]
         else:
-            expr = _BINARY[op].format(a=self._operand(ins[0], shape), b=self._operand(ins[1], shape))  # type: ignore[arg-type]
+            template = _BINARY[op]
+            if op == "Pow" and out.value.dtype != np.float32:
+                if out.value.dtype != np.float64:
+                    raise ValueError(f"{self.where}: Pow on {out.value.dtype} is not handled")
+                template = _DOUBLE["Pow"]
+            expr = template.format(a=self._operand(ins[0], shape), b=self._operand(ins[1], shape))  # type: ignore[arg-type]
         self.body.append(f"for (i = 0; i < {out.value.size}; ++i) {name}[i] = ({out.ctype})({expr});")
 
     def _emit_move(self, op: str, attrs: dict[str, Any], ins: list[_Tensor | None], out: _Tensor) -> None:

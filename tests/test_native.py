@@ -222,3 +222,18 @@ def test_the_smooth_and_lookahead_operators_compute_what_onnx_runtime_computes(t
     for (name, _, _), e, g in zip(outputs, expected, got):
         assert e.shape == g.shape and e.dtype == g.dtype, name
         np.testing.assert_allclose(g, e, rtol=1e-6, atol=1e-6, err_msg=name)
+
+
+def test_the_other_layers_operators_compute_what_onnx_runtime_computes(tmp_path):
+    """What tanh, GELU and ReLU layers and users' own systems export to: Exp, Log, Tanh, Erf, Floor,
+    Ceil, Relu, Reciprocal, Sigmoid and Pow, within float32 rounding of ONNX Runtime."""
+    ops = ["Exp", "Log", "Tanh", "Erf", "Floor", "Ceil", "Relu", "Reciprocal", "Sigmoid"]
+    nodes = [helper.make_node("Abs", ["x"], ["ax"])]
+    nodes += [helper.make_node(op, ["ax" if op == "Log" else "x"], [op]) for op in ops]
+    nodes.append(helper.make_node("Pow", ["ax", "x"], ["Pow"]))
+    outputs = [(op, TensorProto.FLOAT, ["b", 4]) for op in [*ops, "Pow"]]
+    model = _model(nodes, [("x", ["b", 4])], outputs)
+    x = (3 * np.random.default_rng(4).normal(size=(50, 4))).astype(np.float32)
+    expected, got = _both(model, {"x": x}, tmp_path)
+    for (name, _, _), e, g in zip(outputs, expected, got):
+        np.testing.assert_allclose(g, e, rtol=3e-7, atol=1e-7, err_msg=name)
