@@ -21,7 +21,8 @@ alone and ``V`` with its gradient trace to (ONNX Runtime spends about a microsec
 ``latency`` times one decision at batch 1 on one thread (``torch.set_num_threads(1)``, ONNX
 Runtime with one intra-op thread), per call: the torch filter, the runtime's ``Filter.__call__``
 (its NumPy checks and the graph) and the graph alone (``session.run``), then the same two for the
-native engine (``engine="native"``: the graph compiled to C, :mod:`reach_runtime.native`); then
+native engine (``engine="native"``: the graph compiled to C, :mod:`reach_runtime.native`) and its C
+function alone (``NativeGraph.bound``: no copies, no checks); then
 states per second at batch 1024. Run it on a quiet machine: nothing else may run beside it.
 
 ``--engine native`` makes ``equivalence`` compare the native engine with the torch filter.
@@ -159,7 +160,8 @@ def timings(
     system: object, torch_filter: SafetyFilter, runtime: Filter, native: Filter, args: argparse.Namespace
 ) -> tuple[list[tuple[float, float]], list[float]]:
     """Per-call percentiles at batch 1 (torch; ONNX Runtime: the runtime's call, the graph alone; the
-    native engine: the same two) and states/s at batch 1024 (torch, ONNX Runtime, native)."""
+    native engine: the same two, and its C function alone) and states/s at batch 1024 (torch, ONNX
+    Runtime, native)."""
     x, _, u = draws(system, 1024, args.seed)
     horizon = float(system.horizon)
     x1, u1 = x[:1], u[:1]
@@ -171,6 +173,7 @@ def timings(
         percentiles(lambda: runtime.session.run(None, feed), args.calls),
         percentiles(lambda: native(xn, un, horizon), args.calls),
         percentiles(lambda: native._native.run(feed), args.calls),
+        percentiles(native._native.bound(feed), args.calls),
     ]
     rates = []
     for fn in (
@@ -192,9 +195,9 @@ def latency(args: argparse.Namespace) -> None:
           f"lookahead backup {args.horizon} s; throughput at batch 1024 in states/s")  # fmt: skip
     print(
         "| system | filter | torch p50 / p99 | runtime p50 / p99 | graph p50 / p99 | native p50 / p99 "
-        "| native graph p50 / p99 | torch 1024 | runtime 1024 | native 1024 |"
+        "| native graph p50 / p99 | C alone p50 / p99 | torch 1024 | runtime 1024 | native 1024 |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for name, kind, vf, (_, torch_filter, runtime, _) in filters(args):
         native = Filter.load(export_path(args.folder, name, kind, args.horizon), engine="native")  # built once, cached
         if args.prepare:

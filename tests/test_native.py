@@ -165,7 +165,9 @@ def test_sine_and_cosine_are_accurate_and_propagate_nan(tmp_path):
 
 
 def test_what_cannot_be_compiled_is_refused_by_name(tmp_path, monkeypatch):
-    model = _model([helper.make_node("Softsign", ["x"], ["y"])], [("x", ["b", 2])], [("y", TensorProto.FLOAT, ["b", 2])])
+    model = _model(
+        [helper.make_node("Softsign", ["x"], ["y"])], [("x", ["b", 2])], [("y", TensorProto.FLOAT, ["b", 2])]
+    )
     onnx.save(model, tmp_path / "softsign.onnx")
     with pytest.raises(ValueError, match="operators the native compiler does not handle: Softsign"):
         c_source(tmp_path / "softsign.onnx")
