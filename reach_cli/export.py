@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from reach.atomic import atomic_path
-from reach.validation import nonnegative_float_arg, positive_float_arg
+from reach.validation import check_output_path, nonnegative_float_arg, positive_float_arg
 from reach_cli.filter_eval import FILTER_OPTIONS, add_filter_options, parse_time_to_go
 from reach_cli.options import add_subparser, default, signature_default
 from safety.export import export_filter
@@ -123,9 +123,7 @@ def c_file_usage() -> str:
 
 
 def _check_c_path(path: str) -> None:
-    """Refuse a --c path that cannot be written, before the export's work."""
-    target = Path(path)
-    if target.suffix != ".c":
+    """Refuse a --c path that is not a writable .c file, before the export's work."""
+    if Path(path).suffix != ".c":
         raise ValueError(f"--c must name a .c file, got {path!r}")
-    if target.exists() and not target.is_file():
-        raise ValueError(f"--c {path} exists and is not a regular file")
+    check_output_path(path, "--c")

@@ -791,7 +791,11 @@ def c_source(path: str | os.PathLike, function: str = "reach_filter") -> str:
     buffers are static, so call it from one thread at a time."""
     if not function.isidentifier():
         raise ValueError(f"function must be a C identifier, got {function!r}")
-    emitter = _emitter_for(path)
+    return _c_file(_emitter_for(path), path, function)
+
+
+def _c_file(emitter: _Emitter, path: str | os.PathLike, function: str) -> str:
+    """The C file of an emitted graph (:func:`c_source`)."""
     header = [
         f"/* {Path(os.fspath(path)).name}, compiled by reach_runtime.native: one decision per row. */",
         "/* inputs: " + ", ".join(f"{t.name} {t.ctype}[{t.value.size}]" for t in emitter.inputs) + " per row */",
@@ -874,7 +878,11 @@ def compile_filter(path: str | os.PathLike, cache: str | os.PathLike | None = No
     """Build the filter at ``path`` into a shared library (cached under ``cache``, default
     ``$XDG_CACHE_HOME/reach_runtime`` or ``~/.cache/reach_runtime``, by the hash of its source and
     flags) and return the library's path. ``ValueError`` if the graph or the compiler refuses."""
-    source = c_source(path)
+    return _build(c_source(path), path, cache)
+
+
+def _build(source: str, path: str | os.PathLike, cache: str | os.PathLike | None) -> Path:
+    """The shared library of ``source`` (the C file of the filter at ``path``), built or found in the cache."""
     compiler = _compiler()
     key = hashlib.sha256((source + " ".join(CFLAGS) + compiler).encode()).hexdigest()[:24]
     folder = (
@@ -905,8 +913,8 @@ class NativeGraph:
     """The compiled decision, called like ``session.run``: ``graph.run(feeds) -> list of outputs``."""
 
     def __init__(self, path: str | os.PathLike, cache: str | os.PathLike | None = None) -> None:
-        emitter = _emitter_for(path)
-        self._library_path = compile_filter(path, cache)
+        emitter = _emitter_for(path)  # read and emitted once: the library is built from the same emitter
+        self._library_path = _build(_c_file(emitter, path, "reach_filter"), path, cache)
         self._lib = ctypes.CDLL(str(self._library_path))
         self._fn = self._lib.reach_filter
         self._fn.restype = ctypes.c_int
