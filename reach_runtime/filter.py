@@ -23,6 +23,8 @@ FORMAT = "reach-filter/1"
 #: how a filter's graph can run (``Filter.load(..., engine=)``)
 ENGINES = ("onnxruntime", "native")
 
+_FLOAT32 = np.dtype(np.float32)
+
 #: relative slack on the time-to-go range: times summed in float32 (``k * dt``) may overshoot it
 _TIME_TOLERANCE = 1e-6
 
@@ -128,6 +130,14 @@ class Filter:
         expected = {"control", "value", "gradient", "intervened", "infeasible", "outside_domain", "untrusted"}
         if not expected <= set(self._outputs):
             raise ValueError(f"the graph lacks outputs {sorted(expected - set(self._outputs))}")
+        # one state on the native engine: (state shape, control shape, times that need no second look)
+        self._row_ok: tuple[tuple[int], tuple[int], tuple[float, float]] | None = None
+        if native is not None and getattr(native, "_row", None) is not None:
+            low, high = metadata.time_range
+            tol = _TIME_TOLERANCE * max(1.0, abs(high))
+            self._row_ok = ((metadata.state_dim,), (metadata.control_dim,), (low - tol, high + tol))
+            order = ("control", "value", "gradient", "intervened", "infeasible", "outside_domain", "untrusted")
+            self._row_order = [native.output_names.index(name) for name in order]
 
     @classmethod
     def load(cls, path: str | os.PathLike, threads: int = 1, engine: str = "onnxruntime") -> Filter:
@@ -172,6 +182,43 @@ class Filter:
         (avoid's fixed horizon), and is refused where the time-to-go must count down. Returns the
         applied inputs (float32, the batch shape of ``x``) and a :class:`FilterInfo`. Raises
         ``ValueError`` for anything it cannot trust (see :mod:`reach_runtime`)."""
+        if self._row_ok is not None and type(x) is np.ndarray and type(u_nominal) is np.ndarray:
+            fast = self._one_state(x, u_nominal, t)
+            if fast is not None:
+                return fast
+        return self._decide(x, u_nominal, t)
+
+    def _one_state(self, x: np.ndarray, u: np.ndarray, t: Any) -> tuple[np.ndarray, FilterInfo] | None:
+        """The control loop's call, one float32 state, on the native engine: its checks in C (the
+        C file's ``reach_filter_checked``). None where the call is not of that form (then the general
+        path decides). Where the C checks refuse, the general path is asked for the reason, so the
+        error names the bad value as it always does; should it not refuse, the state is refused."""
+        state_shape, control_shape, times = self._row_ok  # type: ignore[misc]
+        if x.shape != state_shape or u.shape != control_shape or x.dtype != _FLOAT32 or u.dtype != _FLOAT32:
+            return None
+        if t is None:
+            t = self.metadata.default_time_to_go
+        if type(t) is not float and type(t) is not int or not times[0] <= t <= times[1]:
+            return None
+        status, out = self._native.checked_row(x, t, u)
+        if status != 0:
+            self._decide(x, u, t)
+            raise ValueError(f"the compiled filter refused this state (status {status}); no nominal input is kept")
+        control, value, gradient, intervened, infeasible, outside, _ = (out[k] for k in self._row_order)
+        applied = control.reshape(control_shape)
+        info = FilterInfo(
+            value=value.reshape(()),
+            gradient=gradient.reshape(state_shape),
+            nominal=u.copy(),
+            applied=applied,
+            intervened=intervened.reshape(()),
+            infeasible=infeasible.reshape(()),
+            outside_domain=outside.reshape(()),
+        )
+        return applied, info
+
+    def _decide(self, x: Any, u_nominal: Any, t: float | Any | None) -> tuple[np.ndarray, FilterInfo]:
+        """Any batch shape and input type: NumPy's checks, then the graph (see :meth:`__call__`)."""
         meta = self.metadata
         xs = self._array(x, meta.state_dim, "states")
         batch = xs.shape[:-1]

@@ -348,9 +348,14 @@ class _Emitter:
         unsupported = sorted({n.op_type for n in graph.node} - SUPPORTED_OPS)
         if unsupported:
             raise ValueError(f"{where}: operators the native compiler does not handle: {', '.join(unsupported)}")
+        self._emitted: list[tuple[Any, int, int]] = []  # (node, first body line, end) of each emitted node
         for node in graph.node:
+            start = len(self.body)
             self._node(node)
+            if len(self.body) > start:
+                self._emitted.append((node, start, len(self.body)))
         self.outputs = [self.tensors[o.name] for o in graph.output]
+        self.gated = self._gate_branches({o.name for o in graph.output})
 
     # -------------------------------------------------------------- naming and storage
     def _new(self, prefix: str) -> str:
@@ -714,6 +719,110 @@ class _Emitter:
             )
         self._emit_product(a, b, False, False, out)
 
+    # -------------------------------------------------------------- branches
+    #: operators that only re-shape a one-element tensor (a row's flag stays the same flag through them)
+    _ALIASES = frozenset({"Reshape", "Unsqueeze", "Squeeze", "Identity", "Expand", "Flatten", "Cast"})
+
+    def _flag(self, name: str, producers: dict[str, Any]) -> tuple[str, bool] | None:
+        """``(root, polarity)`` of a computed one-element bool tensor: the tensor it re-shapes (or
+        negates, polarity False) back to the first that is not a re-shape or ``Not``; None where
+        ``name`` is not such a flag."""
+        polarity = True
+        while True:
+            tensor = self.tensors.get(name)
+            if tensor is None or tensor.constant or tensor.value.size != 1 or tensor.value.dtype != np.bool_:
+                return None
+            node = producers.get(name)
+            if node is None or (node.op_type not in self._ALIASES and node.op_type != "Not"):
+                return name, polarity
+            source = self.tensors.get(node.input[0])
+            if source is None or source.constant or source.value.size != 1 or source.value.dtype != np.bool_:
+                return name, polarity
+            polarity ^= node.op_type == "Not"
+            name = node.input[0]
+
+    def _gate_branches(self, graph_outputs: set[str]) -> int:
+        """Put the work that only one side of a row's flag reads inside ``if`` on that flag.
+
+        A row's decision often computes something it uses only on one side of a flag of that row:
+        the switch filter's greedy backup input, read by ``Where(intervene, greedy, u*)`` and by
+        its trust check ``And(untrusted, intervene)`` (``safety.tracing.only_rows``). A node is
+        *gated* by a flag (one computed bool of the row, up to re-shapes and ``Not``) when every
+        reader of its outputs is gated by the same flag, or is a ``Where`` on that flag reading it
+        on the flag's side, or an ``And`` with the flag. Where the flag is off no reader looks at a
+        gated node's value (``c ? a : b`` evaluates one side; ``a && 0`` is 0), so its statements
+        run only where the flag is on. They move into ``if`` blocks right before their first
+        ungated reader, keeping their order; their inputs are computed earlier, and every buffer is
+        written once, so the move changes no value. Returns the number of gated nodes."""
+        producers = {out: node for node, _, _ in self._emitted for out in node.output}
+        order = {id(node): k for k, (node, _, _) in enumerate(self._emitted)}
+        readers: dict[str, list[tuple[Any, int]]] = {}
+        for node, _, _ in self._emitted:
+            for slot, name in enumerate(node.input):
+                readers.setdefault(name, []).append((node, slot))
+        # a flag gates only what it cannot depend on (its root comes first: an And of two flags gates
+        # the later one by the earlier, never each by the other), and only while the root itself is
+        # computed unconditionally; a root found gated is barred and the gates are worked out again
+        barred: set[str] = set()
+        while True:
+            gate = self._gates(producers, readers, order, graph_outputs, barred)
+            roots = {root for root, _ in gate.values() if id(producers.get(root)) in gate}
+            if not roots:
+                break
+            barred |= roots
+        if not gate:
+            return 0
+        body: list[str] = []
+        pending: dict[tuple[str, bool], list[str]] = {}
+        for node, start, end in self._emitted:
+            lines = self.body[start:end]
+            if id(node) in gate:
+                pending.setdefault(gate[id(node)], []).extend(lines)
+                continue
+            needed = {gate[id(producers[name])] for name in node.input if id(producers.get(name)) in gate}
+            for flag in [f for f in pending if f in needed]:
+                root, polarity = flag
+                test = f"{self.tensors[root].c_name}[0]" if polarity else f"!{self.tensors[root].c_name}[0]"
+                body.append(f"if ({test}) {{")
+                body.extend("  " + line for line in pending.pop(flag))
+                body.append("}")
+            body.extend(lines)
+        if pending:  # every gated node has an ungated reader, so nothing is left
+            raise AssertionError("gated statements without a reader")
+        self.body = body
+        return len(gate)
+
+    def _gates(
+        self,
+        producers: dict[str, Any],
+        readers: dict[str, list[tuple[Any, int]]],
+        order: dict[int, int],
+        graph_outputs: set[str],
+        barred: set[str],
+    ) -> dict[int, tuple[str, bool]]:
+        """``id(node) -> (flag root, polarity)`` of every gated node (see :meth:`_gate_branches`)."""
+        gate: dict[int, tuple[str, bool]] = {}
+        for node, _, _ in reversed(self._emitted):
+            if any(out in graph_outputs for out in node.output):
+                continue
+            flags: set[tuple[str, bool] | None] = set()
+            for out in node.output:
+                for reader, slot in readers.get(out, []):
+                    flag: tuple[str, bool] | None = None
+                    if id(reader) in gate:
+                        flag = gate[id(reader)]
+                    elif reader.op_type == "Where" and slot in (1, 2):
+                        found = self._flag(reader.input[0], producers)
+                        flag = None if found is None else (found[0], found[1] == (slot == 1))
+                    elif reader.op_type == "And" and len(reader.input) == 2:
+                        flag = self._flag(reader.input[1 - slot], producers)
+                    if flag is not None and (flag[0] in barred or order.get(id(producers.get(flag[0])), -1) >= order[id(node)]):
+                        flag = None
+                    flags.add(flag)
+            if len(flags) == 1 and None not in flags:
+                gate[id(node)] = flags.pop()  # type: ignore[assignment]
+        return gate
+
     # -------------------------------------------------------------- the file
     def source(self, prefix: str) -> str:
         rows = []
@@ -924,6 +1033,9 @@ class NativeGraph:
         self._slots: dict[int, tuple[list[np.ndarray], list[np.ndarray], list[Any]]] = {}
         self.input_names = [name for name, _, _ in self._inputs]
         self.output_names = [name for name, _, _ in self._outputs]
+        # the C file's checked entry (a reach filter's graph only): one state, checks and all, in C
+        checked = getattr(self._lib, "reach_filter_checked", None)
+        self._row = None if checked is None else (checked, *self._allocate(1))
 
     def run(self, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
         """The outputs for ``feeds`` (arrays with a leading batch axis), in the graph's order.
@@ -949,6 +1061,23 @@ class NativeGraph:
         if status != 0:
             raise ValueError("the compiled filter met an index outside its tensor; the decision is not trusted")
         return results
+
+    def checked_row(self, state: np.ndarray, time_to_go: float, u_nominal: np.ndarray) -> tuple[int, list[np.ndarray]]:
+        """One state through the C file's checked entry (``reach_filter_checked``): the status
+        (:data:`STATUS`; nonzero: the decision must not be used, and the outputs are then
+        meaningless) and copies of the outputs, each ``(1, ...)`` or a flag. ``state`` and
+        ``u_nominal`` are float32 rows of the graph's widths (not checked here: the caller's fast
+        path has). The per-call cost of :meth:`run` less its dictionary, shape checks and NumPy
+        checks of finiteness, which the C entry makes."""
+        if self._row is None:
+            raise ValueError("this graph has no checked entry (it is not an exported reach filter)")
+        function, ins, outs, args = self._row
+        with self._lock:
+            ins[0][0] = state
+            ins[1][0] = time_to_go
+            ins[2][0] = u_nominal
+            status = function(*args)
+            return status, [o.copy() for o in outs]
 
     def bound(self, feeds: dict[str, np.ndarray]) -> Any:
         """A call of the C function alone on ``feeds``, without arguments (to time the compiled

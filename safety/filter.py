@@ -108,7 +108,7 @@ from safety.filter_settings import (
     resolve_policy,
     settings_for_system,
 )
-from safety.tracing import refuse_untrusted, tracing
+from safety.tracing import only_rows, refuse_untrusted, tracing
 from safety.value_policies import GreedyPolicy, OptimalPolicy, check_states
 
 __all__ = [
@@ -369,8 +369,9 @@ class SafetyFilter:
         batch) when ``policy="greedy"``; only those rows pay for it."""
         if self.greedy is None:
             return u_star
-        if tracing():  # a graph computes every row (no value-dependent indexing)
-            greedy = self.greedy.control(x, t, d_star).to(u_star.dtype)
+        if tracing():  # a graph computes every row (no value-dependent indexing); its checks count on rows
+            with only_rows(rows):
+                greedy = self.greedy.control(x, t, d_star).to(u_star.dtype)
             return torch.where(rows.unsqueeze(-1), greedy, u_star)
         if not bool(rows.any()):
             return u_star

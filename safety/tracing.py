@@ -19,7 +19,7 @@ from contextvars import ContextVar
 
 import torch
 
-__all__ = ["TrustLedger", "recording_trust", "refuse_untrusted", "tracing"]
+__all__ = ["TrustLedger", "only_rows", "recording_trust", "refuse_untrusted", "tracing"]
 
 
 class TrustLedger:
@@ -27,9 +27,17 @@ class TrustLedger:
 
     def __init__(self) -> None:
         self.untrusted: torch.Tensor | None = None
+        self.rows: torch.Tensor | None = None  # set by only_rows: the rows whose checks count
 
     def record(self, untrusted: torch.Tensor) -> None:
-        """Add a mask of untrusted entries: the ledger becomes True if any entry is."""
+        """Add a mask of untrusted entries: the ledger becomes True if any entry is (of the rows
+        that count, inside :func:`only_rows`)."""
+        if self.rows is not None:
+            if untrusted.numel() != self.rows.numel():
+                raise ValueError(
+                    f"a check of {untrusted.numel()} entries inside only_rows over {self.rows.numel()} rows"
+                )
+            untrusted = untrusted.reshape(self.rows.shape) & self.rows
         flag = untrusted.any()
         self.untrusted = flag if self.untrusted is None else self.untrusted | flag
 
@@ -53,6 +61,25 @@ def recording_trust() -> Iterator[TrustLedger]:
         yield ledger
     finally:
         _LEDGER.reset(token)
+
+
+@contextmanager
+def only_rows(rows: torch.Tensor) -> Iterator[None]:
+    """Within this block a traced check counts only on ``rows`` (a bool mask, one entry per row the
+    checks inside see), as the eager path computes only those rows and so checks only them: a value
+    the filter computes but does not use cannot refuse the batch. The graph then reads the block's
+    work only where ``rows`` holds, so a compiler may skip it elsewhere (:mod:`reach_runtime.native`
+    does, at one state per call). Eagerly (no trace) it does nothing."""
+    ledger = _LEDGER.get()
+    if ledger is None:
+        yield
+        return
+    outer = ledger.rows
+    ledger.rows = rows.reshape(-1) if outer is None else rows.reshape(-1) & outer.reshape(-1)
+    try:
+        yield
+    finally:
+        ledger.rows = outer
 
 
 def tracing() -> bool:
