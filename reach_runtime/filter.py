@@ -198,7 +198,7 @@ class Filter:
             return None
         if t is None:
             t = self.metadata.default_time_to_go
-        if type(t) is not float and type(t) is not int or not times[0] <= t <= times[1]:
+        if (type(t) is not float and type(t) is not int) or not times[0] <= t <= times[1]:
             return None
         status, out = self._native.checked_row(x, t, u)
         if status != 0:

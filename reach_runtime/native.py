@@ -816,7 +816,8 @@ class _Emitter:
                         flag = None if found is None else (found[0], found[1] == (slot == 1))
                     elif reader.op_type == "And" and len(reader.input) == 2:
                         flag = self._flag(reader.input[1 - slot], producers)
-                    if flag is not None and (flag[0] in barred or order.get(id(producers.get(flag[0])), -1) >= order[id(node)]):
+                    root_at = -1 if flag is None else order.get(id(producers.get(flag[0])), -1)
+                    if flag is not None and (flag[0] in barred or root_at >= order[id(node)]):
                         flag = None
                     flags.add(flag)
             if len(flags) == 1 and None not in flags:

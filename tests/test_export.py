@@ -342,3 +342,34 @@ def test_an_untrusted_value_raises_in_the_native_engine(exported, air3d, tmp_pat
     x, _, u = _inputs(air3d.system, 2, 4)
     with pytest.raises(ValueError, match="non-finite value"):
         Filter.load(tmp_path / "nan.onnx", engine="native")(x.numpy(), u.numpy(), t=0.5)
+
+
+@needs_compiler
+def test_one_float32_state_on_the_native_engine_decides_as_the_general_path(exported, air3d, native_cache, monkeypatch):
+    """The control loop's call (one float32 state, a number for t) takes the C file's checked entry:
+    the same outputs, shapes and dtypes as the general path, on both sides of the switch; its
+    refusals name the bad value as the general path does; and a state the C checks refuse is never
+    decided, even should the general path accept it."""
+    native = Filter.load(exported["switch"].path, engine="native")
+    assert native._row_ok is not None
+    x, t, u = _inputs(air3d.system, 64, 6)
+    xs, us = x.numpy(), u.numpy()
+    sides = set()
+    for k in range(64):
+        got, got_info = native(xs[k], us[k], float(t[k]))
+        expected, expected_info = native._decide(xs[k], us[k], float(t[k]))
+        for a, b in [(got, expected)] + [(getattr(got_info, f), getattr(expected_info, f)) for f in vars(got_info)]:
+            assert a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b)
+        sides.add(bool(got_info.intervened))
+    assert sides == {True, False}
+    bad = xs[0].copy()
+    bad[1] = np.nan
+    with pytest.raises(ValueError, match="NaN or inf"):
+        native(bad, us[0], 0.5)
+    with pytest.raises(ValueError, match=r"t = 1.5 lies outside"):
+        native(xs[0], us[0], 1.5)
+    from reach_runtime import native as native_module
+
+    monkeypatch.setattr(native_module.NativeGraph, "checked_row", lambda self, *a: (4, []))
+    with pytest.raises(ValueError, match=r"refused this state \(status 4\)"):
+        native(xs[0], us[0], 0.5)

@@ -239,3 +239,60 @@ def test_the_other_layers_operators_compute_what_onnx_runtime_computes(tmp_path)
     expected, got = _both(model, {"x": x}, tmp_path)
     for (name, _, _), e, g in zip(outputs, expected, got):
         np.testing.assert_allclose(g, e, rtol=3e-7, atol=1e-7, err_msg=name)
+
+
+def test_work_one_side_of_a_flag_reads_runs_only_where_the_flag_is_on(tmp_path):
+    """A row's flag gates what only its one side reads (the switch's greedy backup input: read by
+    ``Where(intervene, greedy, u*)`` and by ``And(untrusted, intervene)``). The gated work sits
+    inside ``if`` in the C source, and the outputs equal ONNX Runtime's on both sides: a NaN in the
+    gated work counts only where the flag is on. An ``And`` of two flags gates the later by the
+    earlier, never each by the other (the first version did, and decided from stale values)."""
+    from reach_runtime.native import _emitter_for
+
+    f = TensorProto.FLOAT
+    nodes = [
+        helper.make_node("ReduceSum", ["x", "axis"], ["s"], keepdims=1),  # (b, 1)
+        helper.make_node("Greater", ["s", "zero"], ["on"]),  # the row's flag
+        helper.make_node("Log", ["x"], ["lg"]),  # the gated work: NaN for a negative entry
+        helper.make_node("Mul", ["lg", "two"], ["work"]),
+        helper.make_node("Where", ["on", "work", "x"], ["out"]),
+        helper.make_node("Equal", ["work", "work"], ["same"]),
+        helper.make_node("Not", ["same"], ["nan"]),
+        helper.make_node("Cast", ["nan"], ["nanf"], to=f),
+        helper.make_node("ReduceMax", ["nanf", "axis"], ["row_nan"], keepdims=1),
+        helper.make_node("Cast", ["row_nan"], ["row_bad"], to=TensorProto.BOOL),
+        helper.make_node("And", ["row_bad", "on"], ["bad"]),  # counts only where the flag is on
+        helper.make_node("Cast", ["bad"], ["badf"], to=f),
+        helper.make_node("ReduceMax", ["badf"], ["any"], keepdims=0),
+        helper.make_node("Cast", ["any"], ["untrusted"], to=TensorProto.BOOL),
+        helper.make_node("Greater", ["s", "one"], ["high"]),  # two flags read only by their And
+        helper.make_node("Less", ["s", "five"], ["low"]),
+        helper.make_node("And", ["high", "low"], ["both"]),
+    ]
+    model = _model(
+        nodes,
+        [("x", ["b", 3])],
+        [("out", f, ["b", 3]), ("untrusted", TensorProto.BOOL, []), ("both", TensorProto.BOOL, ["b", 1])],
+        [
+            ("axis", np.array([1], np.int64)),
+            ("zero", np.float32(0)),
+            ("one", np.float32(1)),
+            ("two", np.float32(2)),
+            ("five", np.float32(5)),
+        ],
+    )
+    onnx.save(model, tmp_path / "gate.onnx")
+    assert _emitter_for(tmp_path / "gate.onnx").gated >= 8
+    source = c_source(tmp_path / "gate.onnx")
+    gated = source[source.index("if (") :]
+    assert "logf(" in gated.split("}")[0]  # the logarithm runs inside the flag's block
+    x = np.array([[1, 2, 3], [-1, -2, 0.5], [2, 1, 0.5], [0.2, 0.3, 0.1]], np.float32)
+    expected, got = _both(model, {"x": x}, tmp_path)
+    assert not expected[1] and not got[1]  # row 1's NaN is off its flag
+    for e, g in zip(expected, got):
+        np.testing.assert_array_equal(g, e)
+    x[3, 0] = -0.1  # its sum stays positive: a NaN where the flag is on
+    expected, got = _both(model, {"x": x}, tmp_path, "gate2.onnx")
+    assert expected[1] and got[1]
+    for e, g in zip(expected[:1] + expected[2:], got[:1] + got[2:]):
+        np.testing.assert_array_equal(g, e)
