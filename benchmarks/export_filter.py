@@ -19,11 +19,14 @@ inputs that differ where the decision agrees.
 alone and ``V`` with its gradient trace to (ONNX Runtime spends about a microsecond a node at batch 1).
 
 ``latency`` times one decision at batch 1 on one thread (``torch.set_num_threads(1)``, ONNX
-Runtime with one intra-op thread), per call: the torch filter, the runtime's ``Filter.__call__``
-(its NumPy checks and the graph) and the graph alone (``session.run``), then the same two for the
-native engine (``engine="native"``: the graph compiled to C, :mod:`reach_runtime.native`) and its C
-function alone (``NativeGraph.bound``: no copies, no checks); then
-states per second at batch 1024. Run it on a quiet machine: nothing else may run beside it.
+Runtime with one intra-op thread), per call, the calls cycling through ``--states`` random states
+(a decision's cost depends on the state: the switch computes its backup input only where it
+intervenes): the torch filter, the runtime's ``Filter.__call__`` (its checks and the graph) and
+the graph alone (``session.run``), then the same two for the native engine (``engine="native"``:
+the graph compiled to C, :mod:`reach_runtime.native`) and its C function alone
+(``NativeGraph.bound``: no copies, no checks), and the native call split by the decision (states
+kept, states intervened on); then states per second at batch 1024. Run it on a quiet machine:
+nothing else may run beside it.
 
 ``--engine native`` makes ``equivalence`` compare the native engine with the torch filter.
 """
@@ -31,6 +34,7 @@ states per second at batch 1024. Run it on a quiet machine: nothing else may run
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 import warnings
@@ -145,35 +149,55 @@ def equivalence(args: argparse.Namespace) -> None:
         )
 
 
-def percentiles(fn: object, calls: int) -> tuple[float, float]:
-    for _ in range(max(50, calls // 10)):
-        fn()
+def percentiles(fn: object, calls: int, states: int) -> tuple[float, float, np.ndarray]:
+    """p50 and p99 (us) of ``fn(k)`` over ``calls`` calls cycling through ``states`` states (after a
+    warm-up), and each call's time (s)."""
+    for k in range(max(50, calls // 10)):
+        fn(k % states)
     times = np.empty(calls)
     for i in range(calls):
+        k = i % states
         start = time.perf_counter()
-        fn()
+        fn(k)
         times[i] = time.perf_counter() - start
-    return float(np.percentile(times, 50) * 1e6), float(np.percentile(times, 99) * 1e6)
+    return float(np.percentile(times, 50) * 1e6), float(np.percentile(times, 99) * 1e6), times
 
 
 def timings(
     system: object, torch_filter: SafetyFilter, runtime: Filter, native: Filter, args: argparse.Namespace
 ) -> tuple[list[tuple[float, float]], list[float]]:
-    """Per-call percentiles at batch 1 (torch; ONNX Runtime: the runtime's call, the graph alone; the
-    native engine: the same two, and its C function alone) and states/s at batch 1024 (torch, ONNX
-    Runtime, native)."""
+    """Per-call percentiles at batch 1, cycling through ``args.states`` states (torch; ONNX Runtime:
+    the runtime's call, the graph alone; the native engine: the same two, its C function alone,
+    and its call split by the decision: the states where it keeps the nominal input, and where it
+    intervenes) and states/s at batch 1024 (torch, ONNX Runtime, native)."""
     x, _, u = draws(system, 1024, args.seed)
     horizon = float(system.horizon)
-    x1, u1 = x[:1], u[:1]
-    xn, un = x1.numpy()[0], u1.numpy()[0]
-    feed = {"state": x1.numpy(), "time_to_go": np.array([horizon], np.float32), "u_nominal": u1.numpy()}
+    n = min(args.states, 1024)
+    xs, us = x.numpy()[:n], u.numpy()[:n]
+    rows = [(x[k : k + 1], u[k : k + 1]) for k in range(n)]
+    feeds = [
+        {"state": xs[k : k + 1], "time_to_go": np.array([horizon], np.float32), "u_nominal": us[k : k + 1]}
+        for k in range(n)
+    ]
+    alone = [native._native.bound(feed) for feed in feeds]
+    intervened = native(xs, us, horizon)[1].intervened
     row = [
-        percentiles(lambda: torch_filter(x1, horizon, u1), args.calls),
-        percentiles(lambda: runtime(xn, un, horizon), args.calls),
-        percentiles(lambda: runtime.session.run(None, feed), args.calls),
-        percentiles(lambda: native(xn, un, horizon), args.calls),
-        percentiles(lambda: native._native.run(feed), args.calls),
-        percentiles(native._native.bound(feed), args.calls),
+        percentiles(lambda k: torch_filter(rows[k][0], horizon, rows[k][1]), args.calls, n),
+        percentiles(lambda k: runtime(xs[k], us[k], horizon), args.calls, n),
+        percentiles(lambda k: runtime.session.run(None, feeds[k]), args.calls, n),
+        percentiles(lambda k: native(xs[k], us[k], horizon), args.calls, n),
+        percentiles(lambda k: native._native.run(feeds[k]), args.calls, n),
+        percentiles(lambda k: alone[k](), args.calls, n),
+    ]
+    calls = row[3][2]
+    side = intervened[np.arange(args.calls) % n]
+    split = [
+        (float(np.percentile(calls[~side], 50) * 1e6), float(np.percentile(calls[~side], 99) * 1e6))
+        if (~side).any()
+        else (math.nan, math.nan),
+        (float(np.percentile(calls[side], 50) * 1e6), float(np.percentile(calls[side], 99) * 1e6))
+        if side.any()
+        else (math.nan, math.nan),
     ]
     rates = []
     for fn in (
@@ -186,25 +210,30 @@ def timings(
         for _ in range(10):
             fn()
         rates.append(10 * 1024 / (time.perf_counter() - start))
-    return row, rates
+    return [(p50, p99) for p50, p99, _ in row] + split + [(100 * float(intervened.mean()), math.nan)], rates
 
 
 def latency(args: argparse.Namespace) -> None:
     torch.set_num_threads(1)
-    print(f"# latency: batch 1, one thread, {args.calls} calls each (p50 / p99 in microseconds); dt {DT}, "
-          f"lookahead backup {args.horizon} s; throughput at batch 1024 in states/s")  # fmt: skip
+    print(f"# latency: batch 1, one thread, {args.calls} calls each cycling through {args.states} states "
+          f"(p50 / p99 in microseconds); dt {DT}, lookahead backup {args.horizon} s; throughput at batch 1024 "
+          "in states/s")  # fmt: skip
     print(
         "| system | filter | torch p50 / p99 | runtime p50 / p99 | graph p50 / p99 | native p50 / p99 "
-        "| native graph p50 / p99 | C alone p50 / p99 | torch 1024 | runtime 1024 | native 1024 |"
+        "| native graph p50 / p99 | C alone p50 / p99 | native, kept p50 / p99 | native, intervened p50 / p99 "
+        "| intervened % | torch 1024 | runtime 1024 | native 1024 |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, kind, vf, (_, torch_filter, runtime, _) in filters(args):
         native = Filter.load(export_path(args.folder, name, kind, args.horizon), engine="native")  # built once, cached
         if args.prepare:
             continue
         row, rates = timings(vf.system, torch_filter, runtime, native, args)
-        cells = " | ".join(f"{a:.0f} / {b:.0f}" for a, b in row)
-        print(f"| {name} | {kind} | {cells} | {rates[0]:.0f} | {rates[1]:.0f} | {rates[2]:.0f} |", flush=True)
+        cells = " | ".join(f"{a:.0f} / {b:.0f}" for a, b in row[:-1])
+        print(
+            f"| {name} | {kind} | {cells} | {row[-1][0]:.1f} | {rates[0]:.0f} | {rates[1]:.0f} | {rates[2]:.0f} |",
+            flush=True,
+        )
 
 
 def traced_operations(function: object, *example: torch.Tensor) -> int:
@@ -265,6 +294,7 @@ def main() -> None:
             p.add_argument("--chunk", type=int, default=10_000)
         else:
             p.add_argument("--calls", type=int, default=3000)
+            p.add_argument("--states", type=int, default=1000, help="states the calls cycle through (at most 1024)")
             p.add_argument(
                 "--prepare", action="store_true", help="export (or reuse) and compile the filters, time nothing"
             )

@@ -1084,11 +1084,15 @@ class NativeGraph:
         """A call of the C function alone on ``feeds``, without arguments (to time the compiled
         code apart from the copies and checks around it). Its outputs are discarded."""
         arrays = [np.asarray(feeds[name]) for name in self.input_names]
-        ins, _, args = self._allocate(int(arrays[0].shape[0]))
+        ins, outs, args = self._allocate(int(arrays[0].shape[0]))
         for slot, array in zip(ins, arrays):
             np.copyto(slot, array, casting="same_kind")
         function = self._fn
-        return lambda: function(*args)
+
+        def call(_buffers: tuple = (ins, outs)) -> int:  # held: the arguments point into these buffers
+            return function(*args)
+
+        return call
 
     def _allocate(self, n: int) -> tuple[list[np.ndarray], list[np.ndarray], list[Any]]:
         ins = [np.zeros((n, *row), dtype) for _, dtype, row in self._inputs]
