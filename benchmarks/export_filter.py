@@ -7,7 +7,8 @@ Two studies, one command each (docs/export.md holds their tables):
     python benchmarks/export_filter.py graph
 
 For each system (Air3D's shipped network, the shipped 9D network, a user's system from
-``examples/my_systems.py`` trained for a few hundred steps here) and each filter kind, the filter is
+``examples/my_systems.py`` trained for a few hundred steps here) and each filter kind (each with its
+default backup input, and the switch also with ``u*``, ``policy="gradient"``), the filter is
 exported with :func:`safety.export.export_filter` and run with :mod:`reach_runtime`.
 
 ``equivalence`` draws states uniformly from the domain, times-to-go uniformly over the horizon and
@@ -53,7 +54,15 @@ from safety.export import export_filter  # noqa: E402
 from safety.filter_settings import FilterSettings  # noqa: E402
 
 DT = 0.05
-KINDS = ("switch", "smooth", "lookahead")
+#: the filters of the study: each kind with its default backup input, and the switch backing up with u*
+KINDS = ("switch", "switch-gradient", "smooth", "lookahead")
+
+
+def filter_settings(kind: str, horizon: float) -> FilterSettings:
+    """The settings of a study ``kind`` (``"switch-gradient"``: the switch with ``policy="gradient"``)."""
+    if kind == "switch-gradient":
+        return FilterSettings("switch", policy="gradient")
+    return FilterSettings(kind, backup_horizon=horizon if kind == "lookahead" else None)
 
 
 def user_system_network(folder: Path, steps: int) -> object:
@@ -87,7 +96,7 @@ def exported(
 ) -> tuple[dict, SafetyFilter, Filter, float | None]:
     """The filter exported to ``folder`` (reused when there: the time is then None), the torch filter
     of the same settings, and the runtime's filter."""
-    settings = FilterSettings(kind, backup_horizon=horizon if kind == "lookahead" else None)
+    settings = filter_settings(kind, horizon)
     path = export_path(folder, name, kind, horizon)
     seconds = None
     if not path.exists():
@@ -255,8 +264,8 @@ def graph(args: argparse.Namespace) -> None:
 
     from safety.export import graph_value_function
 
-    print("| system | V alone (ops) | V and grad V (ops) | switch (ONNX nodes) | smooth | lookahead |")
-    print("|---|---:|---:|---:|---:|---:|")
+    print("| system | V alone (ops) | V and grad V (ops) | switch (ONNX nodes) | switch, u* | smooth | lookahead |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
     for name, vf in sources(args.folder, args.user_steps).items():
         traced = graph_value_function(vf)
         x = vf.system.sample_states(4, generator=torch.Generator().manual_seed(args.seed))

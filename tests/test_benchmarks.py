@@ -15,6 +15,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow  # run by name in .ci/run: keeps the default suite under 10 minutes
 def test_run_all_quick_and_compare(tmp_path: Path):
     from reach.threads import free_cores
 

@@ -217,6 +217,7 @@ def test_a_disc_of_thrust_takes_actions_inside_the_disc_and_scales_the_rest_onto
     vf = NeuralValueFunction(ValueNetwork(RocketLanding(), "ssl", width=8))
     with pytest.raises(ValueError, match=r"the greedy policy needs box inputs.*ball of radius 250"):
         GreedyPolicy(vf, step=0.01, dt=0.01)
+
     class TwoPilots(RocketLanding):  # one pilot per thrust component: agents whose inputs a disc couples
         agent_inputs = {"pilot_1": (0,), "pilot_2": (1,)}
 

@@ -13,6 +13,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 SYSTEM = "my_systems:DubinsGap"
 
@@ -33,6 +35,7 @@ def _run(*args: str) -> str:
     return done.stdout
 
 
+@pytest.mark.slow  # run by name in .ci/run: keeps the default suite under 10 minutes
 def test_the_python_tour_runs_every_tool(tmp_path):
     out = _run(sys.executable, str(ROOT / "examples" / "reach_avoid_tour.py"), str(tmp_path), "--tiny")
     assert "verification: false reachable" in out and "filtered episode:" in out
@@ -40,6 +43,7 @@ def test_the_python_tour_runs_every_tool(tmp_path):
     assert out.strip().splitlines()[-1] == "reloaded in a new process: reach-avoid my_systems:DubinsGap"
 
 
+@pytest.mark.slow  # run by name in .ci/run: keeps the default suite under 10 minutes
 def test_the_command_line_runs_every_tool(tmp_path):
     gt, run = str(tmp_path / "gt.npz"), str(tmp_path / "run")
     _run("reach", "groundtruth", SYSTEM, "--grid", "21", "--times", "0,0.5,1,1.5", "--out", gt)

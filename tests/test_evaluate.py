@@ -187,6 +187,7 @@ def test_merge_rows_keeps_stored_order_lets_reruns_supersede_and_appends_the_res
     assert all(r["run"] == ("new" if r["k"] in new else "old") for r in merged)
 
 
+@pytest.mark.slow  # run by name in .ci/run: keeps the default suite under 10 minutes
 def test_capped_networks_evaluate_on_the_chosen_device(pair_grid, checkpoints: Path, device: str):
     """`min:` and `cap:` of a network and the union of pairwise BRTs under `reach evaluate --device`.
     The first GPU run of these failed: the misses of the union were computed from states on the CPU,

@@ -84,6 +84,7 @@ def test_tasks_steer_toward_goals():
     assert evader.pose[1] == pytest.approx([0.375, 0.0, 0.0])
 
 
+@pytest.mark.slow  # run by name in .ci/run: keeps the default suite under 10 minutes
 def test_filter_eval_cli(air3d_grid, tmp_path: Path, capsys):
     grid = tmp_path / "air3d.npz"
     air3d_grid.save(grid)

@@ -38,6 +38,7 @@ def _counting_rollout(monkeypatch: pytest.MonkeyPatch, fail_at: int | None = Non
     return calls
 
 
+@pytest.mark.slow  # run by name in .ci/run: keeps the default suite under 10 minutes
 def test_an_interrupted_evaluation_resumes_to_the_same_row(tmp_path: Path, monkeypatch) -> None:
     """A verification killed after three of its eight rollout blocks (two each of the samples, the
     delta-level's fresh states and the robust search and check: the samples' done, the fresh
