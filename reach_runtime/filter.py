@@ -24,6 +24,8 @@ FORMAT = "reach-filter/1"
 ENGINES = ("onnxruntime", "native")
 
 _FLOAT32 = np.dtype(np.float32)
+#: the dtypes one state may come in on the native engine's fast path (cast to float32 there)
+_CASTS = (np.dtype(np.float32), np.dtype(np.float64))
 
 #: relative slack on the time-to-go range: times summed in float32 (``k * dt``) may overshoot it
 _TIME_TOLERANCE = 1e-6
@@ -189,13 +191,21 @@ class Filter:
         return self._decide(x, u_nominal, t)
 
     def _one_state(self, x: np.ndarray, u: np.ndarray, t: Any) -> tuple[np.ndarray, FilterInfo] | None:
-        """The control loop's call, one float32 state, on the native engine: its checks in C (the
-        C file's ``reach_filter_checked``). None where the call is not of that form (then the general
-        path decides). Where the C checks refuse, the general path is asked for the reason, so the
-        error names the bad value as it always does; should it not refuse, the state is refused."""
+        """The control loop's call, one float32 or float64 state, on the native engine: its checks in
+        C (the C file's ``reach_filter_checked``). None where the call is not of that form (then the
+        general path decides). Where the C checks refuse, the general path is asked for the reason,
+        so the error names the bad value as it always does; should it not refuse, the state is
+        refused. A float64 beyond float32's range becomes inf in the cast, which the C checks refuse."""
         state_shape, control_shape, times = self._row_ok  # type: ignore[misc]
-        if x.shape != state_shape or u.shape != control_shape or x.dtype != _FLOAT32 or u.dtype != _FLOAT32:
+        if x.shape != state_shape or u.shape != control_shape:
             return None
+        if x.dtype != _FLOAT32 or u.dtype != _FLOAT32:
+            if x.dtype not in _CASTS or u.dtype not in _CASTS:
+                return None
+            with np.errstate(over="ignore"):
+                x, u = x.astype(_FLOAT32), u.astype(_FLOAT32)
+        else:
+            u = u.copy()  # the info's nominal input: a copy, as the general path's
         if t is None:
             t = self.metadata.default_time_to_go
         if (type(t) is not float and type(t) is not int) or not times[0] <= t <= times[1]:
@@ -209,7 +219,7 @@ class Filter:
         info = FilterInfo(
             value=value.reshape(()),
             gradient=gradient.reshape(state_shape),
-            nominal=u.copy(),
+            nominal=u,
             applied=applied,
             intervened=intervened.reshape(()),
             infeasible=infeasible.reshape(()),

@@ -356,16 +356,23 @@ def test_one_float32_state_on_the_native_engine_decides_as_the_general_path(expo
     xs, us = x.numpy(), u.numpy()
     sides = set()
     for k in range(64):
-        got, got_info = native(xs[k], us[k], float(t[k]))
-        expected, expected_info = native._decide(xs[k], us[k], float(t[k]))
-        for a, b in [(got, expected)] + [(getattr(got_info, f), getattr(expected_info, f)) for f in vars(got_info)]:
-            assert a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b)
+        for cast in (np.float32, np.float64):  # float64 is cast on the way in, as the general path casts it
+            state, nominal = xs[k].astype(cast), us[k].astype(cast)
+            got, got_info = native(state, nominal, float(t[k]))
+            expected, expected_info = native._decide(state, nominal, float(t[k]))
+            pairs = [(got, expected)] + [(getattr(got_info, f), getattr(expected_info, f)) for f in vars(got_info)]
+            for a, b in pairs:
+                assert a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b)
         sides.add(bool(got_info.intervened))
     assert sides == {True, False}
     bad = xs[0].copy()
     bad[1] = np.nan
     with pytest.raises(ValueError, match="NaN or inf"):
         native(bad, us[0], 0.5)
+    huge = xs[0].astype(np.float64)
+    huge[0] = 1e300  # finite in float64, inf in float32
+    with pytest.raises(ValueError, match="overflow float32"):
+        native(huge, us[0], 0.5)
     with pytest.raises(ValueError, match=r"t = 1.5 lies outside"):
         native(xs[0], us[0], 1.5)
     from reach_runtime import native as native_module
