@@ -10,7 +10,9 @@ module turns the graph into one C function instead:
 - each remaining node becomes a loop over static buffers; data movement (slices, transposes,
   broadcasts, gathers with fixed indices) becomes copies through index tables computed by running
   the same NumPy operation on the positions of its input;
-- the weights become ``static const`` arrays.
+- the weights become ``static const`` arrays;
+- work that only one side of a row's flag reads runs inside ``if`` on that flag (the switch's
+  greedy backup input only where it intervenes: :meth:`_Emitter._gate_branches`).
 
 A batch is decided row by row: the graph decides each state on its own, and its scalar
 ``untrusted`` flag is the OR over the rows. :func:`c_source` writes the C file (to compile into a
