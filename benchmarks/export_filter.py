@@ -158,6 +158,13 @@ def equivalence(args: argparse.Namespace) -> None:
         )
 
 
+def p50_p99(times: np.ndarray) -> tuple[float, float]:
+    """The median and 99th percentile of call times (s) in microseconds; NaN for no calls."""
+    if not len(times):
+        return math.nan, math.nan
+    return float(np.percentile(times, 50) * 1e6), float(np.percentile(times, 99) * 1e6)
+
+
 def percentiles(fn: object, calls: int, states: int) -> tuple[float, float, np.ndarray]:
     """p50 and p99 (us) of ``fn(k)`` over ``calls`` calls cycling through ``states`` states (after a
     warm-up), and each call's time (s)."""
@@ -169,7 +176,7 @@ def percentiles(fn: object, calls: int, states: int) -> tuple[float, float, np.n
         start = time.perf_counter()
         fn(k)
         times[i] = time.perf_counter() - start
-    return float(np.percentile(times, 50) * 1e6), float(np.percentile(times, 99) * 1e6), times
+    return (*p50_p99(times), times)
 
 
 def timings(
@@ -200,14 +207,7 @@ def timings(
     ]
     calls = row[3][2]
     side = intervened[np.arange(args.calls) % n]
-    split = [
-        (float(np.percentile(calls[~side], 50) * 1e6), float(np.percentile(calls[~side], 99) * 1e6))
-        if (~side).any()
-        else (math.nan, math.nan),
-        (float(np.percentile(calls[side], 50) * 1e6), float(np.percentile(calls[side], 99) * 1e6))
-        if side.any()
-        else (math.nan, math.nan),
-    ]
+    split = [p50_p99(calls[~side]), p50_p99(calls[side])]
     rates = []
     for fn in (
         lambda: torch_filter(x, horizon, u),

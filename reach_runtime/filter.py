@@ -96,6 +96,13 @@ class FilterMetadata:
             raw=raw,
         )
 
+    def accepted_times(self) -> tuple[float, float]:
+        """The times-to-go a call may give: :attr:`time_range` widened by the float32 slack
+        (:data:`_TIME_TOLERANCE`, relative)."""
+        low, high = self.time_range
+        tol = _TIME_TOLERANCE * max(1.0, abs(high))
+        return low - tol, high + tol
+
 
 @dataclass(frozen=True)
 class FilterInfo:
@@ -135,9 +142,7 @@ class Filter:
         # one state on the native engine: (state shape, control shape, times that need no second look)
         self._row_ok: tuple[tuple[int], tuple[int], tuple[float, float]] | None = None
         if native is not None and getattr(native, "_row", None) is not None:
-            low, high = metadata.time_range
-            tol = _TIME_TOLERANCE * max(1.0, abs(high))
-            self._row_ok = ((metadata.state_dim,), (metadata.control_dim,), (low - tol, high + tol))
+            self._row_ok = ((metadata.state_dim,), (metadata.control_dim,), metadata.accepted_times())
             order = ("control", "value", "gradient", "intervened", "infeasible", "outside_domain", "untrusted")
             self._row_order = [native.output_names.index(name) for name in order]
 
@@ -199,6 +204,7 @@ class Filter:
         state_shape, control_shape, times = self._row_ok  # type: ignore[misc]
         if x.shape != state_shape or u.shape != control_shape:
             return None
+        given_x, given_u = x, u  # the general path names a refused value as the caller gave it
         if x.dtype != _FLOAT32 or u.dtype != _FLOAT32:
             if x.dtype not in _CASTS or u.dtype not in _CASTS:
                 return None
@@ -212,7 +218,7 @@ class Filter:
             return None
         status, out = self._native.checked_row(x, t, u)
         if status != 0:
-            self._decide(x, u, t)
+            self._decide(given_x, given_u, t)
             raise ValueError(f"the compiled filter refused this state (status {status}); no nominal input is kept")
         control, value, gradient, intervened, infeasible, outside, _ = (out[k] for k in self._row_order)
         applied = control.reshape(control_shape)
@@ -294,9 +300,9 @@ class Filter:
         if isinstance(t, (str, bytes)):
             raise ValueError(f"t must be a time-to-go in seconds or an array of them, got {t!r}")
         low, high = meta.time_range
-        tol = _TIME_TOLERANCE * max(1.0, abs(high))
+        first, last = meta.accepted_times()
         if type(t) is float or type(t) is int:  # one number (the common call at batch 1): checked without NumPy
-            if not (math.isfinite(t) and low - tol <= t <= high + tol):
+            if not (math.isfinite(t) and first <= t <= last):
                 raise ValueError(
                     f"time-to-go t = {float(t)} lies outside [{low:g}, {high:g}], the times this value function covers"
                 )
@@ -307,7 +313,7 @@ class Filter:
         if times.ndim and times.shape != batch and times.size != 1:
             raise ValueError(f"a per-state t must have shape {batch} (one per state), got {times.shape}")
         times = np.broadcast_to(times.astype(np.float64).reshape(() if times.size == 1 else batch), batch)
-        bad = ~np.isfinite(times) | (times < low - tol) | (times > high + tol)
+        bad = ~np.isfinite(times) | (times < first) | (times > last)
         if bad.any():
             value = float(times[bad].reshape(-1)[0])
             raise ValueError(
