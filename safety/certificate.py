@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +33,16 @@ import torch
 
 from reach.atomic import atomic_path
 from reach.intervals import Interval
-from safety.certify import OUTSIDE, PROVEN, CertificationResult, CertifySettings, _network, _Verifier, margin_bounds
+from safety.certify import (
+    ESCAPE,
+    OUTSIDE,
+    PROVEN,
+    CertificationResult,
+    CertifySettings,
+    _network,
+    _Verifier,
+    margin_bounds,
+)
 from safety.dyadic_cover import DyadicCover
 from training.checkpoint import network_digest
 from training.network import NeuralValueFunction, ValueNetwork
@@ -45,7 +54,10 @@ FORMAT = "reach-certificate/1"
 
 class Certificate:
     """A certified set: ``kept`` boxes (``S`` is ``S_c`` within them) with their backup inputs,
-    ``outside`` boxes (``V < c`` on each), the grid ``resolution`` per dimension, and provenance."""
+    ``outside`` boxes (``V < c`` on each), the grid ``resolution`` per dimension, and provenance.
+    With an escape set (``settings.escape_margin``): the ``escape`` boxes (all in ``E``) and the
+    ``excluded`` rest of the cover, so that the file's boxes tile the state box and the checker can
+    see that every box meeting the band below ``E`` is kept."""
 
     def __init__(
         self,
@@ -58,11 +70,27 @@ class Certificate:
         outside_lo: torch.Tensor,
         outside_hi: torch.Tensor,
         resolution: int,
+        escape_lo: torch.Tensor | None = None,
+        escape_hi: torch.Tensor | None = None,
+        excluded_lo: torch.Tensor | None = None,
+        excluded_hi: torch.Tensor | None = None,
     ) -> None:
         self.settings, self.system, self.fingerprint = settings, system, fingerprint
         self.kept_lo, self.kept_hi, self.inputs = kept_lo, kept_hi, inputs
         self.outside_lo, self.outside_hi = outside_lo, outside_hi
         self.resolution = resolution
+        none = kept_lo.new_zeros((0, kept_lo.shape[-1]))
+        self.escape_lo = none if escape_lo is None else escape_lo
+        self.escape_hi = none if escape_hi is None else escape_hi
+        self.excluded_lo = none if excluded_lo is None else excluded_lo
+        self.excluded_hi = none if excluded_hi is None else excluded_hi
+
+    def allowed_boxes(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The boxes a kept box's next states may land in: kept first, then outside, then escape."""
+        return (
+            torch.cat([self.kept_lo, self.outside_lo, self.escape_lo]),
+            torch.cat([self.kept_hi, self.outside_hi, self.escape_hi]),
+        )
 
     def kept_volume_share(self, domain: torch.Tensor) -> float:
         """The kept boxes' share of the state box (``S`` is the part of them where ``V >= c``)."""
@@ -133,32 +161,99 @@ def certified_set(
     A box about to drop first tries the other candidate inputs: one that proves (b) on it and whose
     next states meet no dropped box becomes its backup input, and the box stays.
 
+    With an escape set ``E`` (``escape_margin``), next states in ``E`` need no box, and the set is
+    ``(S_c ∩ kept boxes) ∪ E``. ``E`` holds only while every box of the band below it is kept with
+    ``V >= c`` on all of it; where one is not (from the start, or once it drops), the closure is
+    computed again without ``E`` and the certificate is written without it.
+
     ``rounds``, a list, receives one dict a round: the boxes ``dropped`` and ``switched`` (to another
-    input), and the share of the state box still ``kept`` (how a certified set is lost, round by round)."""
+    input), the share of the state box still ``kept``, and whether ``E`` was assumed (``escape``)."""
     network = _network(value_function)
     verifier = _Verifier(network, result.settings, torch.device("cpu"))
     grid = _Grid(verifier.domain, _resolution(result, verifier.domain))
-    keep = result.status == PROVEN
+    settings, closed = result.settings, None
+    if verifier.escape is not None:
+        band = verifier.in_band(result.lo, result.hi) & (result.status != ESCAPE)
+        rows = band.nonzero().squeeze(-1)
+        holds = bool((result.status[rows] == PROVEN).all())
+        if holds and len(rows):
+            holds = not _value_bounds_any(verifier, result.lo[rows], result.hi[rows], lambda v: v.lo < settings.level)
+        if holds:
+            closed = _close(verifier, grid, result, rounds, band)
+        if closed is None:  # E does not hold: the closure without it
+            settings = replace(settings, escape_margin=None)
+            verifier = _Verifier(network, settings, torch.device("cpu"))
+    if closed is None:
+        closed = _close(verifier, grid, result, rounds, None)
+    kept, inputs = closed
+    escape = (
+        (result.status == ESCAPE) if verifier.escape is not None else torch.zeros_like(result.status, dtype=torch.bool)
+    )
     outside = result.status == OUTSIDE
+    excluded = torch.ones_like(outside)
+    excluded[kept] = False
+    excluded &= ~outside & ~escape
+    if verifier.escape is None:  # the rest of the partition only matters to the band's check
+        excluded[:] = False
+    return Certificate(
+        settings,
+        network.system.config(),
+        network_digest(network),
+        result.lo[kept],
+        result.hi[kept],
+        inputs,
+        result.lo[outside],
+        result.hi[outside],
+        grid.resolution,
+        result.lo[escape],
+        result.hi[escape],
+        result.lo[excluded],
+        result.hi[excluded],
+    )
+
+
+def _close(
+    verifier: _Verifier, grid: _Grid, result: CertificationResult, rounds: list | None, band: torch.Tensor | None
+) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The closure's rounds (:func:`certified_set`): ``(rows of result kept, their inputs)``. ``band``
+    given: ``E`` is assumed, and ``None`` is returned once a box of the band drops. Without it, a next
+    state that is in ``E`` only (beyond the domain) counts as leaving the set."""
+    escape = band is not None
+    keep = result.status == PROVEN
+    allowed = keep | (result.status == OUTSIDE)
+    if escape:
+        allowed |= result.status == ESCAPE
     rows = keep.nonzero().squeeze(-1)
     lo, hi = result.lo[rows], result.hi[rows]
+    in_band = band[rows] if escape else torch.zeros(len(rows), dtype=torch.bool)
     choice = result.backup[rows].clone()
     tried = torch.zeros(len(rows), len(result.candidates), dtype=torch.bool)
     tried[torch.arange(len(rows)), choice] = True
-    n_lo, n_hi, owner = _next_boxes(verifier, lo, hi, result.candidates[choice])
-    n_a, n_b = grid.cells(n_lo.cpu(), n_hi.cpu(), exact=False)
+
+    def pieces(at: torch.Tensor, inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Cells of the next-state pieces of boxes ``at``: ``(a, b, owner, free, bad)``; ``free``: all
+        in ``E`` (no cell needed), ``bad``: leaves the set whatever the cells (``E`` not assumed)."""
+        n_lo, n_hi, piece, escaped, needs = verifier.landing(lo[at], hi[at], inputs)
+        a, b = grid.cells(n_lo.cpu(), n_hi.cpu(), exact=False)
+        owner = at[piece // len(verifier.d_lo)]
+        return a, b, owner, escaped & escape, needs & ~escape
+
+    n_a, n_b, owner, free, bad = pieces(torch.arange(len(rows)), result.candidates[choice])
     a, b = grid.cells(result.lo, result.hi, exact=True)
     alive = torch.ones(len(rows), dtype=torch.bool)
-    banned = ~(keep | outside)  # every box a next state may not meet
+    banned = ~allowed  # every box a next state may not meet
     dropped = banned.clone()  # ... of which the ones no survivor has been checked against yet
-    while bool(dropped.any()):
-        live = alive[owner]
-        hit = torch.zeros(len(owner), dtype=torch.bool)
-        hit[live] = DyadicCover(a[dropped], b[dropped], grid.resolution).meets(n_a[live], n_b[live])
+    first = True
+    while first or bool(dropped.any()):
+        live = alive[owner] & ~free
+        hit = bad & alive[owner]
+        if bool(dropped.any()) and bool(live.any()):
+            hit[live] |= DyadicCover(a[dropped], b[dropped], grid.resolution).meets(n_a[live], n_b[live])
+        first = False
         failing = alive & _fails(owner, hit, len(rows))
         switched = 0
-        if bool(failing.any()):
-            everything = DyadicCover(a[banned], b[banned], grid.resolution)
+        if bool(failing.any()) and bool(banned.any() or bad.any()):
+            everything = DyadicCover(a[banned], b[banned], grid.resolution) if bool(banned.any()) else None
             for k, u in enumerate(result.candidates):
                 ask = (failing & ~tried[:, k]).nonzero().squeeze(-1)
                 if not len(ask):
@@ -167,37 +262,32 @@ def certified_set(
                 ask = ask[verifier.keeps(lo[ask], hi[ask], u.expand(len(ask), -1))]
                 if not len(ask):
                     continue
-                k_lo, k_hi, k_owner = _next_boxes(verifier, lo[ask], hi[ask], u.expand(len(ask), -1))
-                k_a, k_b = grid.cells(k_lo.cpu(), k_hi.cpu(), exact=False)
-                clear = ~_fails(k_owner, everything.meets(k_a, k_b), len(ask))
+                k_a, k_b, k_owner, k_free, k_bad = pieces(ask, u.expand(len(ask), -1))
+                k_hit = k_bad.clone()
+                if everything is not None:
+                    k_hit[~k_free] |= everything.meets(k_a[~k_free], k_b[~k_free])
+                clear = ~_fails(k_owner, k_hit, len(rows))[ask]
                 moved = ask[clear]
                 if not len(moved):
                     continue
                 choice[moved], failing[moved] = k, False
                 switched += len(moved)
-                mine = clear[k_owner]  # the new pieces replace the moved rows' old ones
+                mine = torch.isin(k_owner, moved)  # the new pieces replace the moved rows' old ones
                 stays = ~torch.isin(owner, moved)
                 n_a, n_b = torch.cat([n_a[stays], k_a[mine]]), torch.cat([n_b[stays], k_b[mine]])
-                owner = torch.cat([owner[stays], ask[k_owner[mine]]])
+                owner, free, bad = (
+                    torch.cat([x[stays], y[mine]]) for x, y in ((owner, k_owner), (free, k_free), (bad, k_bad))
+                )
         dropped = torch.zeros_like(keep)
         dropped[rows[failing]] = True
         banned |= dropped
         alive &= ~failing
         if rounds is not None:
             share = float(((hi[alive] - lo[alive]) / grid.span).prod(-1).sum())
-            rounds.append({"dropped": int(failing.sum()), "switched": switched, "kept": share})
-    kept = rows[alive]
-    return Certificate(
-        result.settings,
-        network.system.config(),
-        network_digest(network),
-        result.lo[kept],
-        result.hi[kept],
-        result.candidates[choice[alive]],
-        result.lo[outside],
-        result.hi[outside],
-        grid.resolution,
-    )
+            rounds.append({"dropped": int(failing.sum()), "switched": switched, "kept": share, "escape": escape})
+        if bool((failing & in_band).any()):
+            return None  # a box of the band below E is lost: E does not hold
+    return rows[alive], result.candidates[choice[alive]]
 
 
 def save_certificate(path: str | Path, certificate: Certificate) -> Path:
@@ -221,6 +311,10 @@ def save_certificate(path: str | Path, certificate: Certificate) -> Path:
             inputs=certificate.inputs.numpy(),
             outside_lo=certificate.outside_lo.numpy(),
             outside_hi=certificate.outside_hi.numpy(),
+            escape_lo=certificate.escape_lo.numpy(),
+            escape_hi=certificate.escape_hi.numpy(),
+            excluded_lo=certificate.excluded_lo.numpy(),
+            excluded_hi=certificate.excluded_hi.numpy(),
         )
     return path
 
@@ -232,13 +326,20 @@ def load_certificate(path: str | Path) -> Certificate:
             header = json.loads(str(data["header"]))
             arrays = {k: torch.from_numpy(np.array(data[k], dtype=np.float64)) for k in
                       ("kept_lo", "kept_hi", "inputs", "outside_lo", "outside_hi")}  # fmt: skip
-    except (OSError, ValueError, KeyError, json.JSONDecodeError) as err:
+            # files without an escape set may lack these (written before there was one)
+            arrays |= {k: torch.from_numpy(np.array(data[k], dtype=np.float64)) for k in
+                       ("escape_lo", "escape_hi", "excluded_lo", "excluded_hi") if k in data.files}  # fmt: skip
+    except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError) as err:
         raise ValueError(f"{path}: not a reach certificate file ({err})") from None
     found = header.get("format") if isinstance(header, dict) else None
     if found != FORMAT:
         raise ValueError(f"{path}: not a reach certificate file (format {found!r})")
+    try:
+        settings = CertifySettings(**header["settings"])
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{path}: its settings are not a verifier's ({err})") from None
     return Certificate(
-        CertifySettings(**header["settings"]),
+        settings,
         header["system"],
         header["fingerprint"],
         arrays["kept_lo"],
@@ -247,6 +348,10 @@ def load_certificate(path: str | Path) -> Certificate:
         arrays["outside_lo"],
         arrays["outside_hi"],
         int(header["resolution"]),
+        arrays.get("escape_lo"),
+        arrays.get("escape_hi"),
+        arrays.get("excluded_lo"),
+        arrays.get("excluded_hi"),
     )
 
 
@@ -307,8 +412,12 @@ def verify_certificate(
     on_device = verifier if torch.device(device).type == "cpu" else _Verifier(network, settings, torch.device(device))
     domain = verifier.domain
     grid = _Grid(domain, certificate.resolution)
+    if verifier.escape is None and len(certificate.escape_lo):
+        raise ValueError(f"{path}: it has escape boxes but its settings no escape set")
     for name, lo, hi in (("kept", certificate.kept_lo, certificate.kept_hi),
-                         ("outside", certificate.outside_lo, certificate.outside_hi)):  # fmt: skip
+                         ("outside", certificate.outside_lo, certificate.outside_hi),
+                         ("escape", certificate.escape_lo, certificate.escape_hi),
+                         ("excluded", certificate.excluded_lo, certificate.excluded_hi)):  # fmt: skip
         if lo.ndim != 2 or lo.shape != hi.shape or lo.shape[-1] != domain.shape[0]:
             raise ValueError(f"{path}: its {name} boxes have shape {tuple(lo.shape)}")
         if bool(((lo < domain[:, 0] - 1e-12) | (hi > domain[:, 1] + 1e-12) | (lo > hi)).any()):
@@ -324,11 +433,38 @@ def verify_certificate(
     margin = margin_bounds(network.system, lo, hi)
     if bool((margin.lo <= 0).any()):
         raise ValueError(f"{path}: a kept box is not proven to keep l(x) > 0")
-    n_lo, n_hi, _ = _next_boxes(verifier, lo, hi, u)
-    if not bool(verifier.in_domain(n_lo, n_hi).all()):
+    if verifier.escape is not None:
+        _check_escape(certificate, verifier, on_device, grid, path)
+    n_lo, n_hi, _, escaped, _ = verifier.landing(lo, hi, u)
+    if verifier.escape is None and not bool(verifier.in_domain(n_lo, n_hi).all()):
         raise ValueError(f"{path}: a kept box's next states may leave the domain")
+    n_lo, n_hi = n_lo[~escaped], n_hi[~escaped]  # the pieces all in E need no more
     if _value_bounds_any(on_device, n_lo, n_hi, lambda v: v.lo < settings.level):
         raise ValueError(f"{path}: a kept box's next states are not proven to stay in V >= {settings.level:g}")
-    cover = grid.cover(torch.cat([lo, certificate.outside_lo]), torch.cat([hi, certificate.outside_hi]))
+    cover = grid.cover(*certificate.allowed_boxes())
     if not bool(_closed(grid, cover, n_lo, n_hi).all()):
         raise ValueError(f"{path}: a kept box's next states may leave the certified boxes")
+
+
+def _check_escape(certificate: Certificate, verifier: _Verifier, on_device: _Verifier, grid: _Grid, path: str) -> None:
+    """The escape set's own conditions: its boxes lie in ``E``, the file's boxes tile the state box,
+    and every box meeting the band below ``E`` is kept, with ``V >= c`` on all of it."""
+    level = certificate.settings.level
+    if not bool(verifier.in_escape(certificate.escape_lo, certificate.escape_hi).all()):
+        raise ValueError(f"{path}: an escape box is not proven to lie where l >= {verifier.escape[0]:g}")
+    every_lo = torch.cat([certificate.kept_lo, certificate.outside_lo, certificate.escape_lo, certificate.excluded_lo])
+    every_hi = torch.cat([certificate.kept_hi, certificate.outside_hi, certificate.escape_hi, certificate.excluded_hi])
+    a, b = grid.cells(every_lo, every_hi, exact=True)
+    whole = torch.zeros(1, grid.n, dtype=torch.long), torch.full((1, grid.n), grid.resolution, dtype=torch.long)
+    cells = int((b - a).prod(-1).sum())
+    if cells != grid.resolution**grid.n or not bool(DyadicCover(a, b, grid.resolution).covers(*whole).all()):
+        raise ValueError(f"{path}: its boxes do not tile the state box (the band below the escape set is unchecked)")
+    n_kept = len(certificate.kept_lo)
+    band = verifier.in_band(every_lo, every_hi)
+    if bool(band[n_kept:].any()):
+        raise ValueError(f"{path}: a box meeting the band below the escape set is not kept")
+    rows = band[:n_kept].nonzero().squeeze(-1)
+    if _value_bounds_any(on_device, certificate.kept_lo[rows], certificate.kept_hi[rows], lambda v: v.lo < level):
+        raise ValueError(
+            f"{path}: a kept box of the band below the escape set is not proven to hold only V >= {level:g}"
+        )

@@ -8,6 +8,9 @@ meets the failure set. :class:`CertifiedFilter` is the least restrictive filter 
   disturbance of its box, to lead to ``S`` again (the same bounds as the certificate's: the next
   states' box inside the domain, ``V >= c`` on it, and inside the kept or outside boxes); otherwise it
   applies the box's certified backup input;
+* with an escape set ``E`` (the certificate's ``escape_margin``), at a state of ``E`` every
+  admissible input keeps the set: the nominal input is kept; one that is not admissible is replaced
+  by the box's backup input, or, beyond the kept boxes, by the centre of the control box;
 * at a state outside ``S`` nothing is proven: it applies the value function's optimal input ``u*`` and
   says so in ``certified`` (a start outside ``S`` has no guarantee);
 * a nominal input outside the control box is never kept (it is not an admissible input); a state that
@@ -75,10 +78,7 @@ class CertifiedFilter:
         self._grid = _Grid(self._verifier.domain, certificate.resolution)
         # the kept boxes first, then the outside ones: a state's box below its number of kept boxes is
         # the kept box that holds it, whose backup input applies
-        self._allowed = self._grid.cover(
-            torch.cat([certificate.kept_lo, certificate.outside_lo]),
-            torch.cat([certificate.kept_hi, certificate.outside_hi]),
-        )
+        self._allowed = self._grid.cover(*certificate.allowed_boxes())
 
     def __call__(self, x: torch.Tensor, u_nominal: torch.Tensor) -> tuple[torch.Tensor, CertifiedInfo]:
         """The applied inputs for states ``(B, n)`` (or ``(n,)``) and nominal inputs ``(B, m)`` (or ``(m,)``)."""
@@ -101,10 +101,18 @@ class CertifiedFilter:
             owner = self._allowed.owner(a.clamp(max=self._grid.resolution - 1))
             box[inside] = torch.where(owner < len(self.certificate.kept_lo), owner, -1)
         certified = inside & (value >= s.level) & (box >= 0)
-        keep = certified & self._admissible(u) & self._keeps_set(x, u)
+        admissible = self._admissible(u)
+        keep = certified & admissible & self._keeps_set(x, u)
         applied = u.clone()
         backup = certified & ~keep
         applied[backup] = self.certificate.inputs[box[backup]]
+        escape = self._verifier.escape
+        if escape is not None:  # in E (beyond the domain, or l >= m): every admissible input keeps the set
+            in_e = ~inside | (self.system.failure_margin(x) >= escape[0])
+            keep |= in_e & admissible
+            applied[in_e & admissible] = u[in_e & admissible]
+            applied[in_e & ~admissible & ~certified] = u.new_tensor(self.system.control_bounds.center)
+            certified = certified | in_e
         elsewhere = ~certified
         if bool(elsewhere.any()):
             applied[elsewhere] = self._optimal(x[elsewhere])

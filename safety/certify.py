@@ -22,6 +22,16 @@ discrete time and any disturbance in its box, and ``S_c`` never meets the failur
 certificate. Bounds: :mod:`safety.linear_bounds` for the network, :mod:`reach.intervals` for the
 margins and the step. This first version certifies avoid problems with the ``exact``, ``diff`` and
 ``vanilla`` output parameterisations.
+
+**The escape set.** A next state may leave the domain, where the network is not trusted. With
+``escape_margin = m`` and a system that declares two lemmas (:func:`escape_rule`), the states with
+``l(x) >= m`` form an escape set ``E`` that is certified without the network: every state beyond the
+domain is in ``E``, and one step from ``E``, under any input and disturbance, lowers ``l`` by at most
+``delta``, so it lands in ``E`` or in the band ``m - delta <= l < m`` inside the domain. Then (b) also
+accepts next states in ``E``; a box all in ``E`` needs nothing (status **escape**); and a box meeting
+the band must hold only states of ``S_c`` (``V >= c`` on all of it; split until it does). The set
+proven is ``S_c ∪ E``: from ``E`` any admissible input keeps the state in it, or in the band, where
+(b) takes over. No bound of the network is ever computed beyond the domain.
 """
 
 from __future__ import annotations
@@ -48,9 +58,9 @@ from training.network import NeuralValueFunction, ValueNetwork
 
 __all__ = ["CertificationResult", "CertifySettings", "certify", "value_bounds"]
 
-#: box statuses
-OUTSIDE, PROVEN, REFUTED, UNKNOWN = 0, 1, 2, 3
-STATUS_NAMES = ("outside", "proven", "refuted", "unknown")
+#: box statuses (``escape``: every state of the box is in the escape set, which needs no proof)
+OUTSIDE, PROVEN, REFUTED, UNKNOWN, ESCAPE = 0, 1, 2, 3, 4
+STATUS_NAMES = ("outside", "proven", "refuted", "unknown", "escape")
 
 
 class _Unwrapped(IntervalBackend):
@@ -102,10 +112,15 @@ class CertifySettings:
     batch: int = 512  # boxes bounded at once
     max_boxes: int = 2_000_000  # stop (unfinished, never "certified") past this many boxes handled
     max_seconds: float | None = None  # ... or past this wall time
+    #: m: the states with failure margin ``l(x) >= m`` form the escape set ``E``, certified by the
+    #: system's own lemmas instead of the network (:func:`escape_rule`); ``None``: no escape set
+    escape_margin: float | None = None
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.level):
             raise ValueError(f"level must be finite, got {self.level!r}")
+        if self.escape_margin is not None:
+            positive_finite("escape_margin", self.escape_margin)
         positive_finite("time_to_go", self.time_to_go)
         positive_finite("dt", self.dt)
         check_integrator(self.integrator)
@@ -136,9 +151,13 @@ class CertificationResult:
     wall_time: float = 0.0
     boxes_handled: int = 0
 
+    #: boxes of the band below the escape set not proven to hold only states of ``S_c`` (they undo ``E``)
+    band_open: int = 0
+
     @property
     def certified(self) -> bool:
-        return self.finished and bool(((self.status == OUTSIDE) | (self.status == PROVEN)).all())
+        decided = (self.status == OUTSIDE) | (self.status == PROVEN) | (self.status == ESCAPE)
+        return self.finished and self.band_open == 0 and bool(decided.all())
 
     def volume_shares(self) -> dict[str, float]:
         """Each status's share of the state box's volume."""
@@ -152,10 +171,41 @@ class CertificationResult:
             "finished": self.finished,
             "boxes": len(self.status),
             "boxes_handled": self.boxes_handled,
+            "band_open": self.band_open,
             "wall_time_s": self.wall_time,
             **{f"volume_{k}": v for k, v in self.volume_shares().items()},
             "settings": asdict(self.settings),
         }
+
+
+def escape_rule(system: ControlAffineSystem, settings: CertifySettings) -> tuple[float, float] | None:
+    """``(m, delta)`` of the escape set ``E = {x : l(x) >= m}``, or ``None`` where the settings ask for
+    none. Sound when (the system's declared lemmas) every state outside the domain has ``l >= m``
+    (:meth:`~reach.systems.base.ControlAffineSystem.margin_outside_domain`) and one step lowers ``l``
+    by at most ``delta`` from any state (:meth:`~reach.systems.base.ControlAffineSystem.margin_step_bound`):
+    then a next state that leaves the domain is in ``E``, and a step from ``E`` lands in ``E`` or in
+    the band ``m - delta <= l < m``, which lies inside the domain. Refused, naming why, otherwise."""
+    m = settings.escape_margin
+    if m is None:
+        return None
+    delta = system.margin_step_bound(settings.dt, settings.integrator)
+    if delta is None:
+        raise ValueError(
+            f"escape_margin: {system.name} declares no bound on how much one {settings.integrator} step lowers "
+            "its failure margin (margin_step_bound), so it has no escape set"
+        )
+    least = system.margin_outside_domain()
+    if least is None:
+        raise ValueError(
+            f"escape_margin: {system.name} declares no lower bound of its failure margin outside its domain "
+            "(margin_outside_domain), so it has no escape set"
+        )
+    if m > least:
+        raise ValueError(
+            f"escape_margin {m:g} is above {least:g}, the least failure margin outside {system.name}'s domain: "
+            "a state that leaves the domain might not be in the escape set"
+        )
+    return m, float(delta)
 
 
 def _network(value_function: NeuralValueFunction | ValueNetwork) -> ValueNetwork:
@@ -226,6 +276,7 @@ class _Verifier:
         self.point_step = make_stepper(system, settings.dt, settings.integrator, TORCH)
         self.candidates = _candidates(network)
         self.d_lo, self.d_hi = _disturbance_pieces(network, settings.disturbance_splits)
+        self.escape = escape_rule(system, settings)
 
     def value(self, x_lo: torch.Tensor, x_hi: torch.Tensor) -> Interval:
         return value_bounds(self.network, x_lo, x_hi, self.settings.time_to_go)
@@ -252,6 +303,39 @@ class _Verifier:
         """Whether each box lies inside the domain (periodic dimensions wrap, so they always do)."""
         return (((n_lo >= self.domain[:, 0]) & (n_hi <= self.domain[:, 1])) | self.periodic).all(-1)
 
+    def in_escape(self, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+        """``(B,)``: whether every state of each box inside the domain is in the escape set ``E``
+        (bounds of ``l``); ``False`` everywhere without one."""
+        if self.escape is None:
+            return torch.zeros(len(lo), dtype=torch.bool)
+        return margin_bounds(self.system, lo, hi).lo >= self.escape[0]
+
+    def in_band(self, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+        """``(B,)``: whether each box meets the band ``m - delta <= l < m`` where a step from ``E``
+        may land (every state of it must be in the certified set); ``False`` without an escape set."""
+        if self.escape is None:
+            return torch.zeros(len(lo), dtype=torch.bool)
+        m, delta = self.escape
+        margin = margin_bounds(self.system, lo, hi)
+        return (margin.hi >= m - delta) & (margin.lo < m)
+
+    def landing(self, lo: torch.Tensor, hi: torch.Tensor, inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Where each box's next states land (:meth:`next_boxes`), cut to the domain where there is an
+        escape set (what lies beyond is in ``E``): ``(n_lo, n_hi, piece, escaped, needs_escape)``.
+        ``escaped``: the piece is all in ``E``; ``needs_escape``: some of its states are in ``E`` only
+        (outside the domain, or all of it)."""
+        n_lo, n_hi, piece = self.next_boxes(lo, hi, inputs)
+        if self.escape is None:
+            none = torch.zeros(len(n_lo), dtype=torch.bool)
+            return n_lo, n_hi, piece, none, none
+        c_lo, c_hi = torch.maximum(n_lo, self.domain[:, 0]), torch.minimum(n_hi, self.domain[:, 1])
+        left = ((c_lo != n_lo) | (c_hi != n_hi)).any(-1)
+        gone = (c_lo > c_hi).any(-1)  # wholly outside the domain
+        point = torch.maximum(torch.minimum(n_lo, self.domain[:, 1]), self.domain[:, 0])
+        c_lo, c_hi = torch.where(gone[:, None], point, c_lo), torch.where(gone[:, None], point, c_hi)
+        escaped = gone | self.in_escape(c_lo, c_hi)
+        return c_lo, c_hi, piece, escaped, escaped | left
+
     def keeps(
         self,
         lo: torch.Tensor,
@@ -261,11 +345,13 @@ class _Verifier:
     ) -> torch.Tensor:
         """``(B,)``: whether each box's input (``inputs`` ``(B, m)``) keeps every next state, under every
         disturbance piece, inside the domain and in ``S_c``, and (``also``, given the next-state boxes
-        that passed) wherever else the caller requires."""
+        that passed) wherever else the caller requires. With an escape set, a next state may instead
+        be in ``E`` (every state beyond the domain is)."""
         b, p = lo.shape[0], len(self.d_lo)
-        n_lo, n_hi, piece = self.next_boxes(lo, hi, inputs)
-        ok = self.in_domain(n_lo, n_hi)
+        n_lo, n_hi, piece, escaped, _ = self.landing(lo, hi, inputs)
+        ok = self.in_domain(n_lo, n_hi) & ~escaped
         check = ok.nonzero().squeeze(-1)
+        ok |= escaped
         if len(check):
             ok[check] = self.value(n_lo[check], n_hi[check]).lo >= self.settings.level
             if also is not None:
@@ -289,7 +375,8 @@ class _Verifier:
 
     def refute(self, lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Tensor, list[dict]]:
         """Counterexamples at the boxes' centres (float64 evaluation): a state of ``S_c`` with ``l <= 0``,
-        or one from which every candidate input has a disturbance vertex that leaves ``S_c``."""
+        or one from which every candidate input has a disturbance vertex that leaves ``S_c`` (and the
+        escape set ``E``, where there is one)."""
         x = 0.5 * (lo + hi)
         c = self.settings.level
         v = self.point_value(x)
@@ -303,7 +390,11 @@ class _Verifier:
                 u_cols = [torch.full((len(x),), float(a), dtype=torch.float64) for a in u]
                 d_cols = [torch.full((len(x),), float(a), dtype=torch.float64) for a in d]
                 nxt = TORCH.stack(self.point_step(TORCH.unbind(x), u_cols, d_cols))
-                some_d_escapes |= self.point_value(nxt) < c
+                out = self.point_value(nxt) < c
+                if self.escape is not None:
+                    beyond = ((nxt < self.domain[:, 0]) | (nxt > self.domain[:, 1])).any(-1)
+                    out &= ~beyond & (self.system.failure_margin(nxt) < self.escape[0])
+                some_d_escapes |= out
             escapes &= some_d_escapes
         refuted = in_set & (failing | escapes)
         found = [
@@ -360,9 +451,14 @@ class _Verifier:
             status = torch.full((len(lo),), UNKNOWN, dtype=torch.long)
             backup = torch.full((len(lo),), -1, dtype=torch.long)
             v = self.value(lo, hi)
-            outside = v.hi < s.level
+            escaping = self.in_escape(lo, hi)
+            status[escaping] = ESCAPE
+            outside = (v.hi < s.level) & ~escaping
             status[outside] = OUTSIDE
-            rest = (~outside).nonzero().squeeze(-1)
+            # a box of the band must hold only states of S_c: one where that is not proven is split
+            short = self.in_band(lo, hi) & ~escaping & (v.lo < s.level)
+            rest = (~outside & ~escaping).nonzero().squeeze(-1)
+            undecided = short.clone()
             if len(rest):
                 margin = margin_bounds(self.system, lo[rest], hi[rest])
                 included = (margin.lo > 0).nonzero().squeeze(-1)
@@ -377,20 +473,20 @@ class _Verifier:
                     refuted, found = self.refute(lo[open_], hi[open_])
                     status[open_[refuted]] = REFUTED
                     counterexamples += found
-                    undecided = open_[~refuted]
-                    width = (hi[undecided] - lo[undecided]) / self.span
-                    splittable = width.amax(-1) > s.min_relative_width
-                    split = undecided[splittable]
-                    if len(split):
-                        dim = ((hi[split] - lo[split]) / self.span).argmax(-1)
-                        mid = 0.5 * (lo[split, dim] + hi[split, dim])
-                        left_hi, right_lo = hi[split].clone(), lo[split].clone()
-                        rows = torch.arange(len(split))
-                        left_hi[rows, dim], right_lo[rows, dim] = mid, mid
-                        # breadth first: every box is tried at each size before any is split further
-                        queue_lo = torch.cat([queue_lo, lo[split], right_lo])
-                        queue_hi = torch.cat([queue_hi, left_hi, hi[split]])
-                        status[split] = -1  # replaced by its halves
+                    undecided[open_[~refuted]] = True
+            undecided &= status != REFUTED
+            width = (hi - lo) / self.span
+            split = (undecided & (width.amax(-1) > s.min_relative_width)).nonzero().squeeze(-1)
+            if len(split):
+                dim = width[split].argmax(-1)
+                mid = 0.5 * (lo[split, dim] + hi[split, dim])
+                left_hi, right_lo = hi[split].clone(), lo[split].clone()
+                rows = torch.arange(len(split))
+                left_hi[rows, dim], right_lo[rows, dim] = mid, mid
+                # breadth first: every box is tried at each size before any is split further
+                queue_lo = torch.cat([queue_lo, lo[split], right_lo])
+                queue_hi = torch.cat([queue_hi, left_hi, hi[split]])
+                status[split] = -1  # replaced by its halves
             keep = status >= 0
             done_lo.append(lo[keep]), done_hi.append(hi[keep])
             done_status.append(status[keep]), done_backup.append(backup[keep])
@@ -405,6 +501,10 @@ class _Verifier:
             lo, hi = torch.cat([lo, queue_lo]), torch.cat([hi, queue_hi])
             status = torch.cat([status, torch.full((len(queue_lo),), UNKNOWN, dtype=torch.long)])
             backup = torch.cat([backup, torch.full((len(queue_lo),), -1, dtype=torch.long)])
+        band_open = 0
+        if self.escape is not None:
+            band = (self.in_band(lo, hi) & (status != ESCAPE)).nonzero().squeeze(-1)
+            band_open = int((self.value(lo[band], hi[band]).lo < s.level).sum()) if len(band) else 0
         return CertificationResult(
             s,
             lo.cpu(),
@@ -416,6 +516,7 @@ class _Verifier:
             finished,
             final.seconds,
             handled,
+            band_open,
         )
 
 

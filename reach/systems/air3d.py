@@ -132,6 +132,23 @@ class RelativePair(ControlAffineSystem):
         """``v1 + v2``: turning only rotates the relative position, so only the speeds change ``||(x1, x2)||``."""
         return self.speed_1 + self.speed_2
 
+    def margin_step_bound(self, dt: float, integrator: str) -> float | None:
+        """``dt (v1 + v2)`` for Euler steps; ``None`` for RK4.
+
+        An Euler step moves the relative position ``r = (x1, x2)`` to
+        ``r + dt w1 (x2, -x1) + dt (-v1 + v2 cos x3, v2 sin x3)``. The first term is perpendicular to
+        ``r``, so ``|r + dt w1 (x2, -x1)| = |r| sqrt(1 + (dt w1)^2) >= |r|``; the second has length at
+        most ``dt (v1 + v2)``. So ``|r|``, and ``l``, drop by at most ``dt (v1 + v2)``, from any state.
+        RK4 approximates the rotation by a polynomial that shrinks ``|r|`` by a factor slightly below
+        one, a loss that grows with ``|r|``: no bound holds for every state."""
+        if integrator != "euler":
+            return None
+        return positive_finite("dt", dt) * (self.speed_1 + self.speed_2)
+
+    def margin_outside_domain(self) -> float:
+        """``half_width - R``: outside the square of relative positions ``|r| > half_width``."""
+        return self.half_width - self.collision_radius
+
     def failure_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
         return xp.hypot(x[0], x[1]) - self.collision_radius
 

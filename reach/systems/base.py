@@ -162,6 +162,24 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
         """
         return None
 
+    def margin_step_bound(self, dt: float, integrator: str) -> float | None:
+        """``delta``: one step of ``integrator`` over ``dt`` lowers the failure margin by at most this,
+        from *every* state (inside the domain or far outside it), with every admissible control and
+        disturbance held over the step: ``l(step(x, u, d)) >= l(x) - delta``. ``None`` (the default)
+        where no such bound is known for this integrator.
+
+        A proof obligation, declared per system with its argument in the docstring (and checked at
+        samples in the tests): a formal certificate (:mod:`safety.certify`) uses it to treat the
+        states far from failure, where the value function is not trusted or not defined, without
+        bounding the network there."""
+        return None
+
+    def margin_outside_domain(self) -> float | None:
+        """A lower bound of the failure margin ``l`` on every state outside the domain (its periodic
+        dimensions aside), or ``None`` (the default) where a state outside may be near failure.
+        With :meth:`margin_step_bound` it lets a certificate accept next states that leave the domain."""
+        return None
+
     def margin_floor(self, x: torch.Tensor, time: float) -> torch.Tensor | None:
         """A lower bound of ``l`` over the next ``time`` seconds from states ``x`` ``(..., n)``, under
         *any* admissible inputs (held over Euler steps or not), or ``None`` where none is known.

@@ -94,6 +94,18 @@ class Dubins3D(ControlAffineSystem):
     def margin_rate_bound(self) -> float:
         return self.velocity
 
+    def margin_step_bound(self, dt: float, integrator: str) -> float | None:
+        """``dt v`` (avoid; Euler or RK4): either step moves the position by a weighted mean of
+        stage velocities, each of length ``v``, with positive weights summing to one, so by at most
+        ``dt v``; ``l`` is a distance, which changes no faster than the position."""
+        if self.kind != "avoid":
+            return None
+        return positive_finite("dt", dt) * self.velocity
+
+    def margin_outside_domain(self) -> float | None:
+        """``1 - goalR`` (avoid): outside the square ``[-1, 1]^2`` the car is farther than 1 from the disc's centre."""
+        return 1.0 - self.goalR if self.kind == "avoid" else None
+
 
 class DubinsReachAvoid(ControlAffineSystem):
     """A Dubins car that must reach a goal disc within the horizon, keeping out of an obstacle disc,
