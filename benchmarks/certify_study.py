@@ -11,7 +11,8 @@ union of proven boxes: ``kept`` is its share of the box (the certified set is ``
 it), and with ``--out-dir`` its certificate is written there (the closure holds the boxes sparsely,
 so it runs at 6D and 9D too). ``--explain`` says how the closure lost what it lost: the undecided
 boxes from which every candidate input leaves the domain in one step, and the closure round by
-round (boxes dropped, boxes kept by switching input, share of the box still kept).
+round (boxes dropped, boxes kept by switching input, share of the box still kept; ``E`` marks the
+rounds that assume the escape set of ``--escape-margin``, which holds only if no box of its band drops).
 
 ``--resume-dir`` keeps each level's verifier progress, so a second
 run continues the first (its ``wall s`` and boxes count both): shares against time.
@@ -60,6 +61,9 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=512)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--max-boxes", type=int, default=2_000_000)
+    parser.add_argument(
+        "--escape-margin", type=float, default=None, help="m: the escape set {l >= m} (safety.certify.escape_rule)"
+    )
     parser.add_argument("--out-dir", type=Path, default=None, help="write each level's certificate here")
     parser.add_argument("--explain", action="store_true", help="say how the closure lost what it lost")
     parser.add_argument(
@@ -75,10 +79,10 @@ def main() -> None:
         f"of the span, {args.max_seconds:g} s a level, device {args.device}"
     )
     print(
-        "| level c | certified | finished | outside | proven | refuted | unknown | boxes handled | wall s "
+        "| level c | certified | finished | outside | escape | proven | refuted | unknown | boxes handled | wall s "
         "| counterexamples | kept | closure s |"
     )
-    print("|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for level in args.levels:
         settings = CertifySettings(
             level=level,
@@ -90,6 +94,7 @@ def main() -> None:
             batch=args.batch,
             max_seconds=args.max_seconds,
             max_boxes=args.max_boxes,
+            escape_margin=args.escape_margin,
         )
         resume = None if args.resume_dir is None else args.resume_dir / f"level-{level:g}.progress.npz"
         result = certify(network, settings, device=args.device, resume=resume)
@@ -99,11 +104,13 @@ def main() -> None:
         certificate = certified_set(network, result, rounds)
         closure = f"{time.perf_counter() - start:.1f}"
         kept = f"{certificate.kept_volume_share(network.system.domain_tensor()):.4f}"
+        if certificate.settings.escape_margin is not None:
+            kept += f" + E ({len(certificate.escape_lo)} boxes)"
         if args.out_dir is not None:
             save_certificate(args.out_dir / f"level-{level:g}.npz", certificate)
         print(
             f"| {level:g} | {'yes' if result.certified else 'no'} | {'yes' if result.finished else 'no'} | "
-            f"{shares['outside']:.4f} | {shares['proven']:.4f} | "
+            f"{shares['outside']:.4f} | {shares['escape']:.4f} | {shares['proven']:.4f} | "
             f"{shares['refuted']:.4f} | {shares['unknown']:.4f} | {result.boxes_handled} | {result.wall_time:.1f} | "
             f"{len(result.counterexamples)} | {kept} | {closure} |",
             flush=True,
@@ -114,7 +121,13 @@ def main() -> None:
                 f"#   c = {level:g}: undecided {undecided:.4f} of the box, of which {leaving:.4f} where every "
                 f"input leaves the domain in one step; closure rounds (dropped / switched input / kept share):"
             )
-            print("#   " + ", ".join(f"{r['dropped']}/{r['switched']}/{r['kept']:.4f}" for r in rounds), flush=True)
+            print(
+                "#   "
+                + ", ".join(f"{'E ' * r['escape']}{r['dropped']}/{r['switched']}/{r['kept']:.4f}" for r in rounds),
+                flush=True,
+            )
+            if args.escape_margin is not None:
+                print(f"#   band boxes not proven to hold only V >= c: {result.band_open}", flush=True)
 
 
 if __name__ == "__main__":

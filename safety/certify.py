@@ -535,6 +535,7 @@ def certify(
     it; a file made for another value function, system or proof is refused, naming the difference.
     The result's ``wall_time`` and ``boxes_handled`` then count every run."""
     network = _network(value_function)
+    escape_rule(network.system, settings)  # refused before any box is bounded
     if settings.time_to_go > network.system.horizon:
         raise ValueError(
             f"time_to_go {settings.time_to_go:g} is beyond the value function's horizon {network.system.horizon:g}"

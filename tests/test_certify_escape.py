@@ -253,3 +253,25 @@ def test_an_escape_rule_of_a_shipped_system_names_its_numbers():
     with pytest.raises(ValueError, match=r"above 0\.75"):
         escape_rule(Air3D(), CertifySettings(level=0.1, time_to_go=1.0, dt=0.02, escape_margin=0.76))
     assert ESCAPE == 4
+
+
+def test_the_command_line_takes_an_escape_margin_and_refuses_a_bad_one(tmp_path, capsys):
+    from reach_cli import main
+    from training import save_checkpoint
+
+    torch.manual_seed(0)
+    source = tmp_path / "air3d.pt"
+    save_checkpoint(source, ValueNetwork(Air3D(), "ssl", width=16, w0=3.0))
+    out = tmp_path / "cert.npz"
+    args = ["certify", str(source), "--level", "0.3", "--dt", "0.05", "--initial-splits", "4", "--min-width", "0.125"]
+    assert main([*args, "--escape-margin", "0.7", "--out", str(out)]) in (0, 3)
+    printed = capsys.readouterr().out
+    assert "wrote" in printed and ("escape set" in printed), printed
+    assert main(["certify", str(source), "--check", str(out)]) == 0
+    for bad, named in (
+        ([*args, "--escape-margin", "0.9", "--out", str(out)], "above 0.75"),
+        ([*args, "--escape-margin", "0.7", "--integrator", "rk4", "--out", str(out)], "margin_step_bound"),
+    ):
+        assert main(bad) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and named in err, err
