@@ -61,6 +61,7 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=512)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--max-boxes", type=int, default=2_000_000)
+    parser.add_argument("--band-min-width", type=float, default=None, help="smallest box meeting the escape band")
     parser.add_argument(
         "--escape-margin", type=float, default=None, help="m: the escape set {l >= m} (safety.certify.escape_rule)"
     )
@@ -95,6 +96,7 @@ def main() -> None:
             max_seconds=args.max_seconds,
             max_boxes=args.max_boxes,
             escape_margin=args.escape_margin,
+            band_min_relative_width=args.band_min_width,
         )
         resume = None if args.resume_dir is None else args.resume_dir / f"level-{level:g}.progress.npz"
         result = certify(network, settings, device=args.device, resume=resume)

@@ -26,6 +26,12 @@ CERTIFY_OPTIONS = (
     ("--max-boxes", "max_boxes", {"type": positive_int_arg}, "stop after this many boxes (the rest: unknown)"),
     ("--max-seconds", "max_seconds", {"type": positive_float_arg}, "stop after this wall time (the rest: unknown)"),
     (
+        "--band-min-width",
+        "band_min_relative_width",
+        {"type": unit_interval_arg},
+        "smallest box meeting the escape set's band (share of the span)",
+    ),
+    (
         "--escape-margin",
         "escape_margin",
         {"type": positive_float_arg},

@@ -115,6 +115,9 @@ class CertifySettings:
     #: m: the states with failure margin ``l(x) >= m`` form the escape set ``E``, certified by the
     #: system's own lemmas instead of the network (:func:`escape_rule`); ``None``: no escape set
     escape_margin: float | None = None
+    #: boxes meeting the band below ``E`` are split down to this width (share of the span) to prove
+    #: ``V >= c`` on all of them; the band is thin, so finer there costs little (``None``: as the rest)
+    band_min_relative_width: float | None = None
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.level):
@@ -130,8 +133,10 @@ class CertifySettings:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
         if self.max_seconds is not None:
             positive_finite("max_seconds", self.max_seconds)
-        if not (0 < self.min_relative_width <= 1):
-            raise ValueError(f"min_relative_width must lie in (0, 1], got {self.min_relative_width!r}")
+        for name in ("min_relative_width", "band_min_relative_width"):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, float | int) and 0 < value <= 1):
+                raise ValueError(f"{name} must lie in (0, 1], got {value!r}")
 
 
 @dataclass
@@ -457,8 +462,11 @@ class _Verifier:
             status[outside] = OUTSIDE
             # a box of the band must hold only states of S_c: one where that is not proven is split
             short = self.in_band(lo, hi) & ~escaping & (v.lo < s.level)
-            rest = (~outside & ~escaping).nonzero().squeeze(-1)
-            undecided = short.clone()
+            width = (hi - lo) / self.span
+            finest = s.min_relative_width if s.band_min_relative_width is None else s.band_min_relative_width
+            short_split = short & (width.amax(-1) > finest)  # split whatever (b) says: not tried
+            rest = (~outside & ~escaping & ~short_split).nonzero().squeeze(-1)
+            undecided = torch.zeros_like(short)
             if len(rest):
                 margin = margin_bounds(self.system, lo[rest], hi[rest])
                 included = (margin.lo > 0).nonzero().squeeze(-1)
@@ -475,8 +483,8 @@ class _Verifier:
                     counterexamples += found
                     undecided[open_[~refuted]] = True
             undecided &= status != REFUTED
-            width = (hi - lo) / self.span
-            split = (undecided & (width.amax(-1) > s.min_relative_width)).nonzero().squeeze(-1)
+            split = (undecided & (width.amax(-1) > s.min_relative_width)) | short_split
+            split = split.nonzero().squeeze(-1)
             if len(split):
                 dim = width[split].argmax(-1)
                 mid = 0.5 * (lo[split, dim] + hi[split, dim])

@@ -32,7 +32,17 @@ __all__ = ["PROOF_FIELDS", "SAVE_EVERY_S", "VerifierProgress", "load_progress", 
 FORMAT = "reach-certify-progress/1"
 
 #: the settings a proof depends on: a progress file made with others is refused
-PROOF_FIELDS = ("level", "time_to_go", "dt", "integrator", "disturbance_splits", "initial_splits", "min_relative_width")
+PROOF_FIELDS = (
+    "level",
+    "time_to_go",
+    "dt",
+    "integrator",
+    "disturbance_splits",
+    "initial_splits",
+    "min_relative_width",
+    "escape_margin",
+    "band_min_relative_width",
+)
 
 #: seconds between saves of a running verifier's progress
 SAVE_EVERY_S = 30.0

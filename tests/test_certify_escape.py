@@ -275,3 +275,20 @@ def test_the_command_line_takes_an_escape_margin_and_refuses_a_bad_one(tmp_path,
         assert main(bad) == 2
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and named in err, err
+
+
+def test_boxes_of_the_band_are_split_finer_until_they_hold_only_states_of_the_set(outflow):
+    """At ``c = 0.5`` the band below ``E = {l >= 0.6}`` lies just above the level: boxes of the first
+    cover that meet it also hold states with ``V < c``. Without finer band boxes they stay open (and
+    the closure drops ``E``); split to 1/64 there, while the rest stops at 1/8, every band box proves
+    ``V >= c`` and ``E`` holds."""
+    coarse = {**BASE, "level": 0.5, "min_relative_width": 1 / 8, "escape_margin": 0.6}
+    result = certify(outflow, CertifySettings(**coarse))
+    assert result.band_open > 0 and not result.certified
+    assert certified_set(outflow, result).settings.escape_margin is None
+    fine = certify(outflow, CertifySettings(**coarse, band_min_relative_width=1 / 64))
+    assert fine.band_open == 0
+    widths = ((fine.hi - fine.lo) / 2.0).amax(-1)
+    assert float(widths.min()) < 1 / 8 and float(widths.max()) == 1 / 8
+    certificate = certified_set(outflow, fine)
+    assert certificate.settings.escape_margin == 0.6 and len(certificate.kept_lo) > 0
