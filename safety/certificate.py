@@ -180,20 +180,18 @@ def certified_set(
             holds = not _value_bounds_any(verifier, result.lo[rows], result.hi[rows], lambda v: v.lo < settings.level)
         if holds:
             closed = _close(verifier, grid, result, rounds, band)
-        if closed is None:  # E does not hold: the closure without it
-            settings = replace(settings, escape_margin=None)
-            verifier = _Verifier(network, settings, torch.device("cpu"))
+        if closed is None:  # E does not hold: the closure without it (the verifier still says which
+            settings = replace(settings, escape_margin=None)  # next states lie beyond the domain)
     if closed is None:
         closed = _close(verifier, grid, result, rounds, None)
     kept, inputs = closed
-    escape = (
-        (result.status == ESCAPE) if verifier.escape is not None else torch.zeros_like(result.status, dtype=torch.bool)
-    )
+    with_escape = settings.escape_margin is not None
+    escape = (result.status == ESCAPE) & with_escape
     outside = result.status == OUTSIDE
     excluded = torch.ones_like(outside)
     excluded[kept] = False
     excluded &= ~outside & ~escape
-    if verifier.escape is None:  # the rest of the partition only matters to the band's check
+    if not with_escape:  # the rest of the partition only matters to the band's check
         excluded[:] = False
     return Certificate(
         settings,

@@ -277,7 +277,7 @@ def test_the_command_line_takes_an_escape_margin_and_refuses_a_bad_one(tmp_path,
         assert err.count("\n") == 0 and named in err, err
 
 
-def test_boxes_of_the_band_are_split_finer_until_they_hold_only_states_of_the_set(outflow):
+def test_boxes_of_the_band_are_split_finer_until_they_hold_only_states_of_the_set(outflow, tmp_path):
     """At ``c = 0.5`` the band below ``E = {l >= 0.6}`` lies just above the level: boxes of the first
     cover that meet it also hold states with ``V < c``. Without finer band boxes they stay open (and
     the closure drops ``E``); split to 1/64 there, while the rest stops at 1/8, every band box proves
@@ -285,7 +285,9 @@ def test_boxes_of_the_band_are_split_finer_until_they_hold_only_states_of_the_se
     coarse = {**BASE, "level": 0.5, "min_relative_width": 1 / 8, "escape_margin": 0.6}
     result = certify(outflow, CertifySettings(**coarse))
     assert result.band_open > 0 and not result.certified
-    assert certified_set(outflow, result).settings.escape_margin is None
+    without = certified_set(outflow, result)  # E dropped: nothing may lean on it, and the file checks so
+    assert without.settings.escape_margin is None and len(without.escape_lo) == 0
+    check_certificate(save_certificate(tmp_path / "without.npz", without), outflow)
     fine = certify(outflow, CertifySettings(**coarse, band_min_relative_width=1 / 64))
     assert fine.band_open == 0
     widths = ((fine.hi - fine.lo) / 2.0).amax(-1)
