@@ -29,7 +29,8 @@ margins and the step. This first version certifies avoid problems with the ``exa
 domain is in ``E``, and one step from ``E``, under any input and disturbance, lowers ``l`` by at most
 ``delta``, so it lands in ``E`` or in the band ``m - delta <= l < m`` inside the domain. Then (b) also
 accepts next states in ``E``; a box all in ``E`` needs nothing (status **escape**); and a box meeting
-the band must hold only states of ``S_c`` (``V >= c`` on all of it; split until it does). The set
+the band must hold only states of ``S_c`` (``V >= c`` on all of it) and be proven (split until it
+is, down to ``band_min_relative_width``). The set
 proven is ``S_c ∪ E``: from ``E`` any admissible input keeps the state in it, or in the band, where
 (b) takes over. No bound of the network is ever computed beyond the domain.
 """
@@ -116,7 +117,7 @@ class CertifySettings:
     #: system's own lemmas instead of the network (:func:`escape_rule`); ``None``: no escape set
     escape_margin: float | None = None
     #: boxes meeting the band below ``E`` are split down to this width (share of the span) to prove
-    #: ``V >= c`` on all of them; the band is thin, so finer there costs little (``None``: as the rest)
+    #: ``V >= c`` on all of them, and (b); the band is thin, so finer there costs little (``None``: as the rest)
     band_min_relative_width: float | None = None
 
     def __post_init__(self) -> None:
@@ -461,7 +462,8 @@ class _Verifier:
             outside = (v.hi < s.level) & ~escaping
             status[outside] = OUTSIDE
             # a box of the band must hold only states of S_c: one where that is not proven is split
-            short = self.in_band(lo, hi) & ~escaping & (v.lo < s.level)
+            band = self.in_band(lo, hi) & ~escaping
+            short = band & (v.lo < s.level)
             width = (hi - lo) / self.span
             finest = s.min_relative_width if s.band_min_relative_width is None else s.band_min_relative_width
             short_split = short & (width.amax(-1) > finest)  # split whatever (b) says: not tried
@@ -483,7 +485,9 @@ class _Verifier:
                     counterexamples += found
                     undecided[open_[~refuted]] = True
             undecided &= status != REFUTED
-            split = (undecided & (width.amax(-1) > s.min_relative_width)) | short_split
+            # the band's boxes must all be kept, so an undecided one is split finer, as far as the band goes
+            finer = torch.where(band, finest, s.min_relative_width)
+            split = (undecided & (width.amax(-1) > finer)) | short_split
             split = split.nonzero().squeeze(-1)
             if len(split):
                 dim = width[split].argmax(-1)
