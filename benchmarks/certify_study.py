@@ -12,7 +12,9 @@ it), and with ``--out-dir`` its certificate is written there (the closure holds 
 so it runs at 6D and 9D too). ``--explain`` says how the closure lost what it lost: the undecided
 boxes from which every candidate input leaves the domain in one step, and the closure round by
 round (boxes dropped, boxes kept by switching input, share of the box still kept; ``E`` marks the
-rounds that assume the escape set of ``--escape-margin``, which holds only if no box of its band drops).
+rounds that assume the escape set of ``--escape-margin``, which holds only if no box of its band drops;
+where it did not hold, a diagnostic closure that assumes it anyway says what the level set's band
+alone leaves).
 
 ``--resume-dir`` keeps each level's verifier progress, so a second
 run continues the first (its ``wall s`` and boxes count both): shares against time.
@@ -29,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import torch
 
-from safety.certificate import _fails, _next_boxes, certified_set, save_certificate
+from safety.certificate import _close, _fails, _Grid, _next_boxes, _resolution, certified_set, save_certificate
 from safety.certify import REFUTED, UNKNOWN, CertificationResult, CertifySettings, _network, _Verifier, certify
 from safety.sources import load_value_function
 
@@ -46,6 +48,16 @@ def leaving_domain(network: object, result: CertificationResult) -> tuple[float,
         n_lo, n_hi, owner = _next_boxes(verifier, lo, hi, u.expand(len(lo), -1))
         leaves &= _fails(owner, ~verifier.in_domain(n_lo, n_hi), len(lo))
     return float(volume.sum()), float(volume[leaves].sum())
+
+
+def escape_assumed(network: object, result: CertificationResult) -> list[dict]:
+    """The closure's rounds with the escape set assumed even where a box of its band drops (which
+    makes ``E`` unsound): how much of the set the level set's band alone leaves."""
+    verifier = _Verifier(_network(network), result.settings, torch.device("cpu"))
+    grid = _Grid(verifier.domain, _resolution(result, verifier.domain))
+    rounds: list[dict] = []
+    _close(verifier, grid, result, rounds, torch.zeros(len(result.status), dtype=torch.bool))
+    return rounds
 
 
 def main() -> None:
@@ -130,6 +142,13 @@ def main() -> None:
             )
             if args.escape_margin is not None:
                 print(f"#   band boxes not proven to hold only V >= c: {result.band_open}", flush=True)
+                if certificate.settings.escape_margin is None:
+                    assumed = escape_assumed(network, result)
+                    print(
+                        "#   diagnostic, not a certificate: the closure with E assumed whatever its band does: "
+                        + ", ".join(f"{r['dropped']}/{r['switched']}/{r['kept']:.4f}" for r in assumed),
+                        flush=True,
+                    )
 
 
 if __name__ == "__main__":
