@@ -57,7 +57,7 @@ from safety.linear_bounds import linear_bounds
 from training.checkpoint import network_digest
 from training.network import NeuralValueFunction, ValueNetwork
 
-__all__ = ["CertificationResult", "CertifySettings", "certify", "value_bounds"]
+__all__ = ["CertificationResult", "CertifySettings", "certify", "escape_rule", "value_bounds"]
 
 #: box statuses (``escape``: every state of the box is in the escape set, which needs no proof)
 OUTSIDE, PROVEN, REFUTED, UNKNOWN, ESCAPE = 0, 1, 2, 3, 4
