@@ -294,3 +294,14 @@ def test_boxes_of_the_band_are_split_finer_until_they_hold_only_states_of_the_se
     assert float(widths.min()) < 1 / 8 and float(widths.max()) == 1 / 8
     certificate = certified_set(outflow, fine)
     assert certificate.settings.escape_margin == 0.6 and len(certificate.kept_lo) > 0
+
+
+def test_a_progress_file_of_another_escape_set_is_refused(outflow, tmp_path):
+    """The escape margin decides which boxes are proven, so a stopped run resumes only under the same one."""
+    progress = tmp_path / "progress.npz"
+    stopped = certify(outflow, CertifySettings(**BASE, escape_margin=0.6, max_boxes=64), resume=progress)
+    assert not stopped.finished and not stopped.certified
+    with pytest.raises(ValueError, match=r"another proof.*escape_margin"):
+        certify(outflow, CertifySettings(**BASE, escape_margin=0.7), resume=progress)
+    resumed = certify(outflow, CertifySettings(**BASE, escape_margin=0.6), resume=progress)
+    assert resumed.finished and resumed.boxes_handled > stopped.boxes_handled
