@@ -174,11 +174,8 @@ def certified_set(
     settings, closed = result.settings, None
     if verifier.escape is not None:
         band = verifier.in_band(result.lo, result.hi) & (result.status != ESCAPE)
-        rows = band.nonzero().squeeze(-1)
-        holds = bool((result.status[rows] == PROVEN).all())
-        if holds and len(rows):
-            holds = not _value_bounds_any(verifier, result.lo[rows], result.hi[rows], lambda v: v.lo < settings.level)
-        if holds:
+        # E can hold only if every box of its band is proven, with V >= c on all of it (the verifier counted)
+        if result.band_open == 0 and bool((result.status[band] == PROVEN).all()):
             closed = _close(verifier, grid, result, rounds, band)
         if closed is None:  # E does not hold: the closure without it (the verifier still says which
             settings = replace(settings, escape_margin=None)  # next states lie beyond the domain)

@@ -100,19 +100,17 @@ class CertifiedFilter:
             a, _ = self._grid.cells(x[inside], x[inside], exact=False)
             owner = self._allowed.owner(a.clamp(max=self._grid.resolution - 1))
             box[inside] = torch.where(owner < len(self.certificate.kept_lo), owner, -1)
-        certified = inside & (value >= s.level) & (box >= 0)
-        admissible = self._admissible(u)
-        keep = certified & admissible & self._keeps_set(x, u)
-        applied = u.clone()
-        backup = certified & ~keep
-        applied[backup] = self.certificate.inputs[box[backup]]
+        in_box = inside & (value >= s.level) & (box >= 0)
         escape = self._verifier.escape
-        if escape is not None:  # in E (beyond the domain, or l >= m): every admissible input keeps the set
-            in_e = ~inside | (self.system.failure_margin(x) >= escape[0])
-            keep |= in_e & admissible
-            applied[in_e & admissible] = u[in_e & admissible]
-            applied[in_e & ~admissible & ~certified] = u.new_tensor(self.system.control_bounds.center)
-            certified = certified | in_e
+        # in E (beyond the domain, or l >= m) every admissible input keeps the set
+        in_e = torch.zeros_like(in_box) if escape is None else ~inside | (self.system.failure_margin(x) >= escape[0])
+        admissible = self._admissible(u)
+        keep = admissible & ((in_box & self._keeps_set(x, u)) | in_e)
+        applied = u.clone()
+        backup = in_box & ~keep
+        applied[backup] = self.certificate.inputs[box[backup]]
+        applied[in_e & ~keep & ~in_box] = u.new_tensor(self.system.control_bounds.center)
+        certified = in_box | in_e
         elsewhere = ~certified
         if bool(elsewhere.any()):
             applied[elsewhere] = self._optimal(x[elsewhere])

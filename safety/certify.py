@@ -309,21 +309,23 @@ class _Verifier:
         """Whether each box lies inside the domain (periodic dimensions wrap, so they always do)."""
         return (((n_lo >= self.domain[:, 0]) & (n_hi <= self.domain[:, 1])) | self.periodic).all(-1)
 
-    def in_escape(self, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
-        """``(B,)``: whether every state of each box inside the domain is in the escape set ``E``
-        (bounds of ``l``); ``False`` everywhere without one."""
+    def escape_flags(self, margin: Interval) -> tuple[torch.Tensor, torch.Tensor]:
+        """From bounds of ``l`` over boxes: whether every state of each box is in the escape set ``E``,
+        and whether the box meets the band ``m - delta <= l < m`` where a step from ``E`` may land
+        (every state of it must be in the certified set); both ``False`` without an escape set."""
         if self.escape is None:
-            return torch.zeros(len(lo), dtype=torch.bool)
-        return margin_bounds(self.system, lo, hi).lo >= self.escape[0]
+            none = torch.zeros(margin.lo.shape, dtype=torch.bool, device=margin.lo.device)
+            return none, none
+        m, delta = self.escape
+        return margin.lo >= m, (margin.hi >= m - delta) & (margin.lo < m)
+
+    def in_escape(self, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+        """``(B,)``: whether every state of each box (inside the domain) is in ``E`` (:meth:`escape_flags`)."""
+        return self.escape_flags(margin_bounds(self.system, lo, hi))[0]
 
     def in_band(self, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
-        """``(B,)``: whether each box meets the band ``m - delta <= l < m`` where a step from ``E``
-        may land (every state of it must be in the certified set); ``False`` without an escape set."""
-        if self.escape is None:
-            return torch.zeros(len(lo), dtype=torch.bool)
-        m, delta = self.escape
-        margin = margin_bounds(self.system, lo, hi)
-        return (margin.hi >= m - delta) & (margin.lo < m)
+        """``(B,)``: whether each box meets the band below ``E`` (:meth:`escape_flags`)."""
+        return self.escape_flags(margin_bounds(self.system, lo, hi))[1]
 
     def landing(self, lo: torch.Tensor, hi: torch.Tensor, inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """Where each box's next states land (:meth:`next_boxes`), cut to the domain where there is an
@@ -398,8 +400,7 @@ class _Verifier:
                 nxt = TORCH.stack(self.point_step(TORCH.unbind(x), u_cols, d_cols))
                 out = self.point_value(nxt) < c
                 if self.escape is not None:
-                    beyond = ((nxt < self.domain[:, 0]) | (nxt > self.domain[:, 1])).any(-1)
-                    out &= ~beyond & (self.system.failure_margin(nxt) < self.escape[0])
+                    out &= self.in_domain(nxt, nxt) & (self.system.failure_margin(nxt) < self.escape[0])
                 some_d_escapes |= out
             escapes &= some_d_escapes
         refuted = in_set & (failing | escapes)
@@ -457,12 +458,12 @@ class _Verifier:
             status = torch.full((len(lo),), UNKNOWN, dtype=torch.long)
             backup = torch.full((len(lo),), -1, dtype=torch.long)
             v = self.value(lo, hi)
-            escaping = self.in_escape(lo, hi)
+            margin = margin_bounds(self.system, lo, hi)
+            escaping, band = self.escape_flags(margin)
             status[escaping] = ESCAPE
             outside = (v.hi < s.level) & ~escaping
             status[outside] = OUTSIDE
             # a box of the band must hold only states of S_c: one where that is not proven is split
-            band = self.in_band(lo, hi) & ~escaping
             short = band & (v.lo < s.level)
             width = (hi - lo) / self.span
             finest = s.min_relative_width if s.band_min_relative_width is None else s.band_min_relative_width
@@ -470,8 +471,7 @@ class _Verifier:
             rest = (~outside & ~escaping & ~short_split).nonzero().squeeze(-1)
             undecided = torch.zeros_like(short)
             if len(rest):
-                margin = margin_bounds(self.system, lo[rest], hi[rest])
-                included = (margin.lo > 0).nonzero().squeeze(-1)
+                included = (margin.lo[rest] > 0).nonzero().squeeze(-1)
                 chosen = torch.full((len(rest),), -1, dtype=torch.long)
                 if len(included):
                     chosen[included] = self.invariant(lo[rest[included]], hi[rest[included]])
@@ -484,7 +484,6 @@ class _Verifier:
                     status[open_[refuted]] = REFUTED
                     counterexamples += found
                     undecided[open_[~refuted]] = True
-            undecided &= status != REFUTED
             # the band's boxes must all be kept, so an undecided one is split finer, as far as the band goes
             finer = torch.where(band, finest, s.min_relative_width)
             split = (undecided & (width.amax(-1) > finer)) | short_split
