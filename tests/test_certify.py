@@ -102,6 +102,8 @@ def test_an_unfinished_run_is_never_certified(network):
         ({"batch": 0}, "batch"),
         ({"min_relative_width": 2.0}, "min_relative_width"),
         ({"max_seconds": -1.0}, "max_seconds"),
+        ({"escape_margin": float("nan")}, "escape_margin"),
+        ({"band_min_relative_width": 2.0}, "band_min_relative_width"),
     ],
 )
 def test_bad_settings_are_refused_naming_them(options, named):

@@ -193,6 +193,10 @@ def test_the_checker_refuses_an_escape_set_that_does_not_hold(outflow, with_esca
     )
     with pytest.raises(ValueError, match="do not tile the state box"):
         check_certificate(missing, outflow)
+    # settings the verifier does not know: refused as a whole, in one line
+    junk = dict(header, settings={**header["settings"], "shortcut": True})
+    with pytest.raises(ValueError, match="its settings are not a verifier's"):
+        check_certificate(variant("junk", header=np.array(json.dumps(junk))), outflow)
     # escape boxes without an escape set
     header["settings"]["escape_margin"] = None
     with pytest.raises(ValueError, match="escape boxes but"):
