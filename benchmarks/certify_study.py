@@ -2,13 +2,14 @@
 the state box is proven, refuted or left unknown at each level, and in what time.
 
 Usage: ``python benchmarks/certify_study.py [--source pretrained:air3d] [--levels 0.05 0.1 0.2]
-[--time-to-go 1.0] [--dt 0.02] [--max-seconds 120] [--device cpu|cuda]``
+[--time-to-go 1.0] [--dt 0.02] [--max-seconds 120] [--device cpu|cuda] [--closure-width w]``
 
 Each level runs the verifier (``safety.certify.certify``) from a fresh cover of the box until it
 finishes or its time runs out; what is left counts as unknown. ``certified`` is yes only when every
 box is outside the set or proven. Then ``safety.certificate.certified_set`` keeps the largest closed
-union of proven boxes: ``kept`` is its share of the box (the certified set is ``{V >= c}`` within
-it), and with ``--out-dir`` its certificate is written there (the closure holds the boxes sparsely,
+union of the cover's safe boxes (cut down to ``--closure-width`` first, where given): ``kept`` is
+its share of the box (the certified set is their union, with ``E`` where it holds), and with
+``--out-dir`` its certificate is written there (the closure holds the boxes sparsely,
 so it runs at 6D and 9D too). ``--explain`` says how the closure lost what it lost: the undecided
 boxes from which every candidate input leaves the domain in one step, and the closure round by
 round (boxes dropped, boxes kept by switching input, share of the box still kept; ``E`` marks the
@@ -31,7 +32,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import torch
 
-from safety.certificate import _close, _fails, _Grid, _next_boxes, _resolution, certified_set, save_certificate
+from safety.certificate import (
+    _close,
+    _fails,
+    _Grid,
+    _next_boxes,
+    _refined,
+    _resolution,
+    certified_set,
+    save_certificate,
+)
 from safety.certify import REFUTED, UNKNOWN, CertificationResult, CertifySettings, _network, _Verifier, certify
 from safety.sources import load_value_function
 
@@ -54,6 +64,7 @@ def escape_assumed(network: object, result: CertificationResult) -> list[dict]:
     """The closure's rounds with the escape set assumed even where a box of its band drops (which
     makes ``E`` unsound): how much of the set the level set's band alone leaves."""
     verifier = _Verifier(_network(network), result.settings, torch.device("cpu"))
+    result = _refined(result, verifier.domain)
     grid = _Grid(verifier.domain, _resolution(result, verifier.domain))
     rounds: list[dict] = []
     _close(verifier, grid, result, rounds, torch.zeros(len(result.status), dtype=torch.bool))
@@ -74,6 +85,9 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--max-boxes", type=int, default=2_000_000)
     parser.add_argument("--band-min-width", type=float, default=None, help="smallest box meeting the escape band")
+    parser.add_argument(
+        "--closure-width", type=float, default=None, help="cut boxes down to this width before the closure"
+    )
     parser.add_argument(
         "--escape-margin", type=float, default=None, help="m: the escape set {l >= m} (safety.certify.escape_rule)"
     )
@@ -109,6 +123,7 @@ def main() -> None:
             max_boxes=args.max_boxes,
             escape_margin=args.escape_margin,
             band_min_relative_width=args.band_min_width,
+            closure_relative_width=args.closure_width,
         )
         resume = None if args.resume_dir is None else args.resume_dir / f"level-{level:g}.progress.npz"
         result = certify(network, settings, device=args.device, resume=resume)

@@ -32,6 +32,12 @@ CERTIFY_OPTIONS = (
         "smallest box meeting the escape set's band (share of the span)",
     ),
     (
+        "--closure-width",
+        "closure_relative_width",
+        {"type": unit_interval_arg},
+        "cut boxes down to this width (share of the span) before the closure, each with its own input",
+    ),
+    (
         "--escape-margin",
         "escape_margin",
         {"type": positive_float_arg},

@@ -1,13 +1,14 @@
 """A safety filter that is safe for all time by proof: it keeps a certificate's set invariant.
 
-:mod:`safety.certificate` certifies a set ``S = {V(x, T) >= c} ∩ (kept boxes)``: from every state of
-``S`` its box's backup input keeps the next state in ``S``, under every disturbance, and ``S`` never
-meets the failure set. :class:`CertifiedFilter` is the least restrictive filter that keeps ``S``:
+:mod:`safety.certificate` certifies a set ``S``, the union of its kept boxes (and the escape set
+``E`` where it has one): from every state of ``S`` its box's backup input keeps the next state in
+``S``, under every disturbance, and ``S`` never meets the failure set. :class:`CertifiedFilter` is
+the least restrictive filter that keeps ``S``:
 
 * at a state of ``S`` it keeps the nominal input when it is proven, for this state and every
-  disturbance of its box, to lead to ``S`` again (the same bounds as the certificate's: the next
-  states' box inside the domain, ``V >= c`` on it, and inside the kept or outside boxes); otherwise it
-  applies the box's certified backup input;
+  disturbance of its box, to lead to ``S`` again (the same rule as the certificate's: each next-state
+  box inside the kept boxes, or with ``V >= c`` on it and inside the kept and outside boxes);
+  otherwise it applies the box's certified backup input;
 * with an escape set ``E`` (the certificate's ``escape_margin``), at a state of ``E`` every
   admissible input keeps the set: the nominal input is kept; one that is not admissible is replaced
   by the box's backup input, or, beyond the kept boxes, by the centre of the control box;
@@ -79,6 +80,7 @@ class CertifiedFilter:
         # the kept boxes first, then the outside ones: a state's box below its number of kept boxes is
         # the kept box that holds it, whose backup input applies
         self._allowed = self._grid.cover(*certificate.allowed_boxes())
+        self._members = self._grid.cover(*certificate.member_boxes())
 
     def __call__(self, x: torch.Tensor, u_nominal: torch.Tensor) -> tuple[torch.Tensor, CertifiedInfo]:
         """The applied inputs for states ``(B, n)`` (or ``(n,)``) and nominal inputs ``(B, m)`` (or ``(m,)``)."""
@@ -100,7 +102,7 @@ class CertifiedFilter:
             a, _ = self._grid.cells(x[inside], x[inside], exact=False)
             owner = self._allowed.owner(a.clamp(max=self._grid.resolution - 1))
             box[inside] = torch.where(owner < len(self.certificate.kept_lo), owner, -1)
-        in_box = inside & (value >= s.level) & (box >= 0)
+        in_box = inside & (box >= 0)
         escape = self._verifier.escape
         # in E (beyond the domain, or l >= m) every admissible input keeps the set
         in_e = torch.zeros_like(in_box) if escape is None else ~inside | (self.system.failure_margin(x) >= escape[0])
@@ -123,9 +125,23 @@ class CertifiedFilter:
         return ((u >= low) & (u <= high)).all(-1)
 
     def _keeps_set(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """Whether ``u`` is proven to lead each state ``x`` back into the certified set: the verifier's
-        check on the point box of each state, with the next states also inside the certificate's boxes."""
-        return self._verifier.keeps(x, x, u, also=lambda n_lo, n_hi: _closed(self._grid, self._allowed, n_lo, n_hi))
+        """Whether ``u`` is proven to lead each state ``x`` back into the certified set: the certificate's
+        rule (module docstring) on the point box of each state, under every disturbance piece."""
+        verifier = self._verifier
+        n_lo, n_hi, piece, escaped, _ = verifier.landing(x, x, u)
+        # with E, pieces are cut to the domain (what lies beyond is in E); without, none may leave it
+        ok = escaped | verifier.in_domain(n_lo, n_hi)
+        ask = (ok & ~escaped).nonzero().squeeze(-1)
+        ok[ask] = _closed(self._grid, self._members, n_lo[ask], n_hi[ask])
+        rest = ask[~ok[ask]]
+        if len(rest):  # V >= c shows that a piece meeting an outside box misses it
+            level = self.certificate.settings.level
+            ok[rest] = _closed(self._grid, self._allowed, n_lo[rest], n_hi[rest]) & (
+                verifier.value(n_lo[rest], n_hi[rest]).lo >= level
+            )
+        held = torch.ones(len(x) * len(verifier.d_lo), dtype=torch.long)
+        held.scatter_reduce_(0, piece, ok.long(), reduce="amin")
+        return held.reshape(len(x), -1).bool().all(-1)
 
     def _optimal(self, x: torch.Tensor) -> torch.Tensor:
         """``u*`` of ``grad V`` where nothing is certified (the best the value function offers)."""

@@ -119,6 +119,10 @@ class CertifySettings:
     #: boxes meeting the band below ``E`` are split down to this width (share of the span) to prove
     #: ``V >= c`` on all of them, and (b); the band is thin, so finer there costs little (``None``: as the rest)
     band_min_relative_width: float | None = None
+    #: before the closure (:func:`safety.certificate.certified_set`), boxes wider than this (share of
+    #: the span) are cut into halves down to it, each with its own backup input: a coarse proven box
+    #: needs one input for all of it, which a neutral game's flow may not allow (``None``: as proven)
+    closure_relative_width: float | None = None
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.level):
@@ -134,7 +138,7 @@ class CertifySettings:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
         if self.max_seconds is not None:
             positive_finite("max_seconds", self.max_seconds)
-        for name in ("min_relative_width", "band_min_relative_width"):
+        for name in ("min_relative_width", "band_min_relative_width", "closure_relative_width"):
             value = getattr(self, name)
             if value is not None and not (isinstance(value, float | int) and 0 < value <= 1):
                 raise ValueError(f"{name} must lie in (0, 1], got {value!r}")

@@ -9,6 +9,7 @@ what is proven is plain geometry and every claim can be checked at samples.
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 
@@ -24,7 +25,7 @@ from reach.systems.arrays import TORCH
 from reach.systems.box import Box
 from safety.certificate import certified_set, check_certificate, save_certificate
 from safety.certified_filter import CertifiedFilter
-from safety.certify import ESCAPE, CertifySettings, certify, escape_rule
+from safety.certify import ESCAPE, CertifySettings, _Verifier, certify, escape_rule, value_bounds
 from training.network import ValueNetwork
 
 PUSH, GUST, RADIUS = 0.1, 0.05, 0.25
@@ -116,12 +117,12 @@ def test_with_one_most_of_the_box_is_certified_and_its_file_checks(outflow, with
 
 
 def in_certified_set(certificate, system, x: torch.Tensor) -> torch.Tensor:
-    """``(S_c ∩ kept boxes) ∪ E`` at states ``x``, evaluated directly (``V = l`` here)."""
+    """``(kept boxes) ∪ E`` at states ``x``, evaluated directly."""
     margin = system.failure_margin(x)
     beyond = ((x < -1.0) | (x > 1.0)).any(-1)
     lo, hi = certificate.kept_lo, certificate.kept_hi
     in_kept = ((x[:, None, :] >= lo) & (x[:, None, :] <= hi)).all(-1).any(-1)
-    return beyond | (margin >= certificate.settings.escape_margin) | ((margin >= LEVEL) & in_kept)
+    return beyond | (margin >= certificate.settings.escape_margin) | in_kept
 
 
 def test_the_certified_filter_keeps_every_trajectory_safe_in_and_beyond_the_domain(outflow, with_escape):
@@ -170,8 +171,8 @@ def test_the_checker_refuses_an_escape_set_that_does_not_hold(outflow, with_esca
     # a lower E, still sound (every state of its band is kept) ...
     header["settings"]["escape_margin"] = 0.3
     check_certificate(variant("lower", header=np.array(json.dumps(header))), outflow)
-    # ... but not this low: its band (0.105 - delta <= l < 0.105) holds states with V = l < c
-    header["settings"]["escape_margin"] = 0.105
+    # ... but not this low: its band (0.005 - delta <= l < 0.005) reaches into the disc, where no box is kept
+    header["settings"]["escape_margin"] = 0.005
     with pytest.raises(ValueError, match="band"):
         check_certificate(variant("lowest", header=np.array(json.dumps(header))), outflow)
     # a kept box of the band dropped into the excluded rest
@@ -283,21 +284,36 @@ def test_the_command_line_takes_an_escape_margin_and_refuses_a_bad_one(tmp_path,
 
 def test_boxes_of_the_band_are_split_finer_until_they_hold_only_states_of_the_set(outflow, tmp_path):
     """At ``c = 0.5`` the band below ``E = {l >= 0.6}`` lies just above the level: boxes of the first
-    cover that meet it also hold states with ``V < c``. Without finer band boxes they stay open (and
-    the closure drops ``E``); split to 1/64 there, while the rest stops at 1/8, every band box proves
-    ``V >= c`` and ``E`` holds."""
+    cover that meet it also hold states with ``V < c``, so ``S_c ∪ E`` is not proven (``band_open``).
+    The certified set is the union of kept boxes, so such boxes may be kept whole and ``E`` still
+    holds. Split to 1/64 there, while the rest stops at 1/8, every band box proves ``V >= c``."""
     coarse = {**BASE, "level": 0.5, "min_relative_width": 1 / 8, "escape_margin": 0.6}
     result = certify(outflow, CertifySettings(**coarse))
     assert result.band_open > 0 and not result.certified
-    without = certified_set(outflow, result)  # E dropped: nothing may lean on it, and the file checks so
-    assert without.settings.escape_margin is None and len(without.escape_lo) == 0
-    check_certificate(save_certificate(tmp_path / "without.npz", without), outflow)
+    certificate = certified_set(outflow, result)
+    assert certificate.settings.escape_margin == 0.6
+    lo, hi = certificate.kept_lo, certificate.kept_hi
+    band = _Verifier(outflow, certificate.settings, torch.device("cpu")).in_band(lo, hi)
+    below = value_bounds(copy.deepcopy(outflow).double(), lo[band], hi[band], 1.0).lo < 0.5
+    assert bool(below.any())  # kept band boxes that hold states of V < c
+    check_certificate(save_certificate(tmp_path / "coarse.npz", certificate), outflow)
     fine = certify(outflow, CertifySettings(**coarse, band_min_relative_width=1 / 64))
     assert fine.band_open == 0
     widths = ((fine.hi - fine.lo) / 2.0).amax(-1)
     assert float(widths.min()) < 1 / 8 and float(widths.max()) == 1 / 8
     certificate = certified_set(outflow, fine)
     assert certificate.settings.escape_margin == 0.6 and len(certificate.kept_lo) > 0
+
+
+def test_an_escape_set_whose_band_cannot_be_kept_is_dropped(outflow, tmp_path):
+    """With ``E = {l >= 0.005}`` the band below it reaches into the disc, where no box can be kept, so
+    ``E`` does not hold: the closure is computed without it, nothing leans on it, and the file checks
+    so (the flow carries every state out of the box, so nothing is kept)."""
+    result = certify(outflow, CertifySettings(**BASE, escape_margin=0.005))
+    without = certified_set(outflow, result)
+    assert without.settings.escape_margin is None and len(without.escape_lo) == 0
+    assert len(without.kept_lo) == 0
+    check_certificate(save_certificate(tmp_path / "without.npz", without), outflow)
 
 
 def test_a_progress_file_of_another_escape_set_is_refused(outflow, tmp_path):
