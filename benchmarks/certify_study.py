@@ -65,7 +65,7 @@ def escape_assumed(network: object, result: CertificationResult) -> list[dict]:
     makes ``E`` unsound): how much of the set the level set's band alone leaves."""
     verifier = _Verifier(_network(network), result.settings, torch.device("cpu"))
     result = _refined(result, verifier.domain)
-    grid = _Grid(verifier.domain, _resolution(result, verifier.domain))
+    grid = _Grid(verifier.domain, _resolution(result, verifier.domain), result.lo, result.hi)
     rounds: list[dict] = []
     _close(verifier, grid, result, rounds, torch.zeros(len(result.status), dtype=torch.bool))
     return rounds

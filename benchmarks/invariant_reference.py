@@ -35,7 +35,7 @@ def certified_mask(path: Path, x: torch.Tensor) -> torch.Tensor:
     certificate = load_certificate(path)
     system = Air3D()
     domain = system.domain_tensor(torch.float64, "cpu")
-    grid = _Grid(domain, certificate.resolution)
+    grid = _Grid(domain, certificate.resolution, *certificate.every_box())
     cover = DyadicCover(*grid.cells(certificate.kept_lo, certificate.kept_hi, exact=True), grid.resolution)
     cells = ((x - domain[:, 0]) / grid.span * grid.resolution).floor().long().clamp(0, grid.resolution - 1)
     inside = cover.owner(cells) >= 0

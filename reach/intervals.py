@@ -42,6 +42,49 @@ def _pad(value: torch.Tensor, ulps: float = 2.0) -> torch.Tensor:
     return ulps * UNIT_ROUNDOFF * value.abs() + _TINY
 
 
+#: below this magnitude a product's exact error may underflow: such results are widened by ``_pad``
+_EXACT_ABOVE = 2.0**-900
+#: above this magnitude Veltkamp's split may overflow: such results are widened by ``_pad``
+_EXACT_BELOW = 2.0**990
+_SPLIT = 2.0**27 + 1.0
+
+
+def _directed(value: torch.Tensor, error: torch.Tensor, fallback: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Tight outward bounds of ``value + error`` (the exact result, ``error`` its rounding error found
+    by an error-free transformation): ``value`` itself on the side the error does not reach, one ulp
+    beyond it on the other. Where ``fallback`` is set the transformation may be inexact, and ``value``
+    is widened by :func:`_pad` instead."""
+    lo = torch.where(error < 0, torch.nextafter(value, torch.full_like(value, -math.inf)), value)
+    hi = torch.where(error > 0, torch.nextafter(value, torch.full_like(value, math.inf)), value)
+    lo = torch.where(fallback, value - _pad(value), lo)
+    hi = torch.where(fallback, value + _pad(value), hi)
+    return lo, hi
+
+
+def _sum_bounds(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Outward bounds of the real ``a + b``: Knuth's TwoSum gives the exact rounding error of the float
+    sum, so an exact sum (``x + 0``, or one of two equal and opposite terms) is not widened at all."""
+    s = a + b
+    bb = s - a
+    error = (a - (s - bb)) + (b - bb)
+    return _directed(s, error, ~torch.isfinite(error))
+
+
+def _product_bounds(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Outward bounds of the real ``a * b``: Dekker's TwoProduct (Veltkamp's split) gives the exact
+    rounding error, so an exact product (by 0, by a power of two, of short mantissas) is not
+    widened. Where the split could overflow or the error underflow, :func:`_pad` widens instead."""
+    a, b = torch.broadcast_tensors(a, b)
+    p = a * b
+    ca, cb = _SPLIT * a, _SPLIT * b
+    a_hi, b_hi = ca - (ca - a), cb - (cb - b)
+    a_lo, b_lo = a - a_hi, b - b_hi
+    error = ((a_hi * b_hi - p) + a_hi * b_lo + a_lo * b_hi) + a_lo * b_lo
+    exact_zero = (a == 0) | (b == 0)
+    risky = (a.abs() > _EXACT_BELOW) | (b.abs() > _EXACT_BELOW) | (p.abs() < _EXACT_ABOVE) | ~torch.isfinite(error)
+    return _directed(p, torch.where(exact_zero, torch.zeros_like(error), error), risky & ~exact_zero)
+
+
 def sin_interval(lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Bounds of ``sin`` over ``[lo, hi]`` elementwise: the endpoints' values, and 1 (or -1) wherever a
     maximum ``pi/2 + 2 k pi`` (a minimum ``-pi/2 + 2 k pi``) lies inside; widened for rounding."""
@@ -115,8 +158,7 @@ class Interval:
 
     def __add__(self, other: Any) -> Interval:
         other = self._of(other)
-        lo, hi = self.lo + other.lo, self.hi + other.hi
-        return Interval(lo - _pad(lo), hi + _pad(hi))
+        return Interval(_sum_bounds(self.lo, other.lo)[0], _sum_bounds(self.hi, other.hi)[1])
 
     __radd__ = __add__
 
@@ -134,11 +176,11 @@ class Interval:
 
     def __mul__(self, other: Any) -> Interval:
         other = self._of(other)
-        corners = torch.stack(
-            torch.broadcast_tensors(self.lo * other.lo, self.lo * other.hi, self.hi * other.lo, self.hi * other.hi)
-        )
-        lo, hi = corners.amin(0), corners.amax(0)
-        return Interval(lo - _pad(lo), hi + _pad(hi))
+        pairs = ((self.lo, other.lo), (self.lo, other.hi), (self.hi, other.lo), (self.hi, other.hi))
+        bounds = [_product_bounds(a, b) for a, b in pairs]
+        lo = torch.stack(torch.broadcast_tensors(*[low for low, _ in bounds])).amin(0)
+        hi = torch.stack(torch.broadcast_tensors(*[high for _, high in bounds])).amax(0)
+        return Interval(lo, hi)
 
     __rmul__ = __mul__
 

@@ -100,6 +100,13 @@ class Certificate:
             torch.cat([self.kept_hi, self.outside_hi, self.escape_hi]),
         )
 
+    def every_box(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every box the file holds: kept, outside, escape and excluded."""
+        return (
+            torch.cat([self.kept_lo, self.outside_lo, self.escape_lo, self.excluded_lo]),
+            torch.cat([self.kept_hi, self.outside_hi, self.escape_hi, self.excluded_hi]),
+        )
+
     def member_boxes(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The boxes of the set: kept, then escape (all in ``E``)."""
         return torch.cat([self.kept_lo, self.escape_lo]), torch.cat([self.kept_hi, self.escape_hi])
@@ -111,25 +118,54 @@ class Certificate:
 
 
 class _Grid:
-    """The dyadic cell grid of a cover: box corners to integer cell ranges, and covers of boxes."""
+    """The dyadic cell grid of a cover: box corners to integer cell ranges, and covers of boxes.
 
-    def __init__(self, domain: torch.Tensor, resolution: int) -> None:
+    Cell edges are the boxes' own corner values (``lo``, ``hi``: every box of the cover), so a
+    next-state piece whose bound lies exactly on a box's face is placed in the cell on its side only:
+    a face the dynamics leave in place (a heading that the pursuer's turn only matches) does not
+    spill into the neighbouring cell. An edge that no box has a corner on separates two cells of the
+    same box wherever it runs, so its value (the even division of the span) cannot change an answer."""
+
+    def __init__(
+        self, domain: torch.Tensor, resolution: int, lo: torch.Tensor | None = None, hi: torch.Tensor | None = None
+    ) -> None:
         self.domain, self.resolution, self.n = domain, resolution, domain.shape[0]
         self.span = domain[:, 1] - domain[:, 0]
+        steps = torch.arange(resolution + 1, dtype=torch.float64)
+        self.edges = (domain[:, :1] + self.span[:, None] * steps / resolution).cpu()
+        self.edges[:, 0], self.edges[:, -1] = domain[:, 0].cpu(), domain[:, 1].cpu()
+        if lo is not None and hi is not None and len(lo):
+            self._pin(torch.cat([lo, hi]).cpu())
+
+    def _pin(self, corners: torch.Tensor) -> None:
+        """Set each edge to the value of the box corners on it; refuse corners that disagree."""
+        index, _ = self.cells(corners, corners, exact=True)
+        for d in range(self.n):
+            low = self.edges[d].scatter_reduce(0, index[:, d], corners[:, d], "amin", include_self=False)
+            high = self.edges[d].scatter_reduce(0, index[:, d], corners[:, d], "amax", include_self=False)
+            if not torch.equal(low, high):
+                raise ValueError("two boxes' corners on one cell edge differ: the boxes do not fit together")
+            self.edges[d] = low
+            if not bool((self.edges[d][1:] > self.edges[d][:-1]).all()):
+                raise ValueError("the boxes' corners are not in the order of the cell grid")
 
     def cells(self, lo: torch.Tensor, hi: torch.Tensor, exact: bool) -> tuple[torch.Tensor, torch.Tensor]:
         """Cell ranges ``[a, b)`` per dimension: exact corners of grid boxes (``exact``, refused if off
-        the grid), or every cell a box of states touches."""
-        a = (lo - self.domain[:, 0]) / self.span * self.resolution
-        b = (hi - self.domain[:, 0]) / self.span * self.resolution
+        the grid), or the fewest cells whose closed union holds a box of states."""
         if exact:
+            a = (lo - self.domain[:, 0]) / self.span * self.resolution
+            b = (hi - self.domain[:, 0]) / self.span * self.resolution
             ra, rb = torch.round(a), torch.round(b)
             if bool(((a - ra).abs() > 1e-6).any() or ((b - rb).abs() > 1e-6).any()):
                 raise ValueError("a box's corners are not on the certificate's cell grid")
-            a, b = ra, rb
-        else:
-            a, b = torch.floor(a - 1e-9), torch.ceil(b + 1e-9)
-        return a.long().clamp(0, self.resolution), b.long().clamp(0, self.resolution)
+            return ra.long().clamp(0, self.resolution), rb.long().clamp(0, self.resolution)
+        lo, hi = lo.cpu().contiguous(), hi.cpu().contiguous()
+        a = torch.stack(
+            [torch.searchsorted(self.edges[d], lo[:, d].contiguous(), right=True) for d in range(self.n)], -1
+        )
+        b = torch.stack([torch.searchsorted(self.edges[d], hi[:, d].contiguous()) for d in range(self.n)], -1)
+        a = (a - 1).clamp(0, self.resolution - 1)
+        return a, torch.maximum(b, a + 1).clamp(1, self.resolution)
 
     def cover(self, lo: torch.Tensor, hi: torch.Tensor) -> DyadicCover:
         """The grid boxes ``[lo, hi]`` as a sparse cover of cells."""
@@ -186,7 +222,7 @@ def certified_set(
     network = _network(value_function)
     verifier = _Verifier(network, result.settings, torch.device("cpu"))
     result = _refined(result, verifier.domain)
-    grid = _Grid(verifier.domain, _resolution(result, verifier.domain))
+    grid = _Grid(verifier.domain, _resolution(result, verifier.domain), result.lo, result.hi)
     settings, closed = result.settings, None
     if verifier.escape is not None:
         band = verifier.in_band(result.lo, result.hi) & (result.status != ESCAPE)
@@ -477,6 +513,10 @@ def verify_certificate(
         if bool(((lo < domain[:, 0] - 1e-12) | (hi > domain[:, 1] + 1e-12) | (lo > hi)).any()):
             raise ValueError(f"{path}: a {name} box is not a box inside the domain")
         grid.cells(lo, hi, exact=True)
+    try:
+        grid = _Grid(domain, certificate.resolution, *certificate.every_box())
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
     if _value_bounds_any(on_device, certificate.outside_lo, certificate.outside_hi, lambda v: v.hi >= settings.level):
         raise ValueError(f"{path}: an outside box is not proven to hold only V < {settings.level:g}")
     lo, hi, u = certificate.kept_lo, certificate.kept_hi, certificate.inputs

@@ -76,7 +76,7 @@ class CertifiedFilter:
         self.system = network.system
         self._verifier = _Verifier(network, certificate.settings, torch.device("cpu"))
         self._network64 = self._verifier.network
-        self._grid = _Grid(self._verifier.domain, certificate.resolution)
+        self._grid = _Grid(self._verifier.domain, certificate.resolution, *certificate.every_box())
         # the kept boxes first, then the outside ones: a state's box below its number of kept boxes is
         # the kept box that holds it, whose backup input applies
         self._allowed = self._grid.cover(*certificate.allowed_boxes())

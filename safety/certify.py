@@ -84,6 +84,7 @@ def _wrap_boxes(lo: torch.Tensor, hi: torch.Tensor, periodic: list[int]) -> tupl
         a = lo[:, i] - turns * 2 * math.pi
         b = a + width
         whole = width >= 2 * math.pi
+        b = torch.where(turns == 0, hi[:, i], b)  # unshifted: the bound itself, not lo + (hi - lo) rounded
         a, b = torch.where(whole, -math.pi, a), torch.where(whole, math.pi, b)
         crosses = b > math.pi
         lo, hi = lo.clone(), hi.clone()

@@ -280,6 +280,29 @@ def test_boxes_cut_finer_before_the_closure_keep_at_least_as_much(torus_network,
         CertifySettings(level=0.3, time_to_go=1.0, dt=0.05, closure_relative_width=0.0)
 
 
+def test_a_piece_on_a_box_face_needs_only_the_cell_on_its_side():
+    """The closure's cells come from the boxes' own corners: a next-state piece that ends exactly on a
+    face (a face the step leaves in place) needs only the cell on its side, one that pokes an ulp
+    beyond needs the next cell too, and boxes whose corners disagree on an edge are refused."""
+    from safety.certificate import _Grid
+
+    domain = torch.tensor([[-math.pi, math.pi]], dtype=torch.float64)
+    third = torch.tensor([[-math.pi / 2]], dtype=torch.float64)  # an edge whose float is not (k / R) exact
+    lo = torch.tensor([[-math.pi], [-math.pi / 2], [0.0], [math.pi / 2]], dtype=torch.float64)
+    hi = torch.tensor([[-math.pi / 2], [0.0], [math.pi / 2], [math.pi]], dtype=torch.float64)
+    grid = _Grid(domain, 4, lo, hi)
+    a, b = grid.cells(third - 0.1, third, exact=False)
+    assert (int(a), int(b)) == (0, 1)
+    a, b = grid.cells(third - 0.1, torch.nextafter(third, torch.tensor(math.inf, dtype=torch.float64)), exact=False)
+    assert (int(a), int(b)) == (0, 2)
+    a, b = grid.cells(third, third + 0.1, exact=False)
+    assert (int(a), int(b)) == (1, 2)
+    bent = hi.clone()
+    bent[0, 0] = torch.nextafter(bent[0, 0], torch.tensor(0.0, dtype=torch.float64))
+    with pytest.raises(ValueError, match="corners on one cell edge differ"):
+        _Grid(domain, 4, lo, bent)
+
+
 def test_the_command_line_certifies_and_checks_in_one_line_errors(network, tmp_path, capsys):
     from reach_cli import main
     from training import save_checkpoint

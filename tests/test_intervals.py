@@ -141,3 +141,37 @@ def test_each_operation_contains_every_sampled_result(a, wa, b, wb, op):
 def test_an_interval_comparison_has_no_single_truth():
     with pytest.raises(TypeError, match="no single truth value"):
         bool(Interval(0.0, 1.0) > 0.5)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(
+        st.floats(min_value=-1e12, max_value=1e12, allow_nan=False).filter(lambda v: v == 0 or abs(v) > 1e-100),
+        min_size=2,
+        max_size=2,
+    ),
+    st.sampled_from(["add", "mul"]),
+)
+def test_sums_and_products_are_rounded_outward_and_exact_ones_are_not_widened(pair, op):
+    """The bounds of one float64 sum or product contain its exact real value (checked in rational
+    arithmetic), are at most one ulp wide on each side (away from underflow, where a tiny absolute
+    widening takes over), and an exact result is not widened at all:
+    ``x + 0``, ``x * 0``, ``x * 1`` and ``x * 2`` stay points, so a box face that a step leaves in
+    place stays exactly on its cell's edge."""
+    from fractions import Fraction
+
+    from reach.intervals import _product_bounds, _sum_bounds
+
+    a, b = (torch.tensor([v], dtype=torch.float64) for v in pair)
+    bounds, exact = (
+        (_sum_bounds(a, b), Fraction(pair[0]) + Fraction(pair[1]))
+        if op == "add"
+        else (_product_bounds(a, b), Fraction(pair[0]) * Fraction(pair[1]))
+    )
+    lo, hi = float(bounds[0]), float(bounds[1])
+    assert Fraction(lo) <= exact <= Fraction(hi)
+    assert hi <= math.nextafter(math.nextafter(lo, math.inf), math.inf)
+    exact_ones = [_sum_bounds(a, torch.zeros(1, dtype=torch.float64))]
+    exact_ones += [_product_bounds(a, torch.tensor([k], dtype=torch.float64)) for k in (0.0, 1.0, 2.0)]
+    for low, high in exact_ones:
+        assert float(low) == float(high)
