@@ -10,6 +10,11 @@ registered and user-written system alike.
 
 Sound means: every operation widens its result outward by a bound of its float64 rounding error
 (a few units in the last place), so the real-valued result of the same expression lies inside.
+Sums and products do it exactly: an error-free transformation (Knuth's TwoSum, Dekker's
+TwoProduct) finds each one's rounding error, and the bound moves one ulp outward only on the side
+the error lies, not at all where the float result is exact. So ``x + 0`` and ``x * 0`` stay
+exact, and a box face that a step leaves in place stays exactly on the face, which the
+certificate's closure depends on (:mod:`safety.certificate`).
 Intervals forget correlations (``x - x`` is not 0), so bounds of long expressions are loose on
 large boxes and tighten as boxes shrink, which branch and bound provides.
 
