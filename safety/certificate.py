@@ -45,6 +45,7 @@ from safety.certify import (
     ESCAPE,
     OUTSIDE,
     PROVEN,
+    UNKNOWN,
     CertificationResult,
     CertifySettings,
     _network,
@@ -259,8 +260,9 @@ def certified_set(
 
 def _refined(result: CertificationResult, domain: torch.Tensor) -> CertificationResult:
     """``result`` with every box wider than ``closure_relative_width`` of the span (escape boxes
-    aside) cut into halves down to it. Sound: what the verifier proved of a box (outside, or proven
-    with its backup input) holds on each part; the closure recomputes ``l``'s bounds per part."""
+    aside) cut into halves down to it. A part keeps its box's backup input as the first one to try,
+    but not its status: the bounds of a part are not those the verifier computed (and the checker
+    recomputes), so a part counts as unknown, a candidate wherever ``l > 0`` on it."""
     width = result.settings.closure_relative_width
     if width is None:
         return result
@@ -275,7 +277,8 @@ def _refined(result: CertificationResult, domain: torch.Tensor) -> Certification
             upper_lo, lower_hi = lo[wide].clone(), hi[wide].clone()
             upper_lo[:, d], lower_hi[:, d] = mid, mid
             lo, hi = torch.cat([lo[~wide], lo[wide], upper_lo]), torch.cat([hi[~wide], lower_hi, hi[wide]])
-            status = torch.cat([status[~wide], status[wide], status[wide]])
+            cut = torch.full_like(status[wide], UNKNOWN)
+            status = torch.cat([status[~wide], cut, cut])
             backup = torch.cat([backup[~wide], backup[wide], backup[wide]])
     return replace(result, lo=lo, hi=hi, status=status, backup=backup)
 
@@ -338,6 +341,17 @@ def _close(
         return ~_fails(owner, ~ok, len(rows))
 
     n_a, n_b, owner, free, bad, out, open_ = pieces(torch.arange(len(rows)), candidates[choice])
+    # parts of proven boxes (closure_relative_width) keep their box's input: show its V >= c again
+    # where only that lets their next states meet boxes outside S_c
+    hint = (~proven_value & (backup >= 0)).nonzero().squeeze(-1)
+    if len(hint):
+        everything = torch.ones(len(rows), dtype=torch.bool)
+        need = hint[
+            ~stays(owner, free, bad, out, open_, proven_value)[hint]
+            & stays(owner, free, bad, out, open_, everything)[hint]
+        ]
+        if len(need):
+            proven_value[need] = verifier.keeps(lo[need], hi[need], candidates[choice[need]])
     alive = torch.ones(len(rows), dtype=torch.bool)
     while True:
         failing = alive & ~stays(owner, free, bad, out, open_, proven_value)
