@@ -269,13 +269,14 @@ def test_the_command_line_takes_an_escape_margin_and_refuses_a_bad_one(tmp_path,
     save_checkpoint(source, ValueNetwork(Air3D(), "ssl", width=16, w0=3.0))
     out = tmp_path / "cert.npz"
     args = ["certify", str(source), "--level", "0.3", "--dt", "0.05", "--initial-splits", "4", "--min-width", "0.125"]
-    assert main([*args, "--escape-margin", "0.7", "--out", str(out)]) in (0, 3)
+    assert main([*args, "--escape-margin", "0.7", "--closure-width", "0.0625", "--out", str(out)]) in (0, 3)
     printed = capsys.readouterr().out
     assert "wrote" in printed and ("escape set" in printed), printed
     assert main(["certify", str(source), "--check", str(out)]) == 0
     for bad, named in (
         ([*args, "--escape-margin", "0.9", "--out", str(out)], "above 0.75"),
         ([*args, "--escape-margin", "0.7", "--integrator", "rk4", "--out", str(out)], "margin_step_bound"),
+        ([*args, "--closure-width", "0", "--out", str(out)], "closure_relative_width"),
     ):
         assert main(bad) == 2
         err = capsys.readouterr().err.strip()
