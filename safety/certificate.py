@@ -26,7 +26,9 @@ outside boxes. The checker reuses the bounds
 
 Closure is checked on the cell grid of the boxes (the verifier's cover is dyadic), held sparsely by
 :class:`safety.dyadic_cover.DyadicCover`: its cost grows with the boxes, not with the ``R**n`` cells,
-so the 6D and 9D systems' covers are closed as Air3D's are (grids up to ``2**62`` cells).
+so the 6D and 9D systems' covers are closed as Air3D's are (grids up to ``2**62`` cells). The closure's
+rounds ask "does this next-state box meet a dropped box?" from a dense table of the cells instead
+(:class:`safety.dyadic_cover.DenseCover`) where the grid is small enough to hold (Air3D to 256^3).
 """
 
 from __future__ import annotations
@@ -52,7 +54,7 @@ from safety.certify import (
     _Verifier,
     margin_bounds,
 )
-from safety.dyadic_cover import DyadicCover
+from safety.dyadic_cover import DyadicCover, cover_of
 from training.checkpoint import network_digest
 from training.network import NeuralValueFunction, ValueNetwork
 
@@ -318,7 +320,7 @@ def _close(
         hit = torch.zeros(len(n_a), dtype=torch.bool)
         ask = ~skip
         if bool(boxes.any()) and bool(ask.any()):
-            hit[ask] = DyadicCover(a[boxes], b[boxes], grid.resolution).meets(n_a[ask], n_b[ask])
+            hit[ask] = cover_of(a[boxes], b[boxes], grid.resolution).meets(n_a[ask], n_b[ask])
         return hit
 
     def pieces(at: torch.Tensor, inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:

@@ -7,7 +7,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from safety.dyadic_cover import DyadicCover
+from safety.dyadic_cover import DenseCover, DyadicCover
 
 
 def _partition(n: int, resolution: int, seed: int, splits: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -38,6 +38,7 @@ def _dense(a: torch.Tensor, b: torch.Tensor, n: int, resolution: int) -> torch.T
 @settings(max_examples=40, deadline=None)
 @given(st.integers(1, 4), st.sampled_from([4, 8, 16, 12]), st.integers(0, 10_000), st.integers(0, 120), st.floats(0, 1))
 def test_meets_covers_and_owner_agree_with_a_dense_table(n, resolution, seed, splits, share):
+    """The sparse cover and the dense one (:class:`DenseCover`) answer as a table painted box by box."""
     a, b = _partition(n, resolution, seed, splits)
     g = torch.Generator().manual_seed(seed + 1)
     chosen = torch.rand(len(a), generator=g) < share  # a subset of the partition: holes to find
@@ -48,6 +49,8 @@ def test_meets_covers_and_owner_agree_with_a_dense_table(n, resolution, seed, sp
     if cover is None:
         return
     meets, covers = cover.meets(qa, qb), cover.covers(qa, qb)
+    table = DenseCover(a[chosen], b[chosen], resolution)  # the closure's dense twin answers alike
+    assert torch.equal(table.meets(qa, qb), meets) and torch.equal(table.covers(qa, qb), covers)
     for q in range(len(qa)):
         cells = owner[tuple(slice(int(x), int(y)) for x, y in zip(qa[q], qb[q]))]
         assert bool(meets[q]) == bool((cells >= 0).any())
