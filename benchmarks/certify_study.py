@@ -39,6 +39,7 @@ from safety.certificate import (
     _next_boxes,
     _refined,
     _resolution,
+    _widened,
     certified_set,
     save_certificate,
 )
@@ -63,8 +64,8 @@ def leaving_domain(network: object, result: CertificationResult) -> tuple[float,
 def escape_assumed(network: object, result: CertificationResult) -> list[dict]:
     """The closure's rounds with the escape set assumed even where a box of its band drops (which
     makes ``E`` unsound): how much of the set the level set's band alone leaves."""
-    verifier = _Verifier(_network(network), result.settings, torch.device("cpu"))
-    result = _refined(result, verifier.domain)
+    verifier = _Verifier(_network(network), result.settings, torch.device("cpu"), closure=True)
+    result = _widened(_refined(result, verifier.network_domain), verifier)
     grid = _Grid(verifier.domain, _resolution(result, verifier.domain), result.lo, result.hi)
     rounds: list[dict] = []
     _close(verifier, grid, result, rounds, torch.zeros(len(result.status), dtype=torch.bool))
@@ -88,6 +89,7 @@ def main() -> None:
     parser.add_argument(
         "--closure-width", type=float, default=None, help="cut boxes down to this width before the closure"
     )
+    parser.add_argument("--closure-scale", type=int, default=1, help="close over the box widened this many times")
     parser.add_argument(
         "--escape-margin", type=float, default=None, help="m: the escape set {l >= m} (safety.certify.escape_rule)"
     )
@@ -124,6 +126,7 @@ def main() -> None:
             escape_margin=args.escape_margin,
             band_min_relative_width=args.band_min_width,
             closure_relative_width=args.closure_width,
+            closure_scale=args.closure_scale,
         )
         resume = None if args.resume_dir is None else args.resume_dir / f"level-{level:g}.progress.npz"
         result = certify(network, settings, device=args.device, resume=resume)

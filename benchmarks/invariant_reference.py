@@ -35,6 +35,8 @@ def certified_mask(path: Path, x: torch.Tensor) -> torch.Tensor:
     certificate = load_certificate(path)
     system = Air3D()
     domain = system.domain_tensor(torch.float64, "cpu")
+    scale = certificate.settings.closure_scale  # the closure's box: the network's, widened in x1 and x2
+    domain[:2] *= scale
     grid = _Grid(domain, certificate.resolution, *certificate.every_box())
     cover = DyadicCover(*grid.cells(certificate.kept_lo, certificate.kept_hi, exact=True), grid.resolution)
     cells = ((x - domain[:, 0]) / grid.span * grid.resolution).floor().long().clamp(0, grid.resolution - 1)

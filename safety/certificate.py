@@ -223,8 +223,8 @@ def certified_set(
     ``rounds``, a list, receives one dict a round: the boxes ``dropped`` and ``switched`` (to another
     input), the share of the state box still ``kept``, and whether ``E`` was assumed (``escape``)."""
     network = _network(value_function)
-    verifier = _Verifier(network, result.settings, torch.device("cpu"))
-    result = _refined(result, verifier.domain)
+    verifier = _Verifier(network, result.settings, torch.device("cpu"), closure=True)
+    result = _widened(_refined(result, verifier.network_domain), verifier)
     grid = _Grid(verifier.domain, _resolution(result, verifier.domain), result.lo, result.hi)
     settings, closed = result.settings, None
     if verifier.escape is not None:
@@ -283,6 +283,44 @@ def _refined(result: CertificationResult, domain: torch.Tensor) -> Certification
             status = torch.cat([status[~wide], cut, cut])
             backup = torch.cat([backup[~wide], backup[wide], backup[wide]])
     return replace(result, lo=lo, hi=hi, status=status, backup=backup)
+
+
+def _widened(result: CertificationResult, verifier: _Verifier) -> CertificationResult:
+    """``result``'s cover of the network's box (already cut to ``closure_relative_width``) with the
+    rest of the closure's wider box (``closure_scale``) added as cells that wide: unknown, or escape
+    where all in ``E``. Their edges continue the cover's own corner values, so the boxes fit."""
+    if result.settings.closure_scale == 1:
+        return result
+    inner = verifier.network_domain.cpu()
+    width = result.settings.closure_relative_width * (inner[:, 1] - inner[:, 0])
+    edges, inside = [], []
+    for d in range(len(inner)):
+        corners = torch.unique(torch.cat([result.lo[:, d], result.hi[:, d]]))
+        steps = (corners - inner[d, 0]) / width[d]
+        corners = corners[(steps - torch.round(steps)).abs() < 1e-6]  # the cover's own floats on the cell grid
+        if d in verifier.periodic_dims:
+            edges.append(corners)
+            inside.append(torch.ones(len(corners) - 1, dtype=torch.bool))
+            continue
+        more = round(float((verifier.domain[d, 1].cpu() - inner[d, 1]) / width[d]))
+        k = torch.arange(1, more + 1, dtype=torch.float64)
+        axis = torch.cat([(inner[d, 0] - k * width[d]).flip(0), corners, inner[d, 1] + k * width[d]])
+        axis[0], axis[-1] = verifier.domain[d, 0].cpu(), verifier.domain[d, 1].cpu()
+        edges.append(axis)
+        inside.append(torch.cat([torch.zeros(more), torch.ones(len(corners) - 1), torch.zeros(more)]).bool())
+    index = torch.cartesian_prod(*[torch.arange(len(e) - 1) for e in edges]).reshape(-1, len(edges))
+    beyond = ~torch.stack([inside[d][index[:, d]] for d in range(len(edges))], -1).all(-1)
+    index = index[beyond]
+    lo = torch.stack([edges[d][index[:, d]] for d in range(len(edges))], -1)
+    hi = torch.stack([edges[d][index[:, d] + 1] for d in range(len(edges))], -1)
+    status = torch.where(verifier.in_escape(lo, hi), torch.tensor(ESCAPE), torch.tensor(UNKNOWN))
+    return replace(
+        result,
+        lo=torch.cat([result.lo, lo]),
+        hi=torch.cat([result.hi, hi]),
+        status=torch.cat([result.status, status]),
+        backup=torch.cat([result.backup, torch.full((len(lo),), -1, dtype=torch.long)]),
+    )
 
 
 def _close(
@@ -514,8 +552,12 @@ def verify_certificate(
     network = _network(value_function)
     check_provenance(certificate, network, path)
     settings = certificate.settings
-    verifier = _Verifier(network, settings, torch.device("cpu"))
-    on_device = verifier if torch.device(device).type == "cpu" else _Verifier(network, settings, torch.device(device))
+    verifier = _Verifier(network, settings, torch.device("cpu"), closure=True)
+    on_device = (
+        verifier
+        if torch.device(device).type == "cpu"
+        else _Verifier(network, settings, torch.device(device), closure=True)
+    )
     domain = verifier.domain
     grid = _Grid(domain, certificate.resolution)
     if verifier.escape is None and len(certificate.escape_lo):
@@ -533,6 +575,8 @@ def verify_certificate(
         grid = _Grid(domain, certificate.resolution, *certificate.every_box())
     except ValueError as error:
         raise ValueError(f"{path}: {error}") from None
+    if not bool(verifier.in_network_domain(certificate.outside_lo, certificate.outside_hi).all()):
+        raise ValueError(f"{path}: an outside box lies beyond the network's box, where it has no bounds")
     if _value_bounds_any(on_device, certificate.outside_lo, certificate.outside_hi, lambda v: v.hi >= settings.level):
         raise ValueError(f"{path}: an outside box is not proven to hold only V < {settings.level:g}")
     lo, hi, u = certificate.kept_lo, certificate.kept_hi, certificate.inputs
@@ -554,6 +598,8 @@ def verify_certificate(
     n_lo, n_hi = n_lo[rest], n_hi[rest]  # that they miss the outside boxes they meet
     if not bool(_closed(grid, grid.cover(*certificate.allowed_boxes()), n_lo, n_hi).all()):
         raise ValueError(f"{path}: a kept box's next states may leave the certified boxes")
+    if not bool(verifier.in_network_domain(n_lo, n_hi).all()):
+        raise ValueError(f"{path}: a kept box's next states leave the certified boxes beyond the network's box")
     if _value_bounds_any(on_device, n_lo, n_hi, lambda v: v.lo < settings.level):
         raise ValueError(
             f"{path}: a kept box's next states meet a box outside the set and are not proven to have "

@@ -74,7 +74,7 @@ class CertifiedFilter:
             check_provenance(certificate, network, label)
         self.certificate = certificate
         self.system = network.system
-        self._verifier = _Verifier(network, certificate.settings, torch.device("cpu"))
+        self._verifier = _Verifier(network, certificate.settings, torch.device("cpu"), closure=True)
         self._network64 = self._verifier.network
         self._grid = _Grid(self._verifier.domain, certificate.resolution, *certificate.every_box())
         # the kept boxes first, then the outside ones: a state's box below its number of kept boxes is
@@ -136,9 +136,10 @@ class CertifiedFilter:
         rest = ask[~ok[ask]]
         if len(rest):  # V >= c shows that a piece meeting an outside box misses it
             level = self.certificate.settings.level
-            ok[rest] = _closed(self._grid, self._allowed, n_lo[rest], n_hi[rest]) & (
-                verifier.value(n_lo[rest], n_hi[rest]).lo >= level
-            )
+            near = verifier.in_network_domain(n_lo[rest], n_hi[rest])  # the network has bounds only there
+            ok[rest] = near & _closed(self._grid, self._allowed, n_lo[rest], n_hi[rest])
+            ask = rest[ok[rest]]
+            ok[ask] = verifier.value(n_lo[ask], n_hi[ask]).lo >= level
         held = torch.ones(len(x) * len(verifier.d_lo), dtype=torch.long)
         held.scatter_reduce_(0, piece, ok.long(), reduce="amin")
         return held.reshape(len(x), -1).bool().all(-1)

@@ -124,6 +124,11 @@ class CertifySettings:
     #: the span) are cut into halves down to it, each with its own backup input: a coarse proven box
     #: needs one input for all of it, which a neutral game's flow may not allow (``None``: as proven)
     closure_relative_width: float | None = None
+    #: the closure (not the verifier) runs over the state box widened this many times about its
+    #: centre in every non-periodic dimension (a power of two), the escape set beyond the wide box;
+    #: boxes beyond the network's box are kept by where their next states land alone, never by the
+    #: network. Needs ``closure_relative_width`` (the wide box is covered by cells that wide)
+    closure_scale: int = 1
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.level):
@@ -139,6 +144,11 @@ class CertifySettings:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
         if self.max_seconds is not None:
             positive_finite("max_seconds", self.max_seconds)
+        scale = self.closure_scale
+        if isinstance(scale, bool) or not isinstance(scale, int) or scale < 1 or scale & (scale - 1):
+            raise ValueError(f"closure_scale must be a power of two (1, 2, 4, ...), got {scale!r}")
+        if scale > 1 and self.closure_relative_width is None:
+            raise ValueError("closure_scale above 1 needs closure_relative_width: the cells of the wide box")
         for name in ("min_relative_width", "band_min_relative_width", "closure_relative_width"):
             value = getattr(self, name)
             if value is not None and not (isinstance(value, float | int) and 0 < value <= 1):
@@ -189,13 +199,14 @@ class CertificationResult:
         }
 
 
-def escape_rule(system: ControlAffineSystem, settings: CertifySettings) -> tuple[float, float] | None:
+def escape_rule(system: ControlAffineSystem, settings: CertifySettings, scale: int = 1) -> tuple[float, float] | None:
     """``(m, delta)`` of the escape set ``E = {x : l(x) >= m}``, or ``None`` where the settings ask for
     none. Sound when (the system's declared lemmas) every state outside the domain has ``l >= m``
     (:meth:`~reach.systems.base.ControlAffineSystem.margin_outside_domain`) and one step lowers ``l``
     by at most ``delta`` from any state (:meth:`~reach.systems.base.ControlAffineSystem.margin_step_bound`):
     then a next state that leaves the domain is in ``E``, and a step from ``E`` lands in ``E`` or in
-    the band ``m - delta <= l < m``, which lies inside the domain. Refused, naming why, otherwise."""
+    the band ``m - delta <= l < m``, which lies inside the domain. ``scale``: the domain widened that
+    many times (the closure's, ``closure_scale``). Refused, naming why, otherwise."""
     m = settings.escape_margin
     if m is None:
         return None
@@ -205,7 +216,12 @@ def escape_rule(system: ControlAffineSystem, settings: CertifySettings) -> tuple
             f"escape_margin: {system.name} declares no bound on how much one {settings.integrator} step lowers "
             "its failure margin (margin_step_bound), so it has no escape set"
         )
-    least = system.margin_outside_domain()
+    try:
+        least = system.margin_outside_domain() if scale == 1 else system.margin_outside_domain(scale)
+    except TypeError:
+        raise ValueError(
+            f"closure_scale: {system.name}'s margin_outside_domain takes no scale, so no wider box has an escape set"
+        ) from None
     if least is None:
         raise ValueError(
             f"escape_margin: {system.name} declares no lower bound of its failure margin outside its domain "
@@ -213,7 +229,8 @@ def escape_rule(system: ControlAffineSystem, settings: CertifySettings) -> tuple
         )
     if m > least:
         raise ValueError(
-            f"escape_margin {m:g} is above {least:g}, the least failure margin outside {system.name}'s domain: "
+            f"escape_margin {m:g} is above {least:g}, the least failure margin outside {system.name}'s domain"
+            f"{'' if scale == 1 else f' widened {scale} times'}: "
             "a state that leaves the domain might not be in the escape set"
         )
     return m, float(delta)
@@ -274,20 +291,36 @@ def _disturbance_pieces(network: ValueNetwork, splits: int) -> tuple[torch.Tenso
 
 
 class _Verifier:
-    def __init__(self, network: ValueNetwork, settings: CertifySettings, device: torch.device) -> None:
+    """The bounds a proof needs. ``closure=True``: the closure's view, over the state box widened
+    ``closure_scale`` times (``domain``) with the escape set beyond it, the network bounded only
+    inside its own box (``network_domain``). The verifier's own view (``closure=False``) is the
+    network's box, with the escape set only where the closure's box is that box."""
+
+    def __init__(
+        self, network: ValueNetwork, settings: CertifySettings, device: torch.device, closure: bool = False
+    ) -> None:
         # a float64 copy on the device: the caller's network stays as it is
         self.network, self.settings = copy.deepcopy(network).double().eval().to(device), settings
         system = network.system
         self.system = system
-        self.domain = system.domain_tensor(torch.float64, device)
-        self.span = self.domain[:, 1] - self.domain[:, 0]
         self.periodic_dims = list(system.periodic_dims)
         self.periodic = torch.tensor([i in self.periodic_dims for i in range(system.state_dim)])
+        self.network_domain = system.domain_tensor(torch.float64, device)
+        scale = settings.closure_scale if closure else 1
+        centre = self.network_domain.mean(-1, keepdim=True)
+        wide = centre + scale * (self.network_domain - centre)
+        self.domain = torch.where(self.periodic.to(device)[:, None], self.network_domain, wide)
+        self.span = self.domain[:, 1] - self.domain[:, 0]
         self.step = make_stepper(system, settings.dt, settings.integrator, _Unwrapped())
         self.point_step = make_stepper(system, settings.dt, settings.integrator, TORCH)
         self.candidates = _candidates(network)
         self.d_lo, self.d_hi = _disturbance_pieces(network, settings.disturbance_splits)
-        self.escape = escape_rule(system, settings)
+        self.escape = escape_rule(system, settings, scale) if closure or settings.closure_scale == 1 else None
+
+    def in_network_domain(self, n_lo: torch.Tensor, n_hi: torch.Tensor) -> torch.Tensor:
+        """Whether each box lies inside the network's box, where its bounds may be taken."""
+        box = self.network_domain
+        return (((n_lo >= box[:, 0]) & (n_hi <= box[:, 1])) | self.periodic.to(n_lo.device)).all(-1)
 
     def value(self, x_lo: torch.Tensor, x_hi: torch.Tensor) -> Interval:
         return value_bounds(self.network, x_lo, x_hi, self.settings.time_to_go)
@@ -362,7 +395,7 @@ class _Verifier:
         be in ``E`` (every state beyond the domain is)."""
         b, p = lo.shape[0], len(self.d_lo)
         n_lo, n_hi, piece, escaped, _ = self.landing(lo, hi, inputs)
-        ok = self.in_domain(n_lo, n_hi) & ~escaped
+        ok = self.in_network_domain(n_lo, n_hi) & ~escaped
         check = ok.nonzero().squeeze(-1)
         ok |= escaped
         if len(check):
@@ -551,7 +584,7 @@ def certify(
     it; a file made for another value function, system or proof is refused, naming the difference.
     The result's ``wall_time`` and ``boxes_handled`` then count every run."""
     network = _network(value_function)
-    escape_rule(network.system, settings)  # refused before any box is bounded
+    escape_rule(network.system, settings, settings.closure_scale)  # refused before any box is bounded
     if settings.time_to_go > network.system.horizon:
         raise ValueError(
             f"time_to_go {settings.time_to_go:g} is beyond the value function's horizon {network.system.horizon:g}"

@@ -42,7 +42,10 @@ PROOF_FIELDS = (
     "min_relative_width",
     "escape_margin",
     "band_min_relative_width",
+    "closure_scale",  # above 1 the verifier proves without the escape set (the closure's lies beyond)
 )
+#: proof fields that files written before them lack, and what that meant
+_BEFORE = {"closure_scale": 1}
 
 #: seconds between saves of a running verifier's progress
 SAVE_EVERY_S = 30.0
@@ -118,7 +121,11 @@ def load_progress(
         what = f"{theirs}, not {system['name']}" if theirs != system["name"] else f"{theirs} with other parameters"
         raise ValueError(f"{path}: the progress of another system ({what})")
     saved = header["proof"]
-    differ = [f"{k} {saved.get(k)!r}, not {v!r}" for k, v in ours["proof"].items() if saved.get(k) != v]
+    differ = [
+        f"{k} {saved.get(k, _BEFORE.get(k))!r}, not {v!r}"
+        for k, v in ours["proof"].items()
+        if saved.get(k, _BEFORE.get(k)) != v
+    ]
     if differ:
         raise ValueError(f"{path}: the progress of another proof ({'; '.join(differ)}); give another progress file")
     return VerifierProgress(

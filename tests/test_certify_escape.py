@@ -68,8 +68,8 @@ class Outflow(ControlAffineSystem):
         b = 1.0 if integrator == "euler" else 1 + dt / 2 + dt**2 / 6 + dt**3 / 24
         return b * dt * math.hypot(PUSH + GUST, PUSH + GUST)
 
-    def margin_outside_domain(self) -> float:
-        return 1.0 - RADIUS
+    def margin_outside_domain(self, scale: float = 1.0) -> float:
+        return scale - RADIUS
 
 
 def margin_network(system: ControlAffineSystem) -> ValueNetwork:
@@ -326,3 +326,25 @@ def test_a_progress_file_of_another_escape_set_is_refused(outflow, tmp_path):
         certify(outflow, CertifySettings(**BASE, escape_margin=0.7), resume=progress)
     resumed = certify(outflow, CertifySettings(**BASE, escape_margin=0.6), resume=progress)
     assert resumed.finished and resumed.boxes_handled > stopped.boxes_handled
+
+
+def test_a_closure_over_a_wider_box_keeps_boxes_beyond_the_networks(outflow, tmp_path):
+    """``closure_scale=2``: the closure runs over ``[-2, 2]^2`` with ``E = {l >= 1.7}`` beyond it, and
+    boxes beyond the network's box are kept by where their next states land, never by the network.
+    The certificate checks, keeps boxes beyond the network's box, and the filter certifies a state
+    there; a scale that is not a power of two, one without cells, or an escape margin above the wide
+    box's bound are refused."""
+    wide = {**BASE, "closure_scale": 2, "closure_relative_width": 1 / 16}
+    certificate = certified_set(outflow, certify(outflow, CertifySettings(**wide, escape_margin=1.7)))
+    assert certificate.settings.escape_margin == 1.7
+    assert bool(((certificate.kept_lo < -1) | (certificate.kept_hi > 1)).any(-1).any())
+    assert float(certificate.kept_hi.abs().max()) == 2.0
+    check_certificate(save_certificate(tmp_path / "wide.npz", certificate), outflow)
+    _, info = CertifiedFilter(certificate, outflow)(torch.tensor([[1.5, 0.3]], dtype=torch.float64), torch.zeros(2))
+    assert bool(info.certified[0])
+    with pytest.raises(ValueError, match="power of two"):
+        CertifySettings(**{**wide, "closure_scale": 3})
+    with pytest.raises(ValueError, match="needs closure_relative_width"):
+        CertifySettings(**BASE, closure_scale=2)
+    with pytest.raises(ValueError, match=r"above 1\.75"):
+        certify(outflow, CertifySettings(**wide, escape_margin=1.8))

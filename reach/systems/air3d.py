@@ -145,9 +145,10 @@ class RelativePair(ControlAffineSystem):
             return None
         return positive_finite("dt", dt) * (self.speed_1 + self.speed_2)
 
-    def margin_outside_domain(self) -> float:
-        """``half_width - R``: outside the square of relative positions ``|r| > half_width``."""
-        return self.half_width - self.collision_radius
+    def margin_outside_domain(self, scale: float = 1.0) -> float:
+        """``scale * half_width - R``: outside the square of relative positions (widened ``scale``
+        times) ``|r| > scale * half_width``."""
+        return positive_finite("scale", scale) * self.half_width - self.collision_radius
 
     def failure_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
         return xp.hypot(x[0], x[1]) - self.collision_radius

@@ -174,10 +174,12 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
         bounding the network there."""
         return None
 
-    def margin_outside_domain(self) -> float | None:
+    def margin_outside_domain(self, scale: float = 1.0) -> float | None:
         """A lower bound of the failure margin ``l`` on every state outside the domain (its periodic
         dimensions aside), or ``None`` (the default) where a state outside may be near failure.
-        With :meth:`margin_step_bound` it lets a certificate accept next states that leave the domain."""
+        ``scale``: outside the domain widened that many times about its centre (a certificate's
+        ``closure_scale``). With :meth:`margin_step_bound` it lets a certificate accept next states
+        that leave the domain."""
         return None
 
     def margin_floor(self, x: torch.Tensor, time: float) -> torch.Tensor | None:

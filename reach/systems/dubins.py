@@ -102,9 +102,10 @@ class Dubins3D(ControlAffineSystem):
             return None
         return positive_finite("dt", dt) * self.velocity
 
-    def margin_outside_domain(self) -> float | None:
-        """``1 - goalR`` (avoid): outside the square ``[-1, 1]^2`` the car is farther than 1 from the disc's centre."""
-        return 1.0 - self.goalR if self.kind == "avoid" else None
+    def margin_outside_domain(self, scale: float = 1.0) -> float | None:
+        """``scale - goalR`` (avoid): outside the square ``[-scale, scale]^2`` the car is farther than
+        ``scale`` from the disc's centre."""
+        return positive_finite("scale", scale) - self.goalR if self.kind == "avoid" else None
 
 
 class DubinsReachAvoid(ControlAffineSystem):
