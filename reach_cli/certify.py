@@ -38,6 +38,12 @@ CERTIFY_OPTIONS = (
         "cut boxes down to this width (share of the span) before the closure, each with its own input",
     ),
     (
+        "--closure-scale",
+        "closure_scale",
+        {"type": positive_int_arg},
+        "close over the state box widened this many times (a power of two; needs --closure-width)",
+    ),
+    (
         "--escape-margin",
         "escape_margin",
         {"type": positive_float_arg},

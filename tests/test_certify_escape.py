@@ -277,6 +277,7 @@ def test_the_command_line_takes_an_escape_margin_and_refuses_a_bad_one(tmp_path,
         ([*args, "--escape-margin", "0.9", "--out", str(out)], "above 0.75"),
         ([*args, "--escape-margin", "0.7", "--integrator", "rk4", "--out", str(out)], "margin_step_bound"),
         ([*args, "--closure-width", "0", "--out", str(out)], "closure_relative_width"),
+        ([*args, "--closure-scale", "3", "--closure-width", "0.125", "--out", str(out)], "power of two"),
     ):
         assert main(bad) == 2
         err = capsys.readouterr().err.strip()
