@@ -13,7 +13,8 @@ complement is the reference.
 With ``--certificate``, it also prints the certified set's share of the box (the kept boxes and, if
 the certificate has one, the escape set ``E``), its share of the reference, and the share of
 certified samples that the grid puts in the tube (zero up to the grid's error: a certified state
-cannot be in the tube, which the certificate proves for the discrete-time model).
+cannot be in the tube, which the certificate proves for the discrete-time model); ``--plot PNG``
+draws x1-x2 slices of both.
 """
 
 from __future__ import annotations
@@ -54,6 +55,7 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=1_000_000)
     parser.add_argument("--cache", type=Path, default=Path("runs/air3d-wide.npz"))
     parser.add_argument("--certificate", type=Path, default=None)
+    parser.add_argument("--plot", type=Path, default=None, help="with --certificate: draw slices of both here")
     args = parser.parse_args()
     wide = Air3D(half_width=args.half_width, horizon=max(args.times))
     start = time.perf_counter()
@@ -88,6 +90,34 @@ def main() -> None:
             f"# {args.certificate}: certified {share:.4f} of the box, {covered:.4f} of the largest invariant set; "
             f"{wrong:.5f} of certified samples in the grid's tube ({args.samples} uniform samples)"
         )
+        if args.plot is not None:
+            plot_slices(args.plot, args.certificate, solution, max(args.times))
+
+
+def plot_slices(path: Path, certificate: Path, solution: GridSolution, t: float, n: int = 400) -> None:
+    """x1-x2 slices of the box at Air3D's plotted headings: the certified set, the rest of the largest
+    invariant set, and the tube."""
+    # lazy: matplotlib only when a plot is asked for
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import ListedColormap
+
+    slices = Air3D().plot_slices()
+    fig, axes = plt.subplots(1, len(slices), figsize=(4.2 * len(slices), 4.2))
+    axis = torch.linspace(-1.0, 1.0, n, dtype=torch.float64)
+    x1, x2 = torch.meshgrid(axis, axis, indexing="xy")
+    colours = ListedColormap(["#d62728", "#c7c7c7", "#2ca02c"])
+    for ax, (point, _, label) in zip(axes, slices):
+        x = torch.stack([x1.reshape(-1), x2.reshape(-1), torch.full((n * n,), point[2], dtype=torch.float64)], -1)
+        tube = solution.value(x.float(), t) <= 0
+        kind = torch.where(tube, 0, torch.where(certified_mask(certificate, x), 2, 1)).reshape(n, n)
+        ax.imshow(kind.numpy(), origin="lower", extent=(-1, 1, -1, 1), cmap=colours, vmin=0, vmax=2)
+        ax.set_title(label)
+        ax.set_xlabel("x1")
+        ax.set_ylabel("x2")
+    fig.suptitle("green: formally certified; grey: safe (grid), not certified; red: the tube")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 if __name__ == "__main__":
