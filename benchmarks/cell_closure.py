@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-from safety.certificate import _close, _Grid, _resolution, _widened, certified_set, save_certificate
+from safety.certificate import _close, _closure_cover, certified_set, save_certificate
 from safety.certify import ESCAPE, UNKNOWN, CertificationResult, CertifySettings, _candidates, _network, _Verifier
 from safety.sources import load_value_function
 
@@ -64,7 +64,7 @@ def main() -> None:
     result = CertificationResult(
         settings, lo, hi, status, torch.full((len(lo),), -1, dtype=torch.long), _candidates(network)
     )
-    wide = _widened(result, verifier)  # the closure's cover (the network's box, or more)
+    wide, grid = _closure_cover(result, verifier)  # the closure's cover (the network's box, or more)
     lo, hi, status = wide.lo, wide.hi, wide.status
     domain = verifier.domain
     band = verifier.in_band(lo, hi) & (status != ESCAPE)
@@ -96,7 +96,6 @@ def main() -> None:
         print("E held: the certificate is the closure with E assumed")
         return
     start = time.perf_counter()
-    grid = _Grid(domain, _resolution(wide, domain), lo, hi)
     assumed = _close(verifier, grid, wide, None, torch.zeros(len(lo), dtype=torch.bool))
     assert assumed is not None
     rows = assumed[0]

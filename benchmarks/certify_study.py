@@ -32,17 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import torch
 
-from safety.certificate import (
-    _close,
-    _fails,
-    _Grid,
-    _next_boxes,
-    _refined,
-    _resolution,
-    _widened,
-    certified_set,
-    save_certificate,
-)
+from safety.certificate import _close, _closure_cover, _fails, _next_boxes, certified_set, save_certificate
 from safety.certify import REFUTED, UNKNOWN, CertificationResult, CertifySettings, _network, _Verifier, certify
 from safety.sources import load_value_function
 
@@ -65,8 +55,7 @@ def escape_assumed(network: object, result: CertificationResult) -> list[dict]:
     """The closure's rounds with the escape set assumed even where a box of its band drops (which
     makes ``E`` unsound): how much of the set the level set's band alone leaves."""
     verifier = _Verifier(_network(network), result.settings, torch.device("cpu"), closure=True)
-    result = _widened(_refined(result, verifier.network_domain), verifier)
-    grid = _Grid(verifier.domain, _resolution(result, verifier.domain), result.lo, result.hi)
+    result, grid = _closure_cover(result, verifier)
     rounds: list[dict] = []
     _close(verifier, grid, result, rounds, torch.zeros(len(result.status), dtype=torch.bool))
     return rounds

@@ -28,6 +28,7 @@ import torch
 from groundtruth import GridSolution, solve
 from reach.systems import Air3D
 from safety.certificate import _Grid, load_certificate
+from safety.certify import closure_domain
 from safety.dyadic_cover import DyadicCover
 
 
@@ -35,9 +36,7 @@ def certified_mask(path: Path, x: torch.Tensor) -> torch.Tensor:
     """Whether each state lies in the certificate's set: a kept box, or the escape set ``E``."""
     certificate = load_certificate(path)
     system = Air3D()
-    domain = system.domain_tensor(torch.float64, "cpu")
-    scale = certificate.settings.closure_scale  # the closure's box: the network's, widened in x1 and x2
-    domain[:2] *= scale
+    domain = closure_domain(system, certificate.settings.closure_scale)
     grid = _Grid(domain, certificate.resolution, *certificate.every_box())
     cover = DyadicCover(*grid.cells(certificate.kept_lo, certificate.kept_hi, exact=True), grid.resolution)
     cells = ((x - domain[:, 0]) / grid.span * grid.resolution).floor().long().clamp(0, grid.resolution - 1)

@@ -54,7 +54,7 @@ from safety.certify import (
     _Verifier,
     margin_bounds,
 )
-from safety.dyadic_cover import DyadicCover, cover_of
+from safety.dyadic_cover import DenseCover, DyadicCover, cover_of
 from training.checkpoint import network_digest
 from training.network import NeuralValueFunction, ValueNetwork
 
@@ -224,8 +224,7 @@ def certified_set(
     input), the share of the state box still ``kept``, and whether ``E`` was assumed (``escape``)."""
     network = _network(value_function)
     verifier = _Verifier(network, result.settings, torch.device("cpu"), closure=True)
-    result = _widened(_refined(result, verifier.network_domain), verifier)
-    grid = _Grid(verifier.domain, _resolution(result, verifier.domain), result.lo, result.hi)
+    result, grid = _closure_cover(result, verifier)
     settings, closed = result.settings, None
     if verifier.escape is not None:
         band = verifier.in_band(result.lo, result.hi) & (result.status != ESCAPE)
@@ -258,6 +257,13 @@ def certified_set(
         result.lo[excluded],
         result.hi[excluded],
     )
+
+
+def _closure_cover(result: CertificationResult, verifier: _Verifier) -> tuple[CertificationResult, _Grid]:
+    """The cover the closure runs on (``result``'s boxes cut to ``closure_relative_width``, widened by
+    ``closure_scale``) and its cell grid, for a closure ``verifier`` (``closure=True``)."""
+    result = _widened(_refined(result, verifier.network_domain), verifier)
+    return result, _Grid(verifier.domain, _resolution(result, verifier.domain), result.lo, result.hi)
 
 
 def _refined(result: CertificationResult, domain: torch.Tensor) -> CertificationResult:
@@ -352,13 +358,19 @@ def _close(
     if escape:
         member |= status == ESCAPE
     a, b = grid.cells(result.lo, result.hi, exact=True)
+    covers: dict[str, DenseCover | DyadicCover | None] = {}  # this round's, built once (member changes between)
 
-    def meets(n_a: torch.Tensor, n_b: torch.Tensor, skip: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
-        """Whether each piece (but the ``skip`` ones) meets a cell of ``boxes`` (a mask of result's)."""
+    def cover(boxes: torch.Tensor) -> DenseCover | DyadicCover | None:
+        return cover_of(a[boxes], b[boxes], grid.resolution) if bool(boxes.any()) else None
+
+    def meets(
+        n_a: torch.Tensor, n_b: torch.Tensor, skip: torch.Tensor, boxes: DenseCover | DyadicCover | None
+    ) -> torch.Tensor:
+        """Whether each piece (but the ``skip`` ones) meets a cell of ``boxes``."""
         hit = torch.zeros(len(n_a), dtype=torch.bool)
         ask = ~skip
-        if bool(boxes.any()) and bool(ask.any()):
-            hit[ask] = cover_of(a[boxes], b[boxes], grid.resolution).meets(n_a[ask], n_b[ask])
+        if boxes is not None and bool(ask.any()):
+            hit[ask] = boxes.meets(n_a[ask], n_b[ask])
         return hit
 
     def pieces(at: torch.Tensor, inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -371,7 +383,9 @@ def _close(
         n_a, n_b = grid.cells(n_lo.cpu(), n_hi.cpu(), exact=False)
         owner = at[piece // len(verifier.d_lo)]
         skip = free | bad
-        return n_a, n_b, owner, free, bad, meets(n_a, n_b, skip, ~member), meets(n_a, n_b, skip, ~member & ~outside)
+        if not covers:
+            covers["out"], covers["open"] = cover(~member), cover(~member & ~outside)
+        return n_a, n_b, owner, free, bad, meets(n_a, n_b, skip, covers["out"]), meets(n_a, n_b, skip, covers["open"])
 
     def stays(owner: torch.Tensor, free: torch.Tensor, bad: torch.Tensor, out: torch.Tensor, open_: torch.Tensor,
               value_ok: torch.Tensor) -> torch.Tensor:  # fmt: skip
@@ -429,9 +443,10 @@ def _close(
         gone = torch.zeros_like(member)
         gone[rows[failing]] = True
         member &= ~gone
+        covers.clear()
         live = alive[owner]
-        out[live] |= meets(n_a[live], n_b[live], (free | bad)[live], gone)
-        open_[live] |= meets(n_a[live], n_b[live], (free | bad)[live], gone & ~outside)
+        out[live] |= meets(n_a[live], n_b[live], (free | bad)[live], cover(gone))
+        open_[live] |= meets(n_a[live], n_b[live], (free | bad)[live], cover(gone & ~outside))
 
 
 def save_certificate(path: str | Path, certificate: Certificate) -> Path:

@@ -236,6 +236,15 @@ def escape_rule(system: ControlAffineSystem, settings: CertifySettings, scale: i
     return m, float(delta)
 
 
+def closure_domain(system: ControlAffineSystem, scale: int = 1, device: str | torch.device = "cpu") -> torch.Tensor:
+    """``(n, 2)`` the box a closure runs over: the system's domain widened ``scale`` times about its
+    centre in every non-periodic dimension (``CertifySettings.closure_scale``)."""
+    box = system.domain_tensor(torch.float64, device)
+    centre = box.mean(-1, keepdim=True)
+    periodic = torch.tensor([i in system.periodic_dims for i in range(system.state_dim)], device=box.device)
+    return torch.where(periodic[:, None], box, centre + scale * (box - centre))
+
+
 def _network(value_function: NeuralValueFunction | ValueNetwork) -> ValueNetwork:
     network = getattr(value_function, "network", value_function)
     if not isinstance(network, ValueNetwork):
@@ -307,9 +316,7 @@ class _Verifier:
         self.periodic = torch.tensor([i in self.periodic_dims for i in range(system.state_dim)])
         self.network_domain = system.domain_tensor(torch.float64, device)
         scale = settings.closure_scale if closure else 1
-        centre = self.network_domain.mean(-1, keepdim=True)
-        wide = centre + scale * (self.network_domain - centre)
-        self.domain = torch.where(self.periodic.to(device)[:, None], self.network_domain, wide)
+        self.domain = closure_domain(system, scale, device)
         self.span = self.domain[:, 1] - self.domain[:, 0]
         self.step = make_stepper(system, settings.dt, settings.integrator, _Unwrapped())
         self.point_step = make_stepper(system, settings.dt, settings.integrator, TORCH)
