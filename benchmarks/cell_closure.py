@@ -47,6 +47,7 @@ def main() -> None:
     parser.add_argument("--dt", type=float, default=0.02)
     parser.add_argument("--integrator", default="euler")
     parser.add_argument("--closure-scale", type=int, default=1, help="close over the box widened this many times")
+    parser.add_argument("--refinements", type=int, default=0, help="closure_refinements: cut at the set's edge")
     parser.add_argument("--out", type=Path, default=None, help="write the certificate here (.npz)")
     args = parser.parse_args()
     network = _network(load_value_function(args.source).value_function)
@@ -56,7 +57,7 @@ def main() -> None:
     settings = CertifySettings(
         level=0.0, time_to_go=network.system.horizon, dt=args.dt, integrator=args.integrator,
         escape_margin=args.escape_margin, closure_scale=args.closure_scale,
-        closure_relative_width=1 / min(args.cells),
+        closure_relative_width=1 / min(args.cells), closure_refinements=args.refinements,
     )  # fmt: skip
     lo, hi = uniform_cover(domain, args.cells)
     verifier = _Verifier(network, settings, torch.device("cpu"), closure=True)

@@ -12,7 +12,14 @@ import argparse
 from typing import Any
 
 from reach.exit_codes import EXIT_PARTIAL
-from reach.validation import device_arg, finite_float_arg, positive_float_arg, positive_int_arg, unit_interval_arg
+from reach.validation import (
+    device_arg,
+    finite_float_arg,
+    nonnegative_int_arg,
+    positive_float_arg,
+    positive_int_arg,
+    unit_interval_arg,
+)
 from reach_cli.options import add_subparser, default
 from safety.certify import CertifySettings
 
@@ -42,6 +49,18 @@ CERTIFY_OPTIONS = (
         "closure_scale",
         {"type": positive_int_arg},
         "close over the state box widened this many times (a power of two; needs --closure-width)",
+    ),
+    (
+        "--closure-refinements",
+        "closure_refinements",
+        {"type": nonnegative_int_arg},
+        "cut the dropped boxes near the set's edge into halves and close again, this many times",
+    ),
+    (
+        "--closure-refine-reach",
+        "closure_refine_reach",
+        {"type": positive_int_arg},
+        "near: within this many of the box's own widths of a kept box",
     ),
     (
         "--escape-margin",

@@ -26,17 +26,21 @@ outside boxes. The checker reuses the bounds
 
 Closure is checked on the cell grid of the boxes (the verifier's cover is dyadic), held sparsely by
 :class:`safety.dyadic_cover.DyadicCover`: its cost grows with the boxes, not with the ``R**n`` cells,
-so the 6D and 9D systems' covers are closed as Air3D's are (grids up to ``2**62`` cells). The closure's
-rounds ask "does this next-state box meet a dropped box?" from a dense table of the cells instead
-(:class:`safety.dyadic_cover.DenseCover`) where the grid is small enough to hold (Air3D to 256^3).
+so the 6D and 9D systems' covers are checked as Air3D's are (grids up to ``2**62`` cells). The
+closure finds once which boxes each next-state piece meets (the owner of each of its cells, from a
+dense table where the grid is small enough, :class:`safety.dyadic_cover.DenseOwner`), so that a
+round costs one pass over those pairs, whatever the grid. With ``closure_refinements`` the cover
+then grows finer near the set's edge and the closure runs again (:func:`_split_at_edge`).
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 from collections.abc import Callable
 from dataclasses import asdict, replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -54,7 +58,7 @@ from safety.certify import (
     _Verifier,
     margin_bounds,
 )
-from safety.dyadic_cover import DenseCover, DyadicCover, cover_of
+from safety.dyadic_cover import DenseOwner, DyadicCover, cells_in, cover_of, owner_of
 from training.checkpoint import network_digest
 from training.network import NeuralValueFunction, ValueNetwork
 
@@ -225,18 +229,18 @@ def certified_set(
     network = _network(value_function)
     verifier = _Verifier(network, result.settings, torch.device("cpu"), closure=True)
     result, grid = _closure_cover(result, verifier)
-    settings, closed = result.settings, None
-    if verifier.escape is not None:
-        band = verifier.in_band(result.lo, result.hi) & (result.status != ESCAPE)
-        closed = _close(verifier, grid, result, rounds, band)
-        if closed is None:  # E does not hold: the closure without it (the verifier still says which
-            settings = replace(settings, escape_margin=None)  # next states lie beyond the domain)
-    if closed is None:
-        closed = _close(verifier, grid, result, rounds, None)
-    rows, inputs = closed
+    (rows, inputs), with_escape = _closure(verifier, grid, result, rounds, None, False)
+    finest = (result.hi - result.lo).amin(0)
+    for _ in range(result.settings.closure_refinements):
+        finest = finest / 2
+        result, stay, parts = _split_at_edge(result, rows, inputs, verifier, grid, finest)
+        if not bool(parts.any()):
+            break
+        grid = _Grid(verifier.domain, _resolution(result, verifier.domain), result.lo, result.hi)
+        (rows, inputs), with_escape = _closure(verifier, grid, result, rounds, (stay, parts), with_escape)
+    settings = result.settings if with_escape else replace(result.settings, escape_margin=None)
     kept = torch.zeros_like(result.status, dtype=torch.bool)
     kept[rows] = True
-    with_escape = settings.escape_margin is not None
     escape = (result.status == ESCAPE) & with_escape & ~kept
     outside = (result.status == OUTSIDE) & ~kept
     excluded = ~kept & ~outside & ~escape
@@ -248,7 +252,7 @@ def certified_set(
         network_digest(network),
         result.lo[rows],
         result.hi[rows],
-        inputs,
+        result.candidates[inputs],
         result.lo[outside],
         result.hi[outside],
         grid.resolution,
@@ -256,6 +260,85 @@ def certified_set(
         result.hi[escape],
         result.lo[excluded],
         result.hi[excluded],
+    )
+
+
+def _closure(
+    verifier: _Verifier,
+    grid: _Grid,
+    result: CertificationResult,
+    rounds: list | None,
+    refined: tuple[torch.Tensor, torch.Tensor] | None,
+    held: bool,
+) -> tuple[tuple[torch.Tensor, torch.Tensor], bool]:
+    """:func:`_close` with the escape set assumed where the verifier has one, and without it where a
+    box of the band below it drops: ``((rows kept, their input indices), whether E held)``. After a
+    refinement, ``refined`` is ``(stay, parts)`` (:func:`_split_at_edge`); ``held``: the boxes that
+    stay were kept with ``E``, which holds again (its band's boxes all stay)."""
+    if verifier.escape is not None:
+        band = verifier.in_band(result.lo, result.hi) & (result.status != ESCAPE)
+        closed = _close(verifier, grid, result, rounds, band, refined)
+        if closed is not None:
+            return closed, True
+    if held:  # the boxes that stay lean on E: without it they would need asking again
+        raise AssertionError("the escape set held before a refinement and not after it")
+    closed = _close(verifier, grid, result, rounds, None, refined)
+    assert closed is not None  # without E, the closure always ends
+    return closed, False
+
+
+def _split_at_edge(
+    result: CertificationResult,
+    rows: torch.Tensor,
+    inputs: torch.Tensor,
+    verifier: _Verifier,
+    grid: _Grid,
+    finest: torch.Tensor,
+) -> tuple[CertificationResult, torch.Tensor, torch.Tensor]:
+    """``result`` with the dropped boxes at the kept set's edge cut into halves along every dimension
+    (``CertifySettings.closure_refinements``), which boxes ``stay`` (the kept ``rows``), and which
+    are the new ``parts``.
+
+    Cut are the boxes not kept whose parts may be (``l > 0`` somewhere on them; not in ``E``, not
+    proven outside ``S_c``), lie within ``closure_refine_reach`` of their own widths of a kept box (in every
+    dimension; the seam of a periodic dimension is not looked across), and are at least twice
+    ``finest`` wide. The parts are unknown, each a candidate with its box's backup input to try
+    first. The kept boxes stay whole with their ``inputs`` (indices into the candidates): their next
+    states landed in kept boxes, which the parts do not change, so the next closure keeps them
+    without asking again, and keeps at least what this one did. Only the parts are candidates besides:
+    a box dropped and not cut stays out (a smaller set of candidates still closes soundly, and the
+    next closure then costs what its parts do, not the whole cover)."""
+    kept = torch.zeros(len(result.lo), dtype=torch.bool)
+    kept[rows] = True
+    backup = result.backup.clone()
+    backup[rows] = inputs
+    a, b = grid.cells(result.lo, result.hi, exact=True)
+    reach = result.settings.closure_refine_reach
+    grown = cover_of(a[kept], b[kept], grid.resolution).meets(
+        (a - reach * (b - a)).clamp(min=0), (b + reach * (b - a)).clamp(max=grid.resolution)
+    )
+    may = margin_bounds(verifier.system, result.lo, result.hi).hi > 0  # some part may hold no failure state
+    wide = ((result.hi - result.lo) >= 2 * finest * (1 - 1e-9)).all(-1)
+    cut = grown & may & ~kept & wide & (result.status != ESCAPE) & (result.status != OUTSIDE)
+    lo, hi = result.lo[cut], result.hi[cut]
+    mid = (lo + hi) / 2
+    corners = torch.tensor(list(itertools.product((0, 1), repeat=lo.shape[-1])), dtype=torch.bool)
+    part_lo = torch.where(corners, mid[:, None], lo[:, None]).reshape(-1, lo.shape[-1])
+    part_hi = torch.where(corners, hi[:, None], mid[:, None]).reshape(-1, lo.shape[-1])
+    parts = len(part_lo)
+    status = torch.full((parts,), UNKNOWN, dtype=result.status.dtype)
+    refined = replace(
+        result,
+        lo=torch.cat([result.lo[~cut], part_lo]),
+        hi=torch.cat([result.hi[~cut], part_hi]),
+        status=torch.cat([result.status[~cut], status]),
+        backup=torch.cat([backup[~cut], backup[cut].repeat_interleave(len(corners))]),
+    )
+    fresh = torch.zeros(parts, dtype=torch.bool)
+    return (
+        refined,
+        torch.cat([kept[~cut], fresh]),
+        torch.cat([torch.zeros(int((~cut).sum()), dtype=torch.bool), ~fresh]),
     )
 
 
@@ -330,11 +413,19 @@ def _widened(result: CertificationResult, verifier: _Verifier) -> CertificationR
 
 
 def _close(
-    verifier: _Verifier, grid: _Grid, result: CertificationResult, rounds: list | None, band: torch.Tensor | None
+    verifier: _Verifier,
+    grid: _Grid,
+    result: CertificationResult,
+    rounds: list | None,
+    band: torch.Tensor | None,
+    refined: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """The closure's rounds (:func:`certified_set`): ``(rows of result kept, their inputs)``. ``band``
-    given: ``E`` is assumed, and ``None`` is returned once a box of the band drops. Without it, a next
-    state that is in ``E`` only (beyond the domain) counts as leaving the set."""
+    """The closure's rounds (:func:`certified_set`): ``(rows of result kept, their input indices)``.
+    ``band`` given: ``E`` is assumed, and ``None`` is returned once a box of the band drops. Without
+    it, a next state that is in ``E`` only (beyond the domain) counts as leaving the set. ``refined``: ``(stay,
+    parts)`` after a refinement: boxes known to stay with their ``backup`` input (the kept set before
+    it, whose next states all land in it), kept without being asked again, and the only other
+    candidates."""
     escape = band is not None
     status, candidates = result.status, result.candidates
     outside = status == OUTSIDE
@@ -344,6 +435,12 @@ def _close(
         if bool((band & ~candidate).any()):
             return None  # a box of the band may hold a failure state: E does not hold
         candidate &= status != ESCAPE  # E's boxes are in the set already
+    stay = torch.zeros(len(status), dtype=torch.bool)
+    if refined is not None:
+        stay, parts = refined
+        candidate &= parts
+    fixed = stay.nonzero().squeeze(-1)
+    fixed_share = float(((result.hi[fixed] - result.lo[fixed]) / grid.span).prod(-1).sum())
     rows = candidate.nonzero().squeeze(-1)
     lo, hi = result.lo[rows], result.hi[rows]
     in_band = band[rows] if escape else torch.zeros(len(rows), dtype=torch.bool)
@@ -355,60 +452,52 @@ def _close(
     tried[torch.arange(len(rows)), choice] = True
     member = torch.zeros(len(status), dtype=torch.bool)  # the boxes of the set as it stands
     member[rows] = True
+    member |= stay
     if escape:
         member |= status == ESCAPE
-    a, b = grid.cells(result.lo, result.hi, exact=True)
-    covers: dict[str, DenseCover | DyadicCover | None] = {}  # this round's, built once (member changes between)
+    boxes = owner_of(*grid.cells(result.lo, result.hi, exact=True), grid.resolution)
 
-    def cover(boxes: torch.Tensor) -> DenseCover | DyadicCover | None:
-        return cover_of(a[boxes], b[boxes], grid.resolution) if bool(boxes.any()) else None
-
-    def meets(
-        n_a: torch.Tensor, n_b: torch.Tensor, skip: torch.Tensor, boxes: DenseCover | DyadicCover | None
-    ) -> torch.Tensor:
-        """Whether each piece (but the ``skip`` ones) meets a cell of ``boxes``."""
-        hit = torch.zeros(len(n_a), dtype=torch.bool)
-        ask = ~skip
-        if boxes is not None and bool(ask.any()):
-            hit[ask] = boxes.meets(n_a[ask], n_b[ask])
-        return hit
-
-    def pieces(at: torch.Tensor, inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """The next-state pieces of boxes ``at``: ``(a, b, owner, free, bad, out, open)``. ``free``: all in
-        ``E`` (no cell needed); ``bad``: leaves the set whatever the cells (beyond the domain, ``E`` not
-        assumed); ``out``: meets a box not in the set; ``open``: ... nor proven to hold only ``V < c``."""
+    def pieces(at: torch.Tensor, inputs: torch.Tensor) -> _Pieces:
+        """The next-state pieces of boxes ``at`` (:class:`_Pieces`): ``free``: all in ``E`` (no cell
+        needed); ``bad``: leaves the set whatever the cells (beyond the domain, ``E`` not assumed)."""
         n_lo, n_hi, piece, escaped, needs = verifier.landing(lo[at], hi[at], inputs)
         free = escaped & escape
         bad = ~free & ((needs & (not escape)) | ~verifier.in_domain(n_lo, n_hi))
-        n_a, n_b = grid.cells(n_lo.cpu(), n_hi.cpu(), exact=False)
+        ask = (~free & ~bad).nonzero().squeeze(-1)
+        n_a, n_b = grid.cells(n_lo[ask].cpu(), n_hi[ask].cpu(), exact=False)
+        pair_piece, pair_box = _boxes_met(boxes, n_a, n_b)
         owner = at[piece // len(verifier.d_lo)]
-        skip = free | bad
-        if not covers:
-            covers["out"], covers["open"] = cover(~member), cover(~member & ~outside)
-        return n_a, n_b, owner, free, bad, meets(n_a, n_b, skip, covers["out"]), meets(n_a, n_b, skip, covers["open"])
+        return _Pieces(owner, version[owner] + 1, free, bad, ask[pair_piece], pair_box)
 
-    def stays(owner: torch.Tensor, free: torch.Tensor, bad: torch.Tensor, out: torch.Tensor, open_: torch.Tensor,
-              value_ok: torch.Tensor) -> torch.Tensor:  # fmt: skip
-        """Per row: whether every piece lands in the set's boxes, or, where the network proved ``V >= c``
-        on the row's next states, in the set's boxes and boxes of ``V < c``."""
-        ok = free | (~bad & (~out | (value_ok[owner] & ~open_)))
-        return ~_fails(owner, ~ok, len(rows))
+    def stays(chunks: list[_Pieces], value_ok: torch.Tensor) -> torch.Tensor:
+        """Per row: whether every piece of its input lands in the set's boxes, or, where the network
+        proved ``V >= c`` on the row's next states, in the set's boxes and boxes of ``V < c`` (a cell
+        of no box: neither). A piece counts while its ``version`` is its row's."""
+        fails = torch.zeros(len(rows), dtype=torch.bool)
+        for p in chunks:
+            known = p.pair_box >= 0
+            box = p.pair_box.clamp(min=0)
+            away = ~known | ~member[box]  # a cell not in the set's boxes
+            out = _fails(p.pair_piece, away, len(p.owner))
+            open_ = _fails(p.pair_piece, away & (~known | ~outside[box]), len(p.owner))
+            ok = p.free | (~p.bad & (~out | (value_ok[p.owner] & ~open_)))
+            fails |= _fails(p.owner, ~ok & (p.version == version[p.owner]), len(rows))
+        return ~fails
 
-    n_a, n_b, owner, free, bad, out, open_ = pieces(torch.arange(len(rows)), candidates[choice])
+    version = torch.full((len(rows),), -1, dtype=torch.long)  # each row's input's pieces: this version
+    current = [pieces(torch.arange(len(rows)), candidates[choice])]
+    version += 1
     # parts of proven boxes (closure_relative_width) keep their box's input: show its V >= c again
     # where only that lets their next states meet boxes outside S_c
     hint = (~proven_value & (backup >= 0)).nonzero().squeeze(-1)
+    everything = torch.ones(len(rows), dtype=torch.bool)
     if len(hint):
-        everything = torch.ones(len(rows), dtype=torch.bool)
-        need = hint[
-            ~stays(owner, free, bad, out, open_, proven_value)[hint]
-            & stays(owner, free, bad, out, open_, everything)[hint]
-        ]
+        need = hint[~stays(current, proven_value)[hint] & stays(current, everything)[hint]]
         if len(need):
             proven_value[need] = verifier.keeps(lo[need], hi[need], candidates[choice[need]])
     alive = torch.ones(len(rows), dtype=torch.bool)
     while True:
-        failing = alive & ~stays(owner, free, bad, out, open_, proven_value)
+        failing = alive & ~stays(current, proven_value)
         switched = 0
         for k, u in enumerate(candidates):
             ask = (failing & ~tried[:, k]).nonzero().squeeze(-1)
@@ -416,37 +505,93 @@ def _close(
                 continue
             tried[ask, k] = True
             new = pieces(ask, u.expand(len(ask), -1))
+            version[ask] += 1  # asked with the new pieces alone
             value_ok = torch.zeros(len(rows), dtype=torch.bool)
-            clear = stays(*new[2:], value_ok)[ask]
+            clear = stays([new], value_ok)[ask]
             # the network may still show that the pieces meeting boxes outside S_c land in the set
-            maybe = ask[~clear & stays(*new[2:], torch.ones(len(rows), dtype=torch.bool))[ask]]
+            maybe = ask[~clear & stays([new], everything)[ask]]
             if len(maybe):
                 value_ok[maybe] = verifier.keeps(lo[maybe], hi[maybe], u.expand(len(maybe), -1))
-                clear = stays(*new[2:], value_ok)[ask]
+                clear = stays([new], value_ok)[ask]
+            version[ask[~clear]] -= 1  # the others keep their input and its pieces
             moved = ask[clear]
             if not len(moved):
                 continue
             choice[moved], proven_value[moved], failing[moved] = k, value_ok[moved], False
             switched += len(moved)
-            mine, kept_pieces = torch.isin(new[2], moved), ~torch.isin(owner, moved)
-            n_a, n_b, owner, free, bad, out, open_ = (
-                torch.cat([x[kept_pieces], y[mine]]) for x, y in zip((n_a, n_b, owner, free, bad, out, open_), new)
-            )
+            current.append(new.select(torch.isin(new.owner, moved)))
         alive &= ~failing
         if rounds is not None:
-            share = float(((hi[alive] - lo[alive]) / grid.span).prod(-1).sum())
+            share = fixed_share + float(((hi[alive] - lo[alive]) / grid.span).prod(-1).sum())
             rounds.append({"dropped": int(failing.sum()), "switched": switched, "kept": share, "escape": escape})
         if not bool(failing.any()):
-            return rows[alive], candidates[choice[alive]]
+            return torch.cat([fixed, rows[alive]]), torch.cat([result.backup[fixed], choice[alive]])
         if bool((failing & in_band).any()):
             return None  # a box of the band below E is lost: E does not hold
-        gone = torch.zeros_like(member)
-        gone[rows[failing]] = True
-        member &= ~gone
-        covers.clear()
-        live = alive[owner]
-        out[live] |= meets(n_a[live], n_b[live], (free | bad)[live], cover(gone))
-        open_[live] |= meets(n_a[live], n_b[live], (free | bad)[live], cover(gone & ~outside))
+        member[rows[failing]] = False
+        if sum(len(p.owner) for p in current) > 2 * int(alive.sum()) * len(verifier.d_lo) + (1 << 16):
+            current = [_Pieces.join([p.select((p.version == version[p.owner]) & alive[p.owner]) for p in current])]
+
+
+class _Pieces(NamedTuple):
+    """Next-state pieces of the closure's rows: each piece's ``owner`` row, whether it is ``free``
+    (all in ``E``) or ``bad`` (leaves the set whatever the boxes), and the boxes the others meet, as
+    pairs (``pair_piece``, ``pair_box``; box -1: a cell that no box holds)."""
+
+    owner: torch.Tensor
+    version: torch.Tensor
+    free: torch.Tensor
+    bad: torch.Tensor
+    pair_piece: torch.Tensor
+    pair_box: torch.Tensor
+
+    def select(self, keep: torch.Tensor) -> _Pieces:
+        """The pieces where ``keep`` (a mask over pieces), their pairs renumbered."""
+        index = torch.cumsum(keep.long(), 0) - 1
+        pairs = keep[self.pair_piece]
+        return _Pieces(
+            self.owner[keep],
+            self.version[keep],
+            self.free[keep],
+            self.bad[keep],
+            index[self.pair_piece[pairs]],
+            self.pair_box[pairs],
+        )
+
+    @staticmethod
+    def join(chunks: list[_Pieces]) -> _Pieces:
+        """One :class:`_Pieces` of all of ``chunks``."""
+        offsets = torch.cumsum(torch.tensor([0] + [len(p.owner) for p in chunks]), 0)
+        return _Pieces(
+            *(torch.cat([getattr(p, name) for p in chunks]) for name in ("owner", "version", "free", "bad")),
+            torch.cat([p.pair_piece + offsets[i] for i, p in enumerate(chunks)]),
+            torch.cat([p.pair_box for p in chunks]),
+        )
+
+
+#: cells enumerated at once when finding the boxes that next-state pieces meet
+CELL_CHUNK = 1 << 22
+
+
+def _boxes_met(
+    boxes: DenseOwner | DyadicCover, n_a: torch.Tensor, n_b: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each box that each cell range ``[n_a, n_b)`` meets, once: ``(range, box)`` pairs (box -1 for a
+    cell no box holds), from the owner of every cell of the ranges."""
+    size = (n_b - n_a).prod(-1)
+    pairs_piece, pairs_box = [], []
+    start = 0
+    while start < len(n_a):
+        total = torch.cumsum(size[start:], 0)
+        stop = start + max(1, int(torch.searchsorted(total, torch.tensor(CELL_CHUNK), right=True)))
+        cells, row = cells_in(n_a[start:stop], n_b[start:stop])
+        key = torch.unique((row + start) * (2**31) + (boxes.owner(cells) + 1))
+        pairs_piece.append(key // (2**31))
+        pairs_box.append(key % (2**31) - 1)
+        start = stop
+    if not pairs_piece:
+        return torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long)
+    return torch.cat(pairs_piece), torch.cat(pairs_box)
 
 
 def save_certificate(path: str | Path, certificate: Certificate) -> Path:

@@ -129,6 +129,12 @@ class CertifySettings:
     #: boxes beyond the network's box are kept by where their next states land alone, never by the
     #: network. Needs ``closure_relative_width`` (the wide box is covered by cells that wide)
     closure_scale: int = 1
+    #: after the closure, the boxes not kept (but not all failure) near the kept set are cut into halves
+    #: along every dimension and the closure runs again, this many times: the cover grows fine only
+    #: near the set's edge (each time the finest boxes halve)
+    closure_refinements: int = 0
+    #: "near": within this many of the box's own widths of a kept box, in every dimension
+    closure_refine_reach: int = 8
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.level):
@@ -144,6 +150,12 @@ class CertifySettings:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
         if self.max_seconds is not None:
             positive_finite("max_seconds", self.max_seconds)
+        refinements = self.closure_refinements
+        if isinstance(refinements, bool) or not isinstance(refinements, int) or refinements < 0:
+            raise ValueError(f"closure_refinements must be an integer >= 0, got {refinements!r}")
+        reach = self.closure_refine_reach
+        if isinstance(reach, bool) or not isinstance(reach, int) or reach < 1:
+            raise ValueError(f"closure_refine_reach must be a positive integer, got {reach!r}")
         scale = self.closure_scale
         if isinstance(scale, bool) or not isinstance(scale, int) or scale < 1 or scale & (scale - 1):
             raise ValueError(f"closure_scale must be a power of two (1, 2, 4, ...), got {scale!r}")

@@ -23,7 +23,7 @@ import math
 
 import torch
 
-__all__ = ["DenseCover", "DyadicCover", "cover_of"]
+__all__ = ["DenseCover", "DenseOwner", "DyadicCover", "cells_in", "cover_of", "owner_of"]
 
 #: the most aligned cubes one box may split into (a branch-and-bound box makes at most 2**n)
 MAX_CUBES_PER_BOX = 4096
@@ -55,6 +55,11 @@ def _cubes(a: torch.Tensor, b: torch.Tensor, level: int) -> tuple[torch.Tensor, 
         coords[:, d] = lo[rows, d] + rank % counts[rows, d]
         rank = rank // counts[rows, d]
     return coords, rows
+
+
+def cells_in(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every cell of each cell range ``[a, b)`` (``(Q, n)``): ``(cells, row of the range)``."""
+    return _cubes(a.long().cpu(), b.long().cpu(), 0)
 
 
 class DyadicCover:
@@ -223,3 +228,52 @@ def cover_of(a: torch.Tensor, b: torch.Tensor, resolution: int) -> DenseCover | 
     (both answer :meth:`meets` and :meth:`covers` alike)."""
     n = a.shape[1] if a.ndim == 2 else 1
     return DenseCover(a, b, resolution) if resolution**n <= DENSE_MAX_CELLS else DyadicCover(a, b, resolution)
+
+
+#: grids of at most this many cells get a dense table of owners (:class:`DenseOwner`, 4 bytes a cell)
+DENSE_OWNER_MAX_CELLS = 2**27
+
+
+class DenseOwner:
+    """Which box holds each cell, from a dense table, for boxes that do not overlap (a partition's):
+    each box adds its ``index + 1`` at its ``2**n`` corners of a difference table with alternating
+    signs, and the prefix sums leave every cell the index of the one box over it (0: none). For
+    grids of ``resolution**n <= DENSE_OWNER_MAX_CELLS``; answers :meth:`owner` as
+    :meth:`DyadicCover.owner` does, by one lookup. Overlapping boxes are refused."""
+
+    def __init__(self, a: torch.Tensor, b: torch.Tensor, resolution: int) -> None:
+        a, b = a.long().cpu(), b.long().cpu()
+        n = a.shape[1]
+        if resolution**n > DENSE_OWNER_MAX_CELLS:
+            raise ValueError(f"a grid of {resolution}^{n} cells is too large for a dense table")
+        if bool(((a < 0) | (b > resolution) | (b <= a)).any()):
+            raise ValueError("a box is not a non-empty range of the grid's cells")
+        if int((b - a).prod(-1).sum()) > resolution**n:
+            raise ValueError("the boxes overlap: a cell has no one owner")
+        self.n, self.resolution = n, resolution
+        ids = torch.arange(1, len(a) + 1, dtype=torch.int64)
+        table = torch.zeros((resolution + 1,) * n, dtype=torch.int64)
+        count = torch.zeros((resolution + 1,) * n, dtype=torch.int32)
+        for corner in itertools.product((0, 1), repeat=n):
+            index = tuple(b[:, d] if up else a[:, d] for d, up in enumerate(corner))
+            sign = -1 if sum(corner) % 2 else 1
+            table.index_put_(index, sign * ids, accumulate=True)
+            count.index_put_(index, torch.full((len(a),), sign, dtype=torch.int32), accumulate=True)
+        for d in range(n):
+            table = table.cumsum(d)
+            count = count.cumsum(d)
+        if bool((count > 1).any()):
+            raise ValueError("the boxes overlap: a cell has no one owner")
+        self._owner = (table[(slice(0, resolution),) * n] - 1).to(torch.int32)
+
+    def owner(self, cells: torch.Tensor) -> torch.Tensor:
+        """``(Q,)``: the index of the box holding each cell (``(Q, n)``), -1 where none does."""
+        cells = cells.long().cpu()
+        return self._owner[tuple(cells.unbind(-1))].long()
+
+
+def owner_of(a: torch.Tensor, b: torch.Tensor, resolution: int) -> DenseOwner | DyadicCover:
+    """Boxes that do not overlap as a :class:`DenseOwner` where the grid is small enough, else a
+    :class:`DyadicCover` (both answer :meth:`owner`)."""
+    n = a.shape[1] if a.ndim == 2 else 1
+    return DenseOwner(a, b, resolution) if resolution**n <= DENSE_OWNER_MAX_CELLS else DyadicCover(a, b, resolution)

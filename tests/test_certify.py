@@ -104,6 +104,9 @@ def test_an_unfinished_run_is_never_certified(network):
         ({"max_seconds": -1.0}, "max_seconds"),
         ({"escape_margin": float("nan")}, "escape_margin"),
         ({"band_min_relative_width": 2.0}, "band_min_relative_width"),
+        ({"closure_refinements": -1}, "closure_refinements"),
+        ({"closure_refinements": True}, "closure_refinements"),
+        ({"closure_refine_reach": 0}, "closure_refine_reach"),
     ],
 )
 def test_bad_settings_are_refused_naming_them(options, named):
@@ -278,6 +281,37 @@ def test_boxes_cut_finer_before_the_closure_keep_at_least_as_much(torus_network,
     check_certificate(save_certificate(tmp_path / "fine.npz", refined), torus_network)
     with pytest.raises(ValueError, match="closure_relative_width"):
         CertifySettings(level=0.3, time_to_go=1.0, dt=0.05, closure_relative_width=0.0)
+
+
+def test_refinements_at_the_sets_edge_keep_more_and_the_file_checks(torus_network, tmp_path):
+    """A coarse cover (1/8 of the span) keeps only the boxes clear of the disc. Each refinement cuts
+    the boxes not kept near the kept ones (those meeting the disc) into quarters and closes again:
+    the boxes kept before stay with their inputs, the set grows (0.81, 0.88, 0.90 of the torus when
+    this was written), its finest boxes halve, and the file checks. A reach of one box keeps no more
+    than one of eight (here the same)."""
+    from dataclasses import replace
+
+    domain = Torus().domain_tensor(torch.float64, "cpu")
+    coarse = replace(TORUS, min_relative_width=1 / 8, initial_splits=8)
+    result = certify(torus_network, coarse)
+    shares, previous = [], None
+    for refinements in (0, 1, 2):
+        settings = replace(coarse, closure_refinements=refinements)
+        certificate = certified_set(torus_network, replace(result, settings=settings))
+        shares.append(certificate.kept_volume_share(domain))
+        widths = (certificate.kept_hi - certificate.kept_lo) / (domain[:, 1] - domain[:, 0])
+        assert float(widths.min()) == pytest.approx(1 / 8 / 2**refinements)
+        if previous is not None:  # every box kept before is kept again, whole, with its input
+            before = {tuple(lo.tolist()) + tuple(u.tolist()) for lo, u in zip(previous.kept_lo, previous.inputs)}
+            now = {tuple(lo.tolist()) + tuple(u.tolist()) for lo, u in zip(certificate.kept_lo, certificate.inputs)}
+            assert before <= now
+        previous = certificate
+    assert shares[0] < shares[1] < shares[2], shares
+    check_certificate(save_certificate(tmp_path / "refined.npz", previous), torus_network)
+    near = certified_set(
+        torus_network, replace(result, settings=replace(coarse, closure_refinements=2, closure_refine_reach=1))
+    )
+    assert shares[0] < near.kept_volume_share(domain) <= shares[2]
 
 
 def test_a_piece_on_a_box_face_needs_only_the_cell_on_its_side():

@@ -282,6 +282,10 @@ def test_the_command_line_takes_an_escape_margin_and_refuses_a_bad_one(tmp_path,
         assert main(bad) == 2
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and named in err, err
+    for option, value in (("--closure-refinements", "-1"), ("--closure-refine-reach", "0")):
+        with pytest.raises(SystemExit) as stop:  # argparse refuses it, naming the option
+            main([*args, option, value, "--out", str(out)])
+        assert stop.value.code == 2 and f"argument {option}: must be" in capsys.readouterr().err
 
 
 def test_boxes_of_the_band_are_split_finer_until_they_hold_only_states_of_the_set(outflow, tmp_path):
