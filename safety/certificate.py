@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 from collections.abc import Callable
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -300,9 +301,9 @@ def _split_at_edge(
     are the new ``parts``.
 
     Cut are the boxes not kept whose parts may be (``l > 0`` somewhere on them; not in ``E``, not
-    proven outside ``S_c``), lie within ``closure_refine_reach`` of their own widths of a kept box (in every
-    dimension; the seam of a periodic dimension is not looked across), and are at least twice
-    ``finest`` wide. The parts are unknown, each a candidate with its box's backup input to try
+    proven outside ``S_c``), lie within ``closure_refine_reach`` of their own widths of a kept box
+    (in every dimension, looked up on a grid of at most ``2**24`` cells; the seam of a periodic
+    dimension is not looked across), and are at least twice ``finest`` wide. The parts are unknown, each a candidate with its box's backup input to try
     first. The kept boxes stay whole with their ``inputs`` (indices into the candidates): their next
     states landed in kept boxes, which the parts do not change, so the next closure keeps them
     without asking again, and keeps at least what this one did. Only the parts are candidates besides:
@@ -314,9 +315,13 @@ def _split_at_edge(
     backup[rows] = inputs
     a, b = grid.cells(result.lo, result.hi, exact=True)
     reach = result.settings.closure_refine_reach
-    grown = cover_of(a[kept], b[kept], grid.resolution).meets(
-        (a - reach * (b - a)).clamp(min=0), (b + reach * (b - a)).clamp(max=grid.resolution)
-    )
+    # "near" is looked up on a coarser grid (at most 2**24 cells) where the grid is finer: it only
+    # chooses what to cut, so a coarser answer (a little farther) costs time, never soundness
+    shift = max(0, math.ceil(math.log2(grid.resolution)) - 24 // grid.n)
+    coarse = ((grid.resolution - 1) >> shift) + 1
+    near_a = (a - reach * (b - a)).clamp(min=0) >> shift
+    near_b = (((b + reach * (b - a)).clamp(max=grid.resolution) - 1) >> shift) + 1
+    grown = cover_of(a[kept] >> shift, ((b[kept] - 1) >> shift) + 1, coarse).meets(near_a, near_b)
     may = margin_bounds(verifier.system, result.lo, result.hi).hi > 0  # some part may hold no failure state
     wide = ((result.hi - result.lo) >= 2 * finest * (1 - 1e-9)).all(-1)
     cut = grown & may & ~kept & wide & (result.status != ESCAPE) & (result.status != OUTSIDE)
