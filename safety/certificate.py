@@ -296,19 +296,20 @@ def _split_at_edge(
     grid: _Grid,
     finest: torch.Tensor,
 ) -> tuple[CertificationResult, torch.Tensor, torch.Tensor]:
-    """``result`` with the dropped boxes at the kept set's edge cut into halves along every dimension
+    """``result`` with the boxes not kept near the kept set cut into halves along every dimension
     (``CertifySettings.closure_refinements``), which boxes ``stay`` (the kept ``rows``), and which
     are the new ``parts``.
 
-    Cut are the boxes not kept whose parts may be (``l > 0`` somewhere on them; not in ``E``, not
-    proven outside ``S_c``), lie within ``closure_refine_reach`` of their own widths of a kept box
-    (in every dimension, looked up on a grid of at most ``2**24`` cells; the seam of a periodic
-    dimension is not looked across), and are at least twice ``finest`` wide. The parts are unknown, each a candidate with its box's backup input to try
-    first. The kept boxes stay whole with their ``inputs`` (indices into the candidates): their next
-    states landed in kept boxes, which the parts do not change, so the next closure keeps them
-    without asking again, and keeps at least what this one did. Only the parts are candidates besides:
-    a box dropped and not cut stays out (a smaller set of candidates still closes soundly, and the
-    next closure then costs what its parts do, not the whole cover)."""
+    Cut are the boxes not kept whose parts may be kept (``l > 0`` somewhere on them; not in ``E``,
+    not proven outside ``S_c``) that lie within ``closure_refine_reach`` of their own widths of a
+    kept box (in every dimension, looked up on a grid of at most ``2**24`` cells; the seam of a
+    periodic dimension is not looked across) and are at least twice ``finest`` wide. The parts are
+    unknown, each a candidate with its box's backup input to try first. The kept boxes stay whole
+    with their ``inputs`` (indices into the candidates): their next states landed in kept boxes,
+    which the parts do not change, so the next closure keeps them without asking again, and keeps
+    at least what this one did. Only the parts are candidates besides: a box dropped and not cut
+    stays out (a smaller set of candidates still closes soundly, and the next closure then costs
+    what its parts do, not the whole cover)."""
     kept = torch.zeros(len(result.lo), dtype=torch.bool)
     kept[rows] = True
     backup = result.backup.clone()

@@ -23,7 +23,7 @@ import math
 
 import torch
 
-__all__ = ["DenseCover", "DenseOwner", "DyadicCover", "cells_in", "cover_of", "owner_of"]
+__all__ = ["BrickOwner", "DenseCover", "DenseOwner", "DyadicCover", "cells_in", "cover_of", "owner_of"]
 
 #: the most aligned cubes one box may split into (a branch-and-bound box makes at most 2**n)
 MAX_CUBES_PER_BOX = 4096
@@ -272,8 +272,84 @@ class DenseOwner:
         return self._owner[tuple(cells.unbind(-1))].long()
 
 
-def owner_of(a: torch.Tensor, b: torch.Tensor, resolution: int) -> DenseOwner | DyadicCover:
+#: the coarse table of a :class:`BrickOwner` holds at most this many cells
+BRICK_COARSE_MAX_CELLS = 2**24
+#: ... and its bricks at most this many cells in all (else :func:`owner_of` descends a sparse cover)
+BRICK_FINE_MAX_CELLS = 2**28
+
+
+def _flat(cells: torch.Tensor, side: int) -> torch.Tensor:
+    """Row-major index of each cell of a grid of ``side`` cells a dimension."""
+    index = torch.zeros(len(cells), dtype=torch.long)
+    for d in range(cells.shape[1]):
+        index = index * side + cells[:, d]
+    return index
+
+
+class TooFineForBricksError(ValueError):
+    """More cells lie in boxes finer than a :class:`BrickOwner`'s coarse cells than its bricks hold."""
+
+
+class BrickOwner:
+    """Which box holds each cell, for boxes that do not overlap, on grids too fine for a dense table:
+    a dense table of coarse cells (``2**shift`` cells a side), each naming the box that holds it whole,
+    or a **brick**, a dense table of its own cells, where boxes smaller than a coarse cell lie (a
+    cover made fine only near a set's edge has few such cells). Two lookups a query, as
+    :class:`DenseOwner`; built in time and memory of the coarse cells plus the bricks' cells.
+    Overlapping boxes are refused."""
+
+    def __init__(self, a: torch.Tensor, b: torch.Tensor, resolution: int) -> None:
+        a, b = a.long().cpu(), b.long().cpu()
+        n = a.shape[1]
+        if bool(((a < 0) | (b > resolution) | (b <= a)).any()):
+            raise ValueError("a box is not a non-empty range of the grid's cells")
+        self.n, self.resolution = n, resolution
+        levels = max(0, math.ceil(math.log2(max(resolution, 1))))
+        self.shift = max(0, levels - int(math.log2(BRICK_COARSE_MAX_CELLS)) // n)
+        self.side = ((resolution - 1) >> self.shift) + 1  # coarse cells a dimension
+        unit = 1 << self.shift
+        whole = ((a % unit == 0) & ((b % unit == 0) | (b == resolution))).all(-1)  # unions of coarse cells
+        coarse_a, coarse_b = a[whole] >> self.shift, ((b[whole] - 1) >> self.shift) + 1
+        fine = (~whole).nonzero().squeeze(-1)
+        volume = int((b[fine] - a[fine]).prod(-1).sum())
+        if volume > BRICK_FINE_MAX_CELLS:
+            raise TooFineForBricksError(f"boxes finer than the coarse cells hold {volume} cells: too many for bricks")
+        rows = whole.nonzero().squeeze(-1)
+        self._coarse = torch.full((self.side**n,), -1, dtype=torch.int32)
+        if len(rows):
+            table = DenseOwner(coarse_a, coarse_b, self.side)._owner.reshape(-1).long()
+            self._coarse = torch.where(table >= 0, rows[table.clamp(min=0)], -1).to(torch.int32)
+        cells, row = cells_in(a[fine], b[fine])
+        at = _flat(cells >> self.shift, self.side)
+        split, brick = torch.unique(at, return_inverse=True)
+        if bool((self._coarse[split] >= 0).any()):
+            raise ValueError("the boxes overlap: a cell has no one owner")
+        self._brick = torch.full((self.side**n,), -1, dtype=torch.long)
+        self._brick[split] = torch.arange(len(split))
+        slot = brick * unit**n + _flat(cells % unit, unit)
+        if len(slot) and int(torch.bincount(slot).max()) > 1:
+            raise ValueError("the boxes overlap: a cell has no one owner")
+        self._cells = torch.full((len(split) * unit**n,), -1, dtype=torch.int32)
+        self._cells[slot] = fine[row].to(torch.int32)
+
+    def owner(self, cells: torch.Tensor) -> torch.Tensor:
+        """``(Q,)``: the index of the box holding each cell (``(Q, n)``), -1 where none does."""
+        cells = cells.long().cpu()
+        at = _flat(cells >> self.shift, self.side)
+        brick = self._brick[at]
+        unit = 1 << self.shift
+        inner = brick.clamp(min=0) * unit**self.n + _flat(cells % unit, unit)
+        found = self._cells[inner].long() if len(self._cells) else torch.full_like(at, -1)
+        return torch.where(brick >= 0, found, self._coarse[at].long())
+
+
+def owner_of(a: torch.Tensor, b: torch.Tensor, resolution: int) -> DenseOwner | BrickOwner | DyadicCover:
     """Boxes that do not overlap as a :class:`DenseOwner` where the grid is small enough, else a
-    :class:`DyadicCover` (both answer :meth:`owner`)."""
+    :class:`BrickOwner` where its bricks fit, else a :class:`DyadicCover` (all answer :meth:`owner`)."""
     n = a.shape[1] if a.ndim == 2 else 1
-    return DenseOwner(a, b, resolution) if resolution**n <= DENSE_OWNER_MAX_CELLS else DyadicCover(a, b, resolution)
+    if resolution**n <= DENSE_OWNER_MAX_CELLS:
+        return DenseOwner(a, b, resolution)
+    try:
+        return BrickOwner(a, b, resolution)
+    except TooFineForBricksError:
+        return DyadicCover(a, b, resolution)

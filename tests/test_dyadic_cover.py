@@ -7,7 +7,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from safety.dyadic_cover import DenseCover, DenseOwner, DyadicCover, cells_in
+from safety.dyadic_cover import BrickOwner, DenseCover, DenseOwner, DyadicCover, cells_in
 
 
 def _partition(n: int, resolution: int, seed: int, splits: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -63,10 +63,10 @@ def test_meets_covers_and_owner_agree_with_a_dense_table(n, resolution, seed, sp
 
 @settings(max_examples=40, deadline=None)
 @given(st.integers(1, 4), st.sampled_from([4, 8, 16, 12]), st.integers(0, 10_000), st.integers(0, 120), st.floats(0, 1))
-def test_the_dense_owner_table_and_the_cells_of_ranges_agree_with_a_painted_table(n, resolution, seed, splits, share):
-    """:class:`DenseOwner` (the closure's lookup of which box holds a cell) answers as the sparse
-    cover's ``owner`` and a table painted box by box, holes (-1) included; :func:`cells_in` lists
-    every cell of each range once."""
+def test_the_owner_tables_and_the_cells_of_ranges_agree_with_a_painted_table(n, resolution, seed, splits, share):
+    """:class:`DenseOwner` and :class:`BrickOwner` (the closure's lookups of which box holds a cell)
+    answer as the sparse cover's ``owner`` and a table painted box by box, holes (-1) included;
+    :func:`cells_in` lists every cell of each range once."""
     a, b = _partition(n, resolution, seed, splits)
     g = torch.Generator().manual_seed(seed + 1)
     chosen = torch.rand(len(a), generator=g) < share
@@ -77,15 +77,25 @@ def test_the_dense_owner_table_and_the_cells_of_ranges_agree_with_a_painted_tabl
     table = DenseOwner(a[chosen], b[chosen], resolution)
     assert torch.equal(table.owner(cells), owner[tuple(cells.unbind(-1))])
     assert torch.equal(table.owner(cells), DyadicCover(a[chosen], b[chosen], resolution).owner(cells))
+    with pytest.MonkeyPatch.context() as patch:  # coarse cells of half the grid a side
+        patch.setattr("safety.dyadic_cover.BRICK_COARSE_MAX_CELLS", 2**n)
+        bricks = BrickOwner(a[chosen], b[chosen], resolution)
+    assert bricks.shift >= 1 and torch.equal(bricks.owner(cells), table.owner(cells))
     listed, row = cells_in(a, b)
     assert len(listed) == resolution**n  # the partition's boxes hold every cell once
     assert bool(((listed >= a[row]) & (listed < b[row])).all())
     assert len(torch.unique(listed, dim=0)) == resolution**n
 
 
-def test_the_dense_owner_table_refuses_overlapping_boxes():
+def test_the_owner_tables_refuse_overlapping_boxes(monkeypatch):
     with pytest.raises(ValueError, match="overlap"):
         DenseOwner(torch.tensor([[0, 0], [1, 1]]), torch.tensor([[2, 2], [3, 3]]), 4)
+    monkeypatch.setattr("safety.dyadic_cover.BRICK_COARSE_MAX_CELLS", 4)  # coarse cells of 2 x 2
+    t = torch.tensor
+    with pytest.raises(ValueError, match="overlap"):  # a small box inside a coarse cell a box holds whole
+        BrickOwner(t([[0, 0], [1, 1]]), t([[2, 2], [2, 2]]), 4)
+    with pytest.raises(ValueError, match="overlap"):  # two small boxes on one cell
+        BrickOwner(t([[0, 0], [0, 0]]), t([[1, 1], [1, 1]]), 4)
     with pytest.raises(ValueError, match="non-empty range"):
         DenseOwner(torch.tensor([[2, 0]]), torch.tensor([[2, 4]]), 4)
 
