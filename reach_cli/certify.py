@@ -144,8 +144,11 @@ def run(args: argparse.Namespace) -> int:
     escape = f", and the escape set l >= {m:g}" if m is not None else ""
     if m is None and settings.escape_margin is not None:
         escape = " (the escape set did not hold: a box of the band below it was not kept; written without it)"
+    beyond = certificate.kept_beyond(domain)
     print(
-        f"wrote {path}: {len(certificate.kept_lo)} boxes, {share:.4f} of the state box, "
+        f"wrote {path}: {len(certificate.kept_lo)} boxes, {share:.4f} of the state box"
+        + (f" (and {beyond} of the boxes beyond it)" if beyond else "")
+        + ", "
         f"certified invariant and safe where V >= {args.level:g}{escape}"
         + ("" if result.certified else " (the rest of {V >= c} is not certified)")
     )

@@ -120,9 +120,17 @@ class Certificate:
         return torch.cat([self.kept_lo, self.escape_lo]), torch.cat([self.kept_hi, self.escape_hi])
 
     def kept_volume_share(self, domain: torch.Tensor) -> float:
-        """The kept boxes' share of the state box (the certified set ``S``, less the escape set)."""
+        """The kept boxes' share of the state box ``domain`` (the certified set ``S`` in it, less the
+        escape set); boxes kept beyond it (``closure_scale``) count only where they meet it."""
+        domain = domain.to(self.kept_lo)
         span = domain[:, 1] - domain[:, 0]
-        return float(((self.kept_hi - self.kept_lo) / span).prod(-1).sum())
+        inside = (torch.minimum(self.kept_hi, domain[:, 1]) - torch.maximum(self.kept_lo, domain[:, 0])).clamp(min=0)
+        return float((inside / span).prod(-1).sum())
+
+    def kept_beyond(self, domain: torch.Tensor) -> int:
+        """How many kept boxes lie beyond the state box ``domain`` (a closure over a wider box)."""
+        domain = domain.to(self.kept_lo)
+        return int(((self.kept_lo < domain[:, 0]) | (self.kept_hi > domain[:, 1])).any(-1).sum())
 
 
 class _Grid:

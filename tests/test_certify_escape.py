@@ -344,6 +344,11 @@ def test_a_closure_over_a_wider_box_keeps_boxes_beyond_the_networks(outflow, tmp
     assert certificate.settings.escape_margin == 1.7
     assert bool(((certificate.kept_lo < -1) | (certificate.kept_hi > 1)).any(-1).any())
     assert float(certificate.kept_hi.abs().max()) == 2.0
+    domain = Outflow().domain_tensor(torch.float64, "cpu")
+    inner = ~((certificate.kept_lo < -1) | (certificate.kept_hi > 1)).any(-1)
+    share = float(((certificate.kept_hi - certificate.kept_lo)[inner] / 2.0).prod(-1).sum())
+    assert certificate.kept_volume_share(domain) == pytest.approx(share) and share <= 1.0  # the box's share only
+    assert certificate.kept_beyond(domain) == int((~inner).sum()) > 0
     check_certificate(save_certificate(tmp_path / "wide.npz", certificate), outflow)
     _, info = CertifiedFilter(certificate, outflow)(torch.tensor([[1.5, 0.3]], dtype=torch.float64), torch.zeros(2))
     assert bool(info.certified[0])
