@@ -453,6 +453,8 @@ def _close(
     if refined is not None:
         stay, parts = refined
         candidate &= parts
+    if escape and bool((band & ~candidate & ~stay).any()):
+        return None  # a box of the band can no longer be kept (dropped before, and not cut): E does not hold
     fixed = stay.nonzero().squeeze(-1)
     fixed_share = float(((result.hi[fixed] - result.lo[fixed]) / grid.span).prod(-1).sum())
     rows = candidate.nonzero().squeeze(-1)

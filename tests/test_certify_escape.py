@@ -322,6 +322,31 @@ def test_an_escape_set_whose_band_cannot_be_kept_is_dropped(outflow, tmp_path):
     check_certificate(save_certificate(tmp_path / "without.npz", without), outflow)
 
 
+def test_after_a_refinement_e_holds_only_while_every_box_of_its_band_can_stay(outflow, with_escape):
+    """A refinement's closure asks only about the new parts, besides the boxes that stay: a box of
+    the band that is neither (dropped before, and not cut) can no longer be kept, so ``E`` is not
+    assumed; with every band box staying, it is."""
+    from dataclasses import replace
+
+    from safety.certificate import _close, _closure_cover
+
+    result, _ = with_escape
+    verifier = _Verifier(outflow, result.settings, torch.device("cpu"), closure=True)
+    cover, grid = _closure_cover(result, verifier)
+    cover = replace(cover, backup=cover.backup.clone())  # the module's fixture stays as it was
+    band = verifier.in_band(cover.lo, cover.hi) & (cover.status != ESCAPE)
+    assert bool(band.any())
+    nothing = torch.zeros(len(band), dtype=torch.bool)
+    assert _close(verifier, grid, cover, None, band, (nothing, nothing)) is None
+    closed = _close(verifier, grid, cover, None, band, None)
+    assert closed is not None
+    stay = torch.zeros(len(band), dtype=torch.bool)
+    stay[closed[0]] = True
+    cover.backup[closed[0]] = closed[1]
+    again = _close(verifier, grid, cover, None, band, (stay, nothing))
+    assert again is not None and set(again[0].tolist()) == set(closed[0].tolist())
+
+
 def test_a_progress_file_of_another_escape_set_is_refused(outflow, tmp_path):
     """The escape margin decides which boxes are proven, so a stopped run resumes only under the same one."""
     progress = tmp_path / "progress.npz"
