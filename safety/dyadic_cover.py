@@ -11,6 +11,12 @@ per level. A query descends from the one cube that holds the whole grid: a cube 
 answers at once, a cube no box meets answers at once, and only a cube that boxes meet in part is cut
 into its ``2**n`` children. The work grows with the boxes near a query's edge, not with ``R**n``.
 
+The closure asks another question many times over: which box holds each cell a next state meets.
+:class:`DenseOwner` answers it from a dense table where the grid is small enough, and
+:class:`BrickOwner` where a cover is fine only in places (coarse cells, with dense bricks of cells
+where boxes are finer), both by lookups; :func:`owner_of` picks one (the sparse cover's ``owner``
+descends, and is the last resort).
+
 Sound for any boxes on the grid: "inside a box" is only recorded for a cube that is, and the cells a
 query range names are all examined down to single cells where needed. Keys are ``int64``, so the
 grid may hold up to ``2**62`` cells (9D at 64 cells a dimension).
