@@ -63,7 +63,15 @@ from safety.dyadic_cover import DenseOwner, DyadicCover, cells_in, cover_of, own
 from training.checkpoint import network_digest
 from training.network import NeuralValueFunction, ValueNetwork
 
-__all__ = ["Certificate", "certified_set", "check_certificate", "load_certificate", "save_certificate"]
+__all__ = [
+    "Certificate",
+    "LandingVerdicts",
+    "certified_set",
+    "check_certificate",
+    "landing_verdicts",
+    "load_certificate",
+    "save_certificate",
+]
 
 FORMAT = "reach-certificate/1"
 
@@ -765,22 +773,87 @@ def verify_certificate(
         raise ValueError(f"{path}: a kept box is not proven to keep l(x) > 0")
     if verifier.escape is not None:
         _check_escape(certificate, verifier, grid, path)
-    n_lo, n_hi, _, escaped, _ = verifier.landing(lo, hi, u)
-    if verifier.escape is None and not bool(verifier.in_domain(n_lo, n_hi).all()):
+    members, allowed = grid.cover(*certificate.member_boxes()), grid.cover(*certificate.allowed_boxes())
+
+    def lower(n_lo: torch.Tensor, n_hi: torch.Tensor) -> torch.Tensor:
+        return _value_lower(on_device, n_lo, n_hi)
+
+    land = landing_verdicts(verifier, grid, members, allowed, settings.level, lo, hi, u, lower)
+    # the conditions one at a time, so that the first that fails is named
+    if not bool((land.free | land.inside).all()):
         raise ValueError(f"{path}: a kept box's next states may leave the domain")
-    n_lo, n_hi = n_lo[~escaped], n_hi[~escaped]  # the pieces all in E need no more
-    members = grid.cover(*certificate.member_boxes())
-    rest = ~_closed(grid, members, n_lo, n_hi)  # pieces not within the set's boxes: V >= c must show
-    n_lo, n_hi = n_lo[rest], n_hi[rest]  # that they miss the outside boxes they meet
-    if not bool(_closed(grid, grid.cover(*certificate.allowed_boxes()), n_lo, n_hi).all()):
+    rest = ~land.free & ~land.in_set  # pieces not within the set's boxes: V >= c must show that they
+    if not bool(land.in_allowed[rest].all()):  # miss the outside boxes they meet
         raise ValueError(f"{path}: a kept box's next states may leave the certified boxes")
-    if not bool(verifier.in_network_domain(n_lo, n_hi).all()):
+    if not bool(land.in_network[rest].all()):
         raise ValueError(f"{path}: a kept box's next states leave the certified boxes beyond the network's box")
-    if _value_bounds_any(on_device, n_lo, n_hi, lambda v: v.lo < settings.level):
+    if not bool(land.value_ok[rest].all()):
         raise ValueError(
             f"{path}: a kept box's next states meet a box outside the set and are not proven to have "
             f"V >= {settings.level:g}"
         )
+    assert bool(land.ok().all())  # the same rule as the filter's, as one
+
+
+class LandingVerdicts(NamedTuple):
+    """Per next-state piece of boxes under their inputs (every disturbance piece): the row of (box,
+    disturbance piece) it came from (``piece``), and each condition of a certificate's rule."""
+
+    piece: torch.Tensor
+    free: torch.Tensor  #: all in the escape set ``E`` (needs nothing more)
+    inside: torch.Tensor  #: inside the domain (with ``E``, pieces are cut to it)
+    in_set: torch.Tensor  #: within the set's boxes (kept, and escape)
+    in_allowed: torch.Tensor  #: within the kept, outside and escape boxes
+    in_network: torch.Tensor  #: inside the network's box (where it has bounds)
+    value_ok: torch.Tensor  #: ``V >= c`` proven on it (asked only where the rest allows it)
+
+    def ok(self) -> torch.Tensor:
+        """Whether each piece lands in the set: in ``E``; or inside the domain and within the set's
+        boxes; or within the allowed boxes, inside the network's box, with ``V >= c`` (so it misses
+        the outside boxes it meets)."""
+        return self.free | (self.inside & (self.in_set | (self.in_allowed & self.in_network & self.value_ok)))
+
+
+def landing_verdicts(
+    verifier: _Verifier,
+    grid: _Grid,
+    members: DyadicCover,
+    allowed: DyadicCover,
+    level: float,
+    lo: torch.Tensor,
+    hi: torch.Tensor,
+    u: torch.Tensor,
+    value_lower: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+) -> LandingVerdicts:
+    """The certificate's rule for boxes ``[lo, hi]`` under inputs ``u``, piece by piece: one
+    implementation for the checker (which names the first condition that fails) and the certified
+    filter (point boxes: is the nominal input proven to keep the set?). ``members`` and ``allowed``
+    cover the set's boxes and the allowed boxes on ``grid``; ``value_lower`` gives lower bounds of
+    ``V`` over next-state boxes, and is asked only about pieces that need it."""
+    n_lo, n_hi, piece, escaped, _ = verifier.landing(lo, hi, u)
+    count = len(n_lo)
+    inside = verifier.in_domain(n_lo, n_hi)
+    in_set, in_allowed = torch.zeros(count, dtype=torch.bool), torch.zeros(count, dtype=torch.bool)
+    ask = ~escaped & inside
+    in_set[ask] = _closed(grid, members, n_lo[ask], n_hi[ask])
+    ask &= ~in_set
+    in_allowed[ask] = _closed(grid, allowed, n_lo[ask], n_hi[ask])
+    in_network = verifier.in_network_domain(n_lo, n_hi)
+    value_ok = torch.zeros(count, dtype=torch.bool)
+    ask &= in_allowed & in_network
+    if bool(ask.any()):
+        value_ok[ask] = value_lower(n_lo[ask], n_hi[ask]).cpu() >= level
+    return LandingVerdicts(piece, escaped, inside, in_set, in_allowed, in_network, value_ok)
+
+
+def _value_lower(verifier: _Verifier, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+    """Lower bounds of ``V`` over boxes, ``CHECK_CHUNK`` boxes at a time on the verifier's device."""
+    device = verifier.domain.device
+    chunks = [
+        verifier.value(lo[start : start + CHECK_CHUNK].to(device), hi[start : start + CHECK_CHUNK].to(device)).lo.cpu()
+        for start in range(0, len(lo), CHECK_CHUNK)
+    ]
+    return torch.cat(chunks) if chunks else torch.zeros(0, dtype=torch.float64)
 
 
 def _check_escape(certificate: Certificate, verifier: _Verifier, grid: _Grid, path: str) -> None:

@@ -29,9 +29,9 @@ import torch
 
 from safety.certificate import (
     Certificate,
-    _closed,
     _Grid,
     check_provenance,
+    landing_verdicts,
     load_certificate,
     verify_certificate,
 )
@@ -128,20 +128,12 @@ class CertifiedFilter:
         """Whether ``u`` is proven to lead each state ``x`` back into the certified set: the certificate's
         rule (module docstring) on the point box of each state, under every disturbance piece."""
         verifier = self._verifier
-        n_lo, n_hi, piece, escaped, _ = verifier.landing(x, x, u)
-        # with E, pieces are cut to the domain (what lies beyond is in E); without, none may leave it
-        ok = escaped | verifier.in_domain(n_lo, n_hi)
-        ask = (ok & ~escaped).nonzero().squeeze(-1)
-        ok[ask] = _closed(self._grid, self._members, n_lo[ask], n_hi[ask])
-        rest = ask[~ok[ask]]
-        if len(rest):  # V >= c shows that a piece meeting an outside box misses it
-            level = self.certificate.settings.level
-            near = verifier.in_network_domain(n_lo[rest], n_hi[rest])  # the network has bounds only there
-            ok[rest] = near & _closed(self._grid, self._allowed, n_lo[rest], n_hi[rest])
-            ask = rest[ok[rest]]
-            ok[ask] = verifier.value(n_lo[ask], n_hi[ask]).lo >= level
+        land = landing_verdicts(
+            verifier, self._grid, self._members, self._allowed, self.certificate.settings.level, x, x, u,
+            lambda n_lo, n_hi: verifier.value(n_lo, n_hi).lo,
+        )  # fmt: skip
         held = torch.ones(len(x) * len(verifier.d_lo), dtype=torch.long)
-        held.scatter_reduce_(0, piece, ok.long(), reduce="amin")
+        held.scatter_reduce_(0, land.piece, land.ok().long(), reduce="amin")
         return held.reshape(len(x), -1).bool().all(-1)
 
     def _optimal(self, x: torch.Tensor) -> torch.Tensor:
