@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-from safety.certificate import _close, _closure_cover, certified_set, save_certificate
+from safety.certificate import _close, _closure_cover, certified_set, save_certificate, volume_share
 from safety.certify import ESCAPE, UNKNOWN, CertificationResult, CertifySettings, _candidates, _network, _Verifier
 from safety.sources import load_value_function
 
@@ -80,12 +80,9 @@ def main() -> None:
     held = certificate.settings.escape_margin is not None
     if args.out is not None:
         save_certificate(args.out, certificate)
-    network_box = verifier.network_domain
 
     def share(box_lo: torch.Tensor, box_hi: torch.Tensor) -> float:
-        """The boxes' share of the network's box (boxes lie inside it or beyond it, never across)."""
-        inner = verifier.in_network_domain(box_lo, box_hi)
-        return float(((box_hi - box_lo)[inner] / (network_box[:, 1] - network_box[:, 0])).prod(-1).sum())
+        return volume_share(box_lo, box_hi, verifier.network_domain)  # of the network's box
 
     e_share = share(certificate.escape_lo, certificate.escape_hi)
     print(

@@ -71,6 +71,7 @@ __all__ = [
     "landing_verdicts",
     "load_certificate",
     "save_certificate",
+    "volume_share",
 ]
 
 FORMAT = "reach-certificate/1"
@@ -130,15 +131,20 @@ class Certificate:
     def kept_volume_share(self, domain: torch.Tensor) -> float:
         """The kept boxes' share of the state box ``domain`` (the certified set ``S`` in it, less the
         escape set); boxes kept beyond it (``closure_scale``) count only where they meet it."""
-        domain = domain.to(self.kept_lo)
-        span = domain[:, 1] - domain[:, 0]
-        inside = (torch.minimum(self.kept_hi, domain[:, 1]) - torch.maximum(self.kept_lo, domain[:, 0])).clamp(min=0)
-        return float((inside / span).prod(-1).sum())
+        return volume_share(self.kept_lo, self.kept_hi, domain)
 
     def kept_beyond(self, domain: torch.Tensor) -> int:
         """How many kept boxes lie beyond the state box ``domain`` (a closure over a wider box)."""
         domain = domain.to(self.kept_lo)
         return int(((self.kept_lo < domain[:, 0]) | (self.kept_hi > domain[:, 1])).any(-1).sum())
+
+
+def volume_share(lo: torch.Tensor, hi: torch.Tensor, domain: torch.Tensor) -> float:
+    """The boxes' share of the box ``domain`` (``(n, 2)``): each box counts where it meets it (boxes
+    that do not overlap; a closure's wide cover has boxes beyond the state box)."""
+    domain = domain.to(lo)
+    inside = (torch.minimum(hi, domain[:, 1]) - torch.maximum(lo, domain[:, 0])).clamp(min=0)
+    return float((inside / (domain[:, 1] - domain[:, 0])).prod(-1).sum())
 
 
 class _Grid:
@@ -698,17 +704,18 @@ def check_certificate(
 CHECK_CHUNK = 65536
 
 
-def _value_bounds_any(
-    verifier: _Verifier, lo: torch.Tensor, hi: torch.Tensor, fails: Callable[[Interval], torch.Tensor]
-) -> bool:
-    """Whether ``fails(bounds)`` holds for any box, bounded ``CHECK_CHUNK`` boxes at a time on the
-    verifier's device (a certificate holds up to millions of boxes)."""
+def _value_bounds(verifier: _Verifier, lo: torch.Tensor, hi: torch.Tensor) -> Interval:
+    """Bounds of ``V`` over boxes, ``CHECK_CHUNK`` boxes at a time on the verifier's device (a
+    certificate holds up to millions of boxes), returned on the CPU."""
     device = verifier.domain.device
-    for start in range(0, len(lo), CHECK_CHUNK):
-        bounds = verifier.value(lo[start : start + CHECK_CHUNK].to(device), hi[start : start + CHECK_CHUNK].to(device))
-        if bool(fails(bounds).any()):
-            return True
-    return False
+    chunks = [
+        verifier.value(lo[start : start + CHECK_CHUNK].to(device), hi[start : start + CHECK_CHUNK].to(device))
+        for start in range(0, len(lo), CHECK_CHUNK)
+    ]
+    if not chunks:
+        none = torch.zeros(0, dtype=torch.float64)
+        return Interval(none, none)
+    return Interval(torch.cat([c.lo.cpu() for c in chunks]), torch.cat([c.hi.cpu() for c in chunks]))
 
 
 def check_provenance(certificate: Certificate, network: ValueNetwork, path: str) -> None:
@@ -761,7 +768,7 @@ def verify_certificate(
         raise ValueError(f"{path}: {error}") from None
     if not bool(verifier.in_network_domain(certificate.outside_lo, certificate.outside_hi).all()):
         raise ValueError(f"{path}: an outside box lies beyond the network's box, where it has no bounds")
-    if _value_bounds_any(on_device, certificate.outside_lo, certificate.outside_hi, lambda v: v.hi >= settings.level):
+    if bool((_value_bounds(on_device, certificate.outside_lo, certificate.outside_hi).hi >= settings.level).any()):
         raise ValueError(f"{path}: an outside box is not proven to hold only V < {settings.level:g}")
     lo, hi, u = certificate.kept_lo, certificate.kept_hi, certificate.inputs
     control = network.system.control_bounds
@@ -776,7 +783,7 @@ def verify_certificate(
     members, allowed = grid.cover(*certificate.member_boxes()), grid.cover(*certificate.allowed_boxes())
 
     def lower(n_lo: torch.Tensor, n_hi: torch.Tensor) -> torch.Tensor:
-        return _value_lower(on_device, n_lo, n_hi)
+        return _value_bounds(on_device, n_lo, n_hi).lo
 
     land = landing_verdicts(verifier, grid, members, allowed, settings.level, lo, hi, u, lower)
     # the conditions one at a time, so that the first that fails is named
@@ -844,16 +851,6 @@ def landing_verdicts(
     if bool(ask.any()):
         value_ok[ask] = value_lower(n_lo[ask], n_hi[ask]).cpu() >= level
     return LandingVerdicts(piece, escaped, inside, in_set, in_allowed, in_network, value_ok)
-
-
-def _value_lower(verifier: _Verifier, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
-    """Lower bounds of ``V`` over boxes, ``CHECK_CHUNK`` boxes at a time on the verifier's device."""
-    device = verifier.domain.device
-    chunks = [
-        verifier.value(lo[start : start + CHECK_CHUNK].to(device), hi[start : start + CHECK_CHUNK].to(device)).lo.cpu()
-        for start in range(0, len(lo), CHECK_CHUNK)
-    ]
-    return torch.cat(chunks) if chunks else torch.zeros(0, dtype=torch.float64)
 
 
 def _check_escape(certificate: Certificate, verifier: _Verifier, grid: _Grid, path: str) -> None:

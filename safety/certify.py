@@ -38,6 +38,7 @@ proven is ``S_c ∪ E``: from ``E`` any admissible input keeps the state in it, 
 from __future__ import annotations
 
 import copy
+import inspect
 import itertools
 import math
 import os
@@ -228,12 +229,11 @@ def escape_rule(system: ControlAffineSystem, settings: CertifySettings, scale: i
             f"escape_margin: {system.name} declares no bound on how much one {settings.integrator} step lowers "
             "its failure margin (margin_step_bound), so it has no escape set"
         )
-    try:
-        least = system.margin_outside_domain() if scale == 1 else system.margin_outside_domain(scale)
-    except TypeError:
+    if scale != 1 and "scale" not in inspect.signature(system.margin_outside_domain).parameters:
         raise ValueError(
             f"closure_scale: {system.name}'s margin_outside_domain takes no scale, so no wider box has an escape set"
-        ) from None
+        )
+    least = system.margin_outside_domain() if scale == 1 else system.margin_outside_domain(scale)
     if least is None:
         raise ValueError(
             f"escape_margin: {system.name} declares no lower bound of its failure margin outside its domain "

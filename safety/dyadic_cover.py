@@ -63,6 +63,37 @@ def _cubes(a: torch.Tensor, b: torch.Tensor, level: int) -> tuple[torch.Tensor, 
     return coords, rows
 
 
+def _ranges(a: torch.Tensor, b: torch.Tensor, resolution: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cell ranges ``[a, b)`` as integers on the CPU, refused unless each is a non-empty range of the
+    grid's ``resolution`` cells a dimension."""
+    a, b = a.long().cpu(), b.long().cpu()
+    if bool(((a < 0) | (b > resolution) | (b <= a)).any()):
+        raise ValueError("a box is not a non-empty range of the grid's cells")
+    return a, b
+
+
+def _summed_over_cells(a: torch.Tensor, b: torch.Tensor, resolution: int, weight: torch.Tensor) -> torch.Tensor:
+    """``(resolution,) * n``: the sum of ``weight`` (one per box, its dtype the table's) over the boxes
+    that hold each cell. Each box adds its weight at its ``2**n`` corners of a difference table with
+    alternating signs, and prefix sums along every dimension spread it over its cells."""
+    n = a.shape[1]
+    table = torch.zeros((resolution + 1,) * n, dtype=weight.dtype)
+    for corner in itertools.product((0, 1), repeat=n):
+        index = tuple(b[:, d] if up else a[:, d] for d, up in enumerate(corner))
+        table.index_put_(index, -weight if sum(corner) % 2 else weight, accumulate=True)
+    for d in range(n):
+        table = table.cumsum(d)
+    return table[(slice(0, resolution),) * n]
+
+
+def _flat(cells: torch.Tensor, side: int) -> torch.Tensor:
+    """Row-major index of each cell of a grid of ``side`` cells a dimension."""
+    index = torch.zeros(len(cells), dtype=torch.long)
+    for d in range(cells.shape[1]):
+        index = index * side + cells[:, d]
+    return index
+
+
 def cells_in(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Every cell of each cell range ``[a, b)`` (``(Q, n)``): ``(cells, row of the range)``."""
     return _cubes(a.long().cpu(), b.long().cpu(), 0)
@@ -73,12 +104,10 @@ class DyadicCover:
     dimension. :meth:`meets`, :meth:`covers` and :meth:`owner` answer for many queries at once."""
 
     def __init__(self, a: torch.Tensor, b: torch.Tensor, resolution: int) -> None:
-        a, b = a.long().cpu(), b.long().cpu()
+        a, b = _ranges(a, b, resolution)
         n = a.shape[1]
         if n * math.log2(max(resolution, 2)) > 62:
             raise ValueError(f"a grid of {resolution}^{n} cells is too fine for 64-bit cell keys")
-        if bool(((a < 0) | (b > resolution) | (b <= a)).any()):
-            raise ValueError("a box is not a non-empty range of the grid's cells")
         self.n, self.resolution = n, resolution
         self.top = max(0, math.ceil(math.log2(resolution)))
         # each box's own level: the largest cube side its corners are all multiples of
@@ -99,11 +128,7 @@ class DyadicCover:
             self.met.append(torch.unique(torch.cat([keys, self._keys(met, level)])))
 
     def _keys(self, coords: torch.Tensor, level: int) -> torch.Tensor:
-        side = -(-self.resolution // (1 << level))  # cubes a dimension at this level
-        key = torch.zeros(len(coords), dtype=torch.long)
-        for d in range(self.n - 1, -1, -1):
-            key = key * side + coords[:, d]
-        return key
+        return _flat(coords, -(-self.resolution // (1 << level)))  # cubes a dimension at this level
 
     @staticmethod
     def _find(sorted_keys: torch.Tensor, keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -190,21 +215,12 @@ class DenseCover:
     boxes over each cell; the prefix sums of "some box here" then answer any range at once."""
 
     def __init__(self, a: torch.Tensor, b: torch.Tensor, resolution: int) -> None:
-        a, b = a.long().cpu(), b.long().cpu()
+        a, b = _ranges(a, b, resolution)
         n = a.shape[1]
         if resolution**n > DENSE_MAX_CELLS:
             raise ValueError(f"a grid of {resolution}^{n} cells is too large for a dense table")
-        if bool(((a < 0) | (b > resolution) | (b <= a)).any()):
-            raise ValueError("a box is not a non-empty range of the grid's cells")
         self.n, self.resolution = n, resolution
-        count = torch.zeros((resolution + 1,) * n, dtype=torch.int64)
-        for corner in itertools.product((0, 1), repeat=n):
-            index = tuple(b[:, d] if up else a[:, d] for d, up in enumerate(corner))
-            sign = -1 if sum(corner) % 2 else 1
-            count.index_put_(index, torch.full((len(a),), sign, dtype=torch.int64), accumulate=True)
-        for d in range(n):
-            count = count.cumsum(d)
-        held = (count[(slice(0, resolution),) * n] > 0).to(torch.int64)
+        held = (_summed_over_cells(a, b, resolution, torch.ones(len(a), dtype=torch.int64)) > 0).to(torch.int64)
         self._sums = torch.zeros((resolution + 1,) * n, dtype=torch.int64)
         for d in range(n):
             held = held.cumsum(d)
@@ -248,29 +264,17 @@ class DenseOwner:
     :meth:`DyadicCover.owner` does, by one lookup. Overlapping boxes are refused."""
 
     def __init__(self, a: torch.Tensor, b: torch.Tensor, resolution: int) -> None:
-        a, b = a.long().cpu(), b.long().cpu()
+        a, b = _ranges(a, b, resolution)
         n = a.shape[1]
         if resolution**n > DENSE_OWNER_MAX_CELLS:
             raise ValueError(f"a grid of {resolution}^{n} cells is too large for a dense table")
-        if bool(((a < 0) | (b > resolution) | (b <= a)).any()):
-            raise ValueError("a box is not a non-empty range of the grid's cells")
         if int((b - a).prod(-1).sum()) > resolution**n:
             raise ValueError("the boxes overlap: a cell has no one owner")
         self.n, self.resolution = n, resolution
-        ids = torch.arange(1, len(a) + 1, dtype=torch.int64)
-        table = torch.zeros((resolution + 1,) * n, dtype=torch.int64)
-        count = torch.zeros((resolution + 1,) * n, dtype=torch.int32)
-        for corner in itertools.product((0, 1), repeat=n):
-            index = tuple(b[:, d] if up else a[:, d] for d, up in enumerate(corner))
-            sign = -1 if sum(corner) % 2 else 1
-            table.index_put_(index, sign * ids, accumulate=True)
-            count.index_put_(index, torch.full((len(a),), sign, dtype=torch.int32), accumulate=True)
-        for d in range(n):
-            table = table.cumsum(d)
-            count = count.cumsum(d)
-        if bool((count > 1).any()):
+        if bool((_summed_over_cells(a, b, resolution, torch.ones(len(a), dtype=torch.int32)) > 1).any()):
             raise ValueError("the boxes overlap: a cell has no one owner")
-        self._owner = (table[(slice(0, resolution),) * n] - 1).to(torch.int32)
+        ids = torch.arange(1, len(a) + 1, dtype=torch.int64)  # one box over each cell: its sum is its id
+        self._owner = (_summed_over_cells(a, b, resolution, ids) - 1).to(torch.int32)
 
     def owner(self, cells: torch.Tensor) -> torch.Tensor:
         """``(Q,)``: the index of the box holding each cell (``(Q, n)``), -1 where none does."""
@@ -282,14 +286,6 @@ class DenseOwner:
 BRICK_COARSE_MAX_CELLS = 2**24
 #: ... and its bricks at most this many cells in all (else :func:`owner_of` descends a sparse cover)
 BRICK_FINE_MAX_CELLS = 2**28
-
-
-def _flat(cells: torch.Tensor, side: int) -> torch.Tensor:
-    """Row-major index of each cell of a grid of ``side`` cells a dimension."""
-    index = torch.zeros(len(cells), dtype=torch.long)
-    for d in range(cells.shape[1]):
-        index = index * side + cells[:, d]
-    return index
 
 
 class TooFineForBricksError(ValueError):
@@ -305,10 +301,8 @@ class BrickOwner:
     Overlapping boxes are refused."""
 
     def __init__(self, a: torch.Tensor, b: torch.Tensor, resolution: int) -> None:
-        a, b = a.long().cpu(), b.long().cpu()
+        a, b = _ranges(a, b, resolution)
         n = a.shape[1]
-        if bool(((a < 0) | (b > resolution) | (b <= a)).any()):
-            raise ValueError("a box is not a non-empty range of the grid's cells")
         self.n, self.resolution = n, resolution
         levels = max(0, math.ceil(math.log2(max(resolution, 1))))
         self.shift = max(0, levels - int(math.log2(BRICK_COARSE_MAX_CELLS)) // n)

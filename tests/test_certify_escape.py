@@ -383,3 +383,11 @@ def test_a_closure_over_a_wider_box_keeps_boxes_beyond_the_networks(outflow, tmp
         CertifySettings(**BASE, closure_scale=2)
     with pytest.raises(ValueError, match=r"above 1\.75"):
         certify(outflow, CertifySettings(**wide, escape_margin=1.8))
+
+    class Unscaled(Outflow):  # a user's lemma written before closures over wider boxes
+        def margin_outside_domain(self) -> float:
+            return 1.0 - RADIUS
+
+    with pytest.raises(ValueError, match="margin_outside_domain takes no scale"):
+        escape_rule(Unscaled(), CertifySettings(**wide, escape_margin=0.6), 2)
+    assert escape_rule(Unscaled(), CertifySettings(**BASE, escape_margin=0.6)) == (0.6, pytest.approx(0.0106, abs=1e-4))
