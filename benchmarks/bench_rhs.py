@@ -3,7 +3,7 @@ dissipation), eager and compiled, in milliseconds.
 
 Run: ``PYTHONPATH=examples python benchmarks/bench_rhs.py --system my_systems:DubinsAccel --grids 21 31 41``
 (``--mode eager`` or ``--mode compiled`` for one of them). Each mode is timed as the solver runs it:
-inside ``reach.heap.retained_heap`` and ``torch.inference_mode()``, on the system's failure margin, after
+inside ``reach.malloc_thresholds.retained_heap`` and ``torch.inference_mode()``, on the system's failure margin, after
 warm-up calls (which include compiling, from a fresh inductor cache unless
 ``--reuse-compile-cache``); it prints the best mean of ``--repeats`` blocks of ``--calls`` calls.
 A solve makes three calls per time step. Use it to compare two versions of the solver side by side
@@ -21,7 +21,7 @@ import torch
 
 from groundtruth.grid import Grid
 from groundtruth.solver import _rhs_factory
-from reach.heap import retained_heap
+from reach.malloc_thresholds import retained_heap
 from reach.systems import make_system
 from reach.systems.arrays import TORCH
 

@@ -35,7 +35,7 @@ from pathlib import Path
 import torch
 
 from reach.systems import make_system
-from safety.rollout import num_steps, rollout
+from safety.verification.rollout import num_steps, rollout
 from training import NeuralValueFunction, ValueNetwork
 
 

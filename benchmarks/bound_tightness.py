@@ -1,4 +1,4 @@
-"""How tight safety.bounds' sound bounds are: their width against the network's own range on small boxes.
+"""How tight safety.formal.bounds' sound bounds are: their width against the network's own range on small boxes.
 
 Usage: ``python benchmarks/bound_tightness.py [--source pretrained:air3d ...] [--boxes 64]``
 
@@ -21,9 +21,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from safety.bounds import interval_bounds, mean_value_bounds
-from safety.linear_bounds import linear_bounds
-from safety.sources import load_value_function
+from safety.formal.bounds import interval_bounds, mean_value_bounds
+from safety.formal.linear_bounds import linear_bounds
+from safety.value_loading import load_value_function
 
 
 def boxes(network, count: int, log_half_width: float, seed: int = 0):

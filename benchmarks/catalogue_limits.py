@@ -26,7 +26,7 @@ from pathlib import Path
 import torch
 
 from reach.systems import make_system
-from safety.sources import load_value_function
+from safety.value_loading import load_value_function
 from training import pretrained
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -4,7 +4,7 @@ Run: ``python benchmarks/cell_closure.py [--cells 64 64 64] [--escape-margin 0.7
 (``--closure-scale 4 --escape-margin 3.75``: close over the box widened four times; ``--out CERT``
 writes the certificate, which ``reach certify pretrained:air3d --check CERT`` re-verifies)
 
-The certified set of :func:`safety.certificate.certified_set` is a union of boxes, each with one
+The certified set of :func:`safety.formal.certificate.certified_set` is a union of boxes, each with one
 backup input, whose next states land in the union (or in the escape set ``E``). This study asks
 what such a set can be with no help from a value function: every cell of a uniform grid over the
 state box is a candidate (none is marked proven, so no next state may lean on ``V >= c``), each
@@ -25,9 +25,17 @@ from pathlib import Path
 
 import torch
 
-from safety.certificate import _close, _closure_cover, certified_set, save_certificate, volume_share
-from safety.certify import ESCAPE, UNKNOWN, CertificationResult, CertifySettings, _candidates, _network, _Verifier
-from safety.sources import load_value_function
+from safety.formal.certificate import _close, _closure_cover, certified_set, save_certificate, volume_share
+from safety.formal.verifier import (
+    ESCAPE,
+    UNKNOWN,
+    CertificationResult,
+    CertifySettings,
+    _candidates,
+    _network,
+    _Verifier,
+)
+from safety.value_loading import load_value_function
 
 
 def uniform_cover(domain: torch.Tensor, cells: list[int]) -> tuple[torch.Tensor, torch.Tensor]:

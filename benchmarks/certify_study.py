@@ -1,12 +1,12 @@
-"""Formal certification of a shipped value network by branch and bound (safety.certify): how much of
+"""Formal certification of a shipped value network by branch and bound (safety.formal.verifier): how much of
 the state box is proven, refuted or left unknown at each level, and in what time.
 
 Usage: ``python benchmarks/certify_study.py [--source pretrained:air3d] [--levels 0.05 0.1 0.2]
 [--time-to-go 1.0] [--dt 0.02] [--max-seconds 120] [--device cpu|cuda] [--closure-width w]``
 
-Each level runs the verifier (``safety.certify.certify``) from a fresh cover of the box until it
+Each level runs the verifier (``safety.formal.verifier.certify``) from a fresh cover of the box until it
 finishes or its time runs out; what is left counts as unknown. ``certified`` is yes only when every
-box is outside the set or proven. Then ``safety.certificate.certified_set`` keeps the largest closed
+box is outside the set or proven. Then ``safety.formal.certificate.certified_set`` keeps the largest closed
 union of the cover's safe boxes (cut down to ``--closure-width`` first, where given): ``kept`` is
 its share of the box (the certified set is their union, with ``E`` where it holds), and with
 ``--out-dir`` its certificate is written there (the closure holds the boxes sparsely,
@@ -32,9 +32,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import torch
 
-from safety.certificate import _close, _closure_cover, _fails, _next_boxes, certified_set, save_certificate
-from safety.certify import REFUTED, UNKNOWN, CertificationResult, CertifySettings, _network, _Verifier, certify
-from safety.sources import load_value_function
+from safety.formal.certificate import _close, _closure_cover, _fails, _next_boxes, certified_set, save_certificate
+from safety.formal.verifier import REFUTED, UNKNOWN, CertificationResult, CertifySettings, _network, _Verifier, certify
+from safety.value_loading import load_value_function
 
 
 def leaving_domain(network: object, result: CertificationResult) -> tuple[float, float]:
@@ -80,7 +80,7 @@ def main() -> None:
     )
     parser.add_argument("--closure-scale", type=int, default=1, help="close over the box widened this many times")
     parser.add_argument(
-        "--escape-margin", type=float, default=None, help="m: the escape set {l >= m} (safety.certify.escape_rule)"
+        "--escape-margin", type=float, default=None, help="m: the escape set {l >= m} (escape_rule)"
     )
     parser.add_argument("--out-dir", type=Path, default=None, help="write each level's certificate here")
     parser.add_argument("--explain", action="store_true", help="say how the closure lost what it lost")

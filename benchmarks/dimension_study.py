@@ -42,7 +42,7 @@ def _snapshots(run: Path) -> list[Path]:
 
 
 def score(args: argparse.Namespace) -> int:
-    from safety.verify import VerifySettings
+    from safety.verification.verify import VerifySettings
     from studies.batch_verification import evaluate_many
 
     settings = VerifySettings(samples=args.samples, certify_samples=0, robust_samples=0, seed=args.seed)
@@ -112,7 +112,7 @@ def _final_scores(run: Path, extra: list[str]) -> dict | None:
 
 
 def report(args: argparse.Namespace) -> int:
-    from safety.metrics import wilson_interval
+    from safety.verification.metrics import wilson_interval
 
     print(
         "| cars | state dim | minutes until false safe stays <= 0.1 % | false safe % at 120 min [95 % CI] "

@@ -9,7 +9,7 @@ Two studies, one command each (docs/export.md holds their tables):
 For each system (Air3D's shipped network, the shipped 9D network, a user's system from
 ``examples/my_systems.py`` trained for a few hundred steps here) and each filter kind (each with its
 default backup input, and the switch also with ``u*``, ``policy="gradient"``), the filter is
-exported with :func:`safety.export.export_filter` and run with :mod:`reach_runtime`.
+exported with :func:`safety.filters.export.export_filter` and run with :mod:`reach_runtime`.
 
 ``equivalence`` draws states uniformly from the domain, times-to-go uniformly over the horizon and
 nominal inputs uniformly over the control box, and counts decisions that differ (and how many of
@@ -50,8 +50,8 @@ sys.path.insert(0, str(ROOT / "examples"))
 
 from reach_runtime import Filter  # noqa: E402
 from safety import SafetyFilter, load_value_function  # noqa: E402
-from safety.export import export_filter  # noqa: E402
-from safety.filter_settings import FilterSettings  # noqa: E402
+from safety.filters.export import export_filter  # noqa: E402
+from safety.filters.settings import FilterSettings  # noqa: E402
 
 DT = 0.05
 #: the filters of the study: each kind with its default backup input, and the switch backing up with u*
@@ -262,7 +262,7 @@ def graph(args: argparse.Namespace) -> None:
     so these counts bound what the traced path can reach."""
     import onnx
 
-    from safety.export import graph_value_function
+    from safety.filters.export import graph_value_function
 
     print("| system | V alone (ops) | V and grad V (ops) | switch (ONNX nodes) | switch, u* | smooth | lookahead |")
     print("|---|---:|---:|---:|---:|---:|---:|")

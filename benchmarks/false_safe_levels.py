@@ -18,9 +18,9 @@ import time
 
 import torch
 
-from safety.rollout import rollout
-from safety.sources import load_value_function
-from safety.verify import sample_states
+from safety.value_loading import load_value_function
+from safety.verification.rollout import rollout
+from safety.verification.verify import sample_states
 from studies.batch_verification import pairwise_union_values
 
 

@@ -27,9 +27,9 @@ import torch
 
 from groundtruth import GridSolution, solve
 from reach.systems import Air3D
-from safety.certificate import _Grid, load_certificate
-from safety.certify import closure_domain
-from safety.dyadic_cover import DyadicCover
+from safety.formal.certificate import _Grid, load_certificate
+from safety.formal.cover import DyadicCover
+from safety.formal.verifier import closure_domain
 
 
 def certified_mask(path: Path, x: torch.Tensor) -> torch.Tensor:

@@ -91,7 +91,7 @@ def write_card(card: pretrained.ModelCard) -> None:
 
 
 def export(args: argparse.Namespace) -> int:
-    from safety.sources import resolve_checkpoint
+    from safety.value_loading import resolve_checkpoint
 
     source = resolve_checkpoint(args.run)
     payload = read_checkpoint(source)
@@ -158,7 +158,7 @@ def export_grid(args: argparse.Namespace) -> int:
 
 
 def filter_source(args: argparse.Namespace) -> int:
-    from safety.sources import load_value_function, member_sources
+    from safety.value_loading import load_value_function, member_sources
 
     card = pretrained.card(args.name)
     if args.source and pretrained.PREFIX + args.name not in member_sources(args.source):
@@ -171,7 +171,7 @@ def filter_source(args: argparse.Namespace) -> int:
 
 
 def evaluate(args: argparse.Namespace) -> int:
-    from safety.verify import VerifySettings
+    from safety.verification.verify import VerifySettings
     from studies.batch_verification import evaluate_many
 
     card = pretrained.card(args.name)
@@ -240,7 +240,7 @@ def record(args: argparse.Namespace) -> int:
         settings, rows = data["settings"], data["results"]
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise SystemExit(f"{args.results}: not the JSON of a reach evaluate run ({type(err).__name__}: {err})") from err
-    from safety.sources import member_sources
+    from safety.value_loading import member_sources
 
     shipped = pretrained.PREFIX + args.name
     rows = [r for r in rows if shipped in member_sources(str(r.get("source", "")))]

@@ -32,7 +32,7 @@ import torch
 from groundtruth.pairwise import PairwiseUnion, solve_pairs
 from groundtruth.solution import GridSolution
 from reach.systems import MultiVehicle9D
-from safety.sources import load_value_function
+from safety.value_loading import load_value_function
 
 NEAR = 0.05
 

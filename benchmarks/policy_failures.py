@@ -40,13 +40,13 @@ from reach.systems.arrays import TORCH
 from reach.validation import positive_int_arg
 from reach_envs.scenes import make_scene
 from reach_envs.vector import ReachVectorEnv
-from safety.filter_settings import FilterSettings
-from safety.rollout import rollout
-from safety.sources import load_value_function
-from safety.verify import sample_states, values_at
-from safety.wrappers import SafetyFilterVectorWrapper
+from safety.filters.settings import FilterSettings
+from safety.filters.wrappers import SafetyFilterVectorWrapper
+from safety.value_loading import load_value_function
+from safety.verification.rollout import rollout
+from safety.verification.verify import sample_states, values_at
 from studies.filter_episodes import outside_states
-from studies.tasks import make_task
+from studies.goal_tasks import make_task
 
 DT = 0.0025  # the verification protocol's step
 
@@ -160,7 +160,7 @@ def cost(args: argparse.Namespace) -> None:
     import gymnasium as gym
 
     import reach_envs  # noqa: F401  (registers the envs)
-    from safety.wrappers import SafetyFilterWrapper
+    from safety.filters.wrappers import SafetyFilterWrapper
 
     vf = load_value_function(args.value_function).value_function
     x = sample_states(vf.system, args.samples, 0)

@@ -60,9 +60,9 @@ from reach.systems import DubinsReachAvoid
 from reach.systems.arrays import TORCH
 from reach.threads import apply_thread_policy
 from reach.value_function import ValueFunction
-from safety.filter import SafetyFilter
-from safety.filter_settings import FilterSettings
-from safety.sources import load_value_function
+from safety.filters.filter import SafetyFilter
+from safety.filters.settings import FilterSettings
+from safety.value_loading import load_value_function
 from safety.value_policies import OptimalPolicy
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -9,7 +9,7 @@ results and ``--report FILE.json`` prints their tables again without training). 
 The task: ``Air3D-v0`` as shipped (the pursuer turns toward the evader, equal speeds and turn rates,
 episodes of 1.1 s, 55 steps of 0.02 s, ending at the first collision), and a goal for the evader:
 a point 0.7 away at a bearing drawn in [-45, 45] degrees of its initial heading, reached within 0.15
-(:class:`studies.tasks.EvaderGoalTask`, the filter studies' task, which tracks the evader's world
+(:class:`studies.goal_tasks.EvaderGoalTask`, the filter studies' task, which tracks the evader's world
 pose from the turn rates actually applied). The agent sees the relative state (pursuer position,
 the sine and cosine of the relative heading), the goal in the evader's frame and the time left; its
 reward per step is the progress toward the goal (as a share of the initial distance), +1 on
@@ -59,7 +59,7 @@ import reach_envs  # noqa: F401  (registers Air3D-v0)
 from reach.value_function import ValueFunction
 from safety import SafetyFilterWrapper, load_value_function
 from studies.filter_episodes import outside_states
-from studies.tasks import EvaderGoalTask
+from studies.goal_tasks import EvaderGoalTask
 
 #: the filter's value function: the network shipped for Air3D-v0
 VALUE_FUNCTION = "pretrained:air3d"

@@ -25,9 +25,9 @@ import time
 import torch
 
 import training.network as network_module
-from safety.rollout import rollout
-from safety.sources import load_value_function
-from safety.verify import sample_states
+from safety.value_loading import load_value_function
+from safety.verification.rollout import rollout
+from safety.verification.verify import sample_states
 
 
 def allocating(activation: torch.nn.Module, z: torch.Tensor) -> torch.Tensor:

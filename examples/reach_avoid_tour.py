@@ -24,7 +24,7 @@ from my_systems import DubinsGap
 import reach_envs  # noqa: F401  (registers Reach-v0)
 from groundtruth import solve
 from safety import SafetyFilterWrapper, load_value_function
-from safety.verify import VerifySettings, sample_states, verify
+from safety.verification.verify import VerifySettings, sample_states, verify
 from studies.sweeps import SweepSpec, run_sweep
 from training import TrainConfig, Trainer
 from training.accuracy import ReferenceEvaluator

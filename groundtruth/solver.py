@@ -32,8 +32,8 @@ from groundtruth.solution import GridSolution
 from groundtruth.weno import SCALE as WENO_SCALE
 from groundtruth.weno import mean_and_half_jump
 from reach.compiling import maybe_compile
-from reach.heap import retained_heap
-from reach.memory import require_memory
+from reach.malloc_thresholds import retained_heap
+from reach.memory_check import require_memory
 from reach.systems.arrays import TORCH
 from reach.systems.base import ControlAffineSystem
 from reach.systems.registry import make_system
@@ -43,7 +43,7 @@ MAX_DIM = 4
 CFL_STABLE = 1.0
 #: ``compile=None`` compiles on CPU only for at least this many node updates (nodes x RK3 steps):
 #: torch.compile costs 15-30 s once per new system or grid, and pays off only on large work.
-#: Measured with the heap kept (reach.heap) and the leaner WENO5 (fresh inductor cache, one process,
+#: Measured with the heap kept (reach.malloc_thresholds) and the leaner WENO5 (fresh inductor cache, one process,
 #: 2 CPU cores, docs/groundtruth.md): Air3D 71^3 (1.6e8 updates) eager 14.5 s against 22.5 s compiled
 #: on a first run; DubinsAccel 41^4 (2.5e8) compiled 35.0 s on a first run, against 68 s eager
 #: before the WENO5 rewrite.
@@ -225,7 +225,7 @@ def solve(
     steps = 0
     t = 0.0
     v = problem.boundary_value(target, constraint).clone()
-    # on CPU, freed temporaries stay in the heap: page faults made eager 4D solves 2-3x slower (reach.heap)
+    # on CPU, freed temporaries stay in the heap: page faults made eager 4D solves 2-3x slower (reach.malloc_thresholds)
     keep_heap = retained_heap(need) if torch.device(device).type == "cpu" else contextlib.nullcontext()
     with (
         keep_heap,

@@ -8,7 +8,6 @@ This package is the base layer every other package builds on, and it imports wit
 - :mod:`reach.atomic`, :mod:`reach.locking`, :mod:`reach.provenance`: atomic writes, run-directory
   locks and the versions recorded in every file;
 - :mod:`reach.compiling`, :mod:`reach.validation`: the ``torch.compile`` rule and argument checks;
-- :mod:`reach.deprecation`: the aliases that keep a moved import path working for one release.
 
 Data flows one way: ``reach`` (base) -> ``reach_envs`` / ``groundtruth`` -> ``training`` -> ``safety``
 (core) -> ``studies`` -> ``reach_cli`` (the command line; ``python -m reach`` runs it).

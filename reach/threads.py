@@ -11,7 +11,7 @@ The 1-minute load average, used where ``/proc`` is missing, lags: it decays with
 constant, so for over a minute after a job on both cores of a 2-core machine it still rounds to 1
 or more, and the next command would start on one core of an idle machine.
 
-The library's long entry points (:meth:`training.Trainer.train`, :func:`safety.verify.verify`) apply
+The library's long entry points (:meth:`training.Trainer.train`, :func:`safety.verification.verify.verify`) apply
 the same policy for their duration through :func:`thread_policy`, unless the caller chose a count:
 ``OMP_NUM_THREADS``, or a ``torch.set_num_threads`` to anything other than torch's start-up count.
 """

@@ -1,7 +1,7 @@
 """``reach certify``: a formally certified safe set of a value network, and the check of a certificate file.
 
-Wiring only: the options become a :class:`~safety.certify.CertifySettings` (options left out fall back
-to its defaults); :func:`~safety.certify.certify` proves boxes, :func:`~safety.certificate.certified_set`
+Wiring only: the options become a :class:`~safety.formal.verifier.CertifySettings` (options left out fall back
+to its defaults); :func:`~safety.formal.verifier.certify` proves boxes, :func:`~safety.formal.certificate.certified_set`
 keeps the largest closed union of them, and the file is written atomically. ``--check CERT`` re-verifies
 a file for the value function named, from the file alone.
 """
@@ -21,7 +21,7 @@ from reach.validation import (
     unit_interval_arg,
 )
 from reach_cli.options import add_subparser, default
-from safety.certify import CertifySettings
+from safety.formal.verifier import CertifySettings
 
 #: (option, CertifySettings field, argparse keywords, help) of the verifier's knobs
 CERTIFY_OPTIONS = (
@@ -99,9 +99,9 @@ def add_parser(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     # lazy: the verifier's stack only when this command runs
-    from safety.certificate import certified_set, check_certificate, save_certificate
-    from safety.certify import certify
-    from safety.sources import load_value_function
+    from safety.formal.certificate import certified_set, check_certificate, save_certificate
+    from safety.formal.verifier import certify
+    from safety.value_loading import load_value_function
 
     if args.check is not None:
         if args.out is not None or args.level is not None or args.resume is not None:

@@ -1,6 +1,6 @@
 """``reach evaluate``: verify value functions by rollouts on the same states, into one table.
 
-Options that set a :class:`~safety.verify.VerifySettings` field default to ``None`` and fall back to
+Options that set a :class:`~safety.verification.verify.VerifySettings` field default to ``None`` and fall back to
 the dataclass. Rows merge into an existing table at ``--out`` (same settings), so evaluating other
 sources into it later, or from another process at the same time, keeps every row.
 """
@@ -21,7 +21,7 @@ from reach.validation import (
     seed_arg,
 )
 from reach_cli.options import add_subparser, default
-from safety.verify import VerifySettings
+from safety.verification.verify import VerifySettings
 
 #: (option, VerifySettings field, argparse keywords, help)
 VERIFY_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
@@ -123,8 +123,8 @@ def add_parser(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     # lazy: this command's stack only when it runs
-    from safety.rollout import default_chunk_size
-    from safety.sharding import make_backend
+    from safety.verification.rollout import default_chunk_size
+    from safety.verification.sharding import make_backend
     from studies.batch_verification import evaluate_many, markdown_table, report_failures
     from studies.plots import plot_violation_bars
 

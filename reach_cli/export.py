@@ -1,7 +1,7 @@
 """``reach export``: a safety filter as one ONNX file that runs without torch (:mod:`reach_runtime`).
 
-Wiring only: the options become a :class:`~safety.filter_settings.FilterSettings` for
-:func:`~safety.export.export_filter`; options that set one of its fields default to ``None`` and
+Wiring only: the options become a :class:`~safety.filters.settings.FilterSettings` for
+:func:`~safety.filters.export.export_filter`; options that set one of its fields default to ``None`` and
 fall back to the dataclass.
 """
 
@@ -15,8 +15,8 @@ from reach.atomic import atomic_path
 from reach.validation import check_output_path, nonnegative_float_arg, positive_float_arg
 from reach_cli.filter_eval import FILTER_OPTIONS, add_filter_options, parse_time_to_go
 from reach_cli.options import add_subparser, default, signature_default
-from safety.export import export_filter
-from safety.filter_settings import KINDS, FilterSettings
+from safety.filters.export import export_filter
+from safety.filters.settings import KINDS, FilterSettings
 
 
 def add_parser(sub: Any) -> None:

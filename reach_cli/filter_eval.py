@@ -1,7 +1,7 @@
 """``reach filter-eval``: episodes of a goal-seeking task with and without the safety filter.
 
 Wiring only: the options become a :class:`~studies.filter_configs.FilterStudySettings` (its episodes,
-its filter grid with one shared :class:`~safety.filter_settings.FilterSettings`, its outputs) for
+its filter grid with one shared :class:`~safety.filters.settings.FilterSettings`, its outputs) for
 :func:`~studies.filter_study.run_filter_study`. Options that set a ``FilterSettings`` field default
 to ``None`` and fall back to the dataclass; every other default is read from the dataclasses too.
 """
@@ -21,8 +21,8 @@ from reach.validation import (
     seed_arg,
 )
 from reach_cli.options import add_subparser, default
-from safety.filter_settings import KINDS, LOOKAHEAD_DISTURBANCES, OUTSIDE_DOMAIN, FilterSettings
-from safety.sources import load_value_function
+from safety.filters.settings import KINDS, LOOKAHEAD_DISTURBANCES, OUTSIDE_DOMAIN, FilterSettings
+from safety.value_loading import load_value_function
 from safety.value_policies import POLICIES
 from studies.filter_configs import START_FROM, EpisodeSettings, FilterGrid, FilterStudySettings, StudyOutput
 

@@ -9,7 +9,7 @@ from reach.systems import make_system
 from reach.validation import check_output_path, finite_float_arg, nonnegative_float_arg, seed_arg
 from reach.value_function import check_time_coverage
 from reach_cli.options import add_subparser
-from safety.sources import load_value_function
+from safety.value_loading import load_value_function
 
 
 def add_parser(sub: Any) -> None:

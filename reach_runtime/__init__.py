@@ -1,6 +1,6 @@
 """Run an exported reach safety filter with NumPy and ONNX Runtime only: no torch, no reach.
 
-``reach export SOURCE --out f.onnx`` (or :func:`safety.export.export_filter`) writes the filter's
+``reach export SOURCE --out f.onnx`` (or :func:`safety.filters.export.export_filter`) writes the filter's
 whole decision as one ONNX graph; on the robot::
 
     from reach_runtime import Filter

@@ -1,6 +1,6 @@
 """The torch-free safety filter: an exported ONNX graph behind the checks the torch filter makes.
 
-See :mod:`reach_runtime`. The graph (``safety.export``) is the torch filter's own decision, traced;
+See :mod:`reach_runtime`. The graph (``safety.filters.export``) is the torch filter's own decision, traced;
 this module only checks inputs, runs the graph, and refuses what the graph flags.
 """
 
@@ -106,7 +106,7 @@ class FilterMetadata:
 
 @dataclass(frozen=True)
 class FilterInfo:
-    """What the filter saw and did, per state (leading batch shape as given; see ``safety.filter``)."""
+    """What the filter saw and did, per state (leading batch shape as given; see ``safety.filters.filter``)."""
 
     value: np.ndarray
     gradient: np.ndarray

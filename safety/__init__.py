@@ -9,7 +9,7 @@ network, a DeepReach import or a grid solution; :func:`load_value_function` load
 * :class:`OptimalPolicy` - ``u*``, ``d*`` from the gradient through the system's derived functions;
 * :class:`GreedyPolicy` - the candidate input held for a short step that leaves the most value (the
   switch filter's default backup input; ``rollout(..., policy="greedy")``);
-* :class:`SafetyFilter` and its environment adapters (:mod:`safety.wrappers`), which take one
+* :class:`SafetyFilter` and its environment adapters (:mod:`safety.filters.wrappers`), which take one
   :class:`FilterSettings` (kind, threshold, time-to-go, gamma, backup horizon and disturbance, policy);
 * :func:`rollout` - batched closed-loop simulation that skips decided trajectories;
 * :func:`verify` - violation statistics, delta-level and the scenario guarantee of one value
@@ -20,52 +20,35 @@ network, a DeepReach import or a grid solution; :func:`load_value_function` load
 
 from __future__ import annotations
 
-import importlib
-import warnings
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from reach.lazy import lazy_exports
 from reach.value_function import MinimumOf, value_and_gradient
-from safety.filter import FilterInfo, SafetyFilter
-from safety.filter_settings import FilterSettings
-from safety.metrics import scenario_epsilon, violation_statistics, wilson_interval
-from safety.rollout import RolloutResult, RolloutSettings, rollout
-from safety.rollout_store import RolloutStore
-from safety.sources import LoadedValueFunction, as_value_function, load_value_function
+from safety.filters.filter import FilterInfo, SafetyFilter
+from safety.filters.settings import FilterSettings
+from safety.value_loading import LoadedValueFunction, as_value_function, load_value_function
 from safety.value_policies import GreedyPolicy, OptimalPolicy, worst_case_disturbance
-from safety.verify import VerifySettings, sample_states, sample_superlevel_set, verify
+from safety.verification.metrics import scenario_epsilon, violation_statistics, wilson_interval
+from safety.verification.rollout import RolloutResult, RolloutSettings, rollout
+from safety.verification.rollout_store import RolloutStore
+from safety.verification.verify import VerifySettings, sample_states, sample_superlevel_set, verify
 
 if TYPE_CHECKING:
-    from safety.export import export_filter
-    from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper, SafetyFilterWrapper
+    from safety.filters.export import export_filter
+    from safety.filters.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper, SafetyFilterWrapper
 
 #: names whose module loads Gymnasium and PettingZoo (the wrappers) or the ONNX export, imported on first
-#: use so that ``import safety.filter`` (the CLI's start-up) stays light. (A name that equals its module's,
+#: use so that ``import safety.filters.filter`` (the CLI's start-up) stays light. (A name that equals its module's,
 #: like ``rollout`` and ``verify``, must stay eager: importing the submodule would shadow it.)
 _LAZY = {
-    "SafetyFilterParallelWrapper": "safety.wrappers",
-    "SafetyFilterVectorWrapper": "safety.wrappers",
-    "SafetyFilterWrapper": "safety.wrappers",
-    "export_filter": "safety.export",
+    "SafetyFilterParallelWrapper": "safety.filters.wrappers",
+    "SafetyFilterVectorWrapper": "safety.filters.wrappers",
+    "SafetyFilterWrapper": "safety.filters.wrappers",
+    "export_filter": "safety.filters.export",
 }
 
 
-#: names that moved up to :mod:`studies` (deprecated here; removed in reach 0.3)
-_MOVED_UP = {"evaluate_many", "load_results", "markdown_table"}
-
-
-_lazy_getattr, __dir__ = lazy_exports(__name__, _LAZY)
-
-
-def __getattr__(name: str) -> Any:
-    if name in _MOVED_UP:
-        warnings.warn(
-            f"safety.{name} moved to studies.{name}; import it from there (removed here in reach 0.3)",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return getattr(importlib.import_module("studies"), name)  # deprecated alias (the one upward name)
-    return _lazy_getattr(name)
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)
 
 
 __all__ = [

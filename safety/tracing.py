@@ -2,7 +2,7 @@
 
 A safety filter refuses what it cannot trust: a non-finite value, gradient or optimal input raises
 ``ValueError`` instead of passing the nominal input. Eagerly that is a Python ``if`` on a tensor's
-value. A traced graph (the exported filter, :mod:`safety.export`) has no Python at run time and no
+value. A traced graph (the exported filter, :mod:`safety.filters.export`) has no Python at run time and no
 exceptions, and a trace cannot branch on values it has not seen. So while a trace runs
 (:func:`recording_trust`), :func:`refuse_untrusted` records each check as a boolean the graph
 outputs, and the torch-free runtime raises on it with the same message's meaning; the

@@ -4,8 +4,8 @@ The top floor under the command line. Each module runs or reports an experiment:
 
 * :mod:`studies.batch_verification` - :func:`evaluate_many`, the verification of many checkpoints
   on the same states, as a resumable table (``reach evaluate``);
-* :mod:`studies.filter_eval` - what a safety filter changes in episodes of a task
-  (``reach filter-eval``), with :mod:`studies.tasks` (the nominal task controllers);
+* :mod:`studies.filter_study` - what a safety filter changes in episodes of a task
+  (``reach filter-eval``), with :mod:`studies.goal_tasks` (the nominal task controllers);
 * :mod:`studies.sweeps` - layouts x seeds on a training budget, with a report (``reach sweep``);
 * :mod:`studies.step_budget_study`, :mod:`studies.step_budget_report` - named 9D recipes trained
   at fixed step budgets and seeds, scored into one table, reported (``benchmarks/nine_d_*.py``);
@@ -24,14 +24,14 @@ from reach.lazy import lazy_exports
 
 if TYPE_CHECKING:
     from studies.batch_verification import References, evaluate_many, load_results, markdown_table
-    from studies.filter_eval import FilterStudy, run_filter_study
+    from studies.filter_study import FilterStudy, run_filter_study
 
 _LAZY = {
     "evaluate_many": "studies.batch_verification",
     "load_results": "studies.batch_verification",
     "markdown_table": "studies.batch_verification",
-    "FilterStudy": "studies.filter_eval",
-    "run_filter_study": "studies.filter_eval",
+    "FilterStudy": "studies.filter_study",
+    "run_filter_study": "studies.filter_study",
     "References": "studies.batch_verification",
 }
 

@@ -1,7 +1,7 @@
 """Batch evaluation of many value functions on the same sampled states, resumable.
 
 :func:`evaluate_many` verifies each source (run directory, checkpoint, DeepReach file, grid
-solution) with :func:`~safety.verify.verify` on states drawn once from the seed, optionally scores
+solution) with :func:`~safety.verification.verify.verify` on states drawn once from the seed, optionally scores
 it against a grid ground truth (value MSE and BRT IoU over the volume and one slice) and, for
 multi-vehicle systems, against the union of pairwise BRTs (the containment metric), and after
 every source rewrites ``<out>.csv``, ``<out>.json`` and ``<out>.md`` atomically. A second call with
@@ -9,7 +9,7 @@ the same settings skips sources already evaluated (same path, size and modificat
 that fails to load or evaluate becomes a row with its error, and the others go on.
 
 Within a source, the rollouts are kept block by block in ``<out>.rollouts/`` (a
-:class:`~safety.rollout_store.RolloutStore` per source, keyed by its fingerprint and the settings)
+:class:`~safety.verification.rollout_store.RolloutStore` per source, keyed by its fingerprint and the settings)
 until its row is written: a run killed in the middle of a million-state certification resumes
 where it stopped when the same command runs again (``rollout_blocks_resumed`` counts the blocks it
 loaded; ``rollout_seconds`` is the blocks' own simulation time, whichever run did it).
@@ -36,16 +36,16 @@ from reach.json_files import read_json, restore_nan
 from reach.locking import exclusive_lock
 from reach.systems import ControlAffineSystem, make_system
 from reach.validation import check_float, check_output_path, settings_from
-from safety.metrics import containment_statistics
-from safety.rollout_store import RolloutStore
-from safety.sources import (
+from safety.value_loading import (
     composition_kind,
     is_composition,
     load_value_function,
     min_sources,
     resolve_checkpoint,
 )
-from safety.verify import VerifySettings, check_for_system, sample_states, values_at, verify
+from safety.verification.metrics import containment_statistics
+from safety.verification.rollout_store import RolloutStore
+from safety.verification.verify import VerifySettings, check_for_system, sample_states, values_at, verify
 from studies.tables import columns_table, merge_rows, write_results
 from training.accuracy import ReferenceEvaluator
 
@@ -110,7 +110,7 @@ def fingerprint(path: str) -> dict[str, Any]:
 def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
     """The paper-style table; columns nobody has (e.g. ground truth for 9D) are left out.
 
-    Each kind of problem has its own columns (:data:`~safety.metrics.KIND_COLUMNS`): an avoid row
+    Each kind of problem has its own columns (:data:`~safety.verification.metrics.KIND_COLUMNS`): an avoid row
     counts false *safe* claims and collisions, a reach row false *reachable* claims and failures, and
     its delta certifies ``{V < -delta}``. Rows of several kinds get a ``problem`` column and a first
     line that says the table mixes kinds."""
@@ -238,8 +238,8 @@ def evaluate_many(
 
     ``references`` (:class:`References`; its fields may also be given as keywords, e.g.
     ``ground_truth="gt.npz"``) adds the comparison columns; ``system``, ``format`` and ``layout``
-    say how to load the sources (:func:`~safety.sources.load_value_function`). ``backend``
-    (:class:`~safety.sharding.RayBlocks`) runs the rollout blocks on its workers, with the same rows."""
+    say how to load the sources (:func:`~safety.value_loading.load_value_function`). ``backend``
+    (:class:`~safety.verification.sharding.RayBlocks`) runs the rollout blocks on its workers, with the same rows."""
     refs = settings_from(References, references, reference_fields, "reference")
     ground_truth, gt_time, gt_slice, pairwise = refs.ground_truth, refs.gt_time, refs.gt_slice, refs.pairwise
     paths = expand_sources(sources)

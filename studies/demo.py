@@ -33,8 +33,8 @@ def run_demo(
     from groundtruth.solution import GridSolution
     from groundtruth.solver import solve
     from reach.systems import Air3D
-    from safety.sources import load_value_function
-    from safety.verify import VerifySettings
+    from safety.value_loading import load_value_function
+    from safety.verification.verify import VerifySettings
     from studies.batch_verification import evaluate_many, markdown_table
     from studies.filter_study import run_filter_study
     from studies.filter_tables import filter_table

@@ -6,7 +6,7 @@ filter-eval`` reads its option defaults from them at start-up, and the modules t
 (:mod:`studies.filter_study`) share them without importing each other.
 
 * :class:`FilterConfig` - one row of a study: a label, a value function (``None``: the nominal
-  policy alone) and its :class:`~safety.filter_settings.FilterSettings`;
+  policy alone) and its :class:`~safety.filters.settings.FilterSettings`;
 * :class:`FilterGrid` - the filters a study compares (kinds x thresholds x gammas, the rest shared);
 * :class:`EpisodeSettings` - the episodes every configuration runs;
 * :class:`StudyOutput` - what the study writes besides its table;
@@ -21,11 +21,11 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from safety.filter_settings import FIELDS, FilterSettings, make_filter_settings
+from safety.filters.settings import FIELDS, FilterSettings, make_filter_settings
 
 if TYPE_CHECKING:
     from reach.value_function import ValueFunction
-    from studies.tasks import NominalPolicy
+    from studies.goal_tasks import NominalPolicy
 
 #: where :func:`~studies.filter_episodes.outside_states` draws candidate starts: the system's whole
 #: domain, or the scene's own starts
@@ -38,11 +38,11 @@ GRID_VARIED = ("kind", "threshold", "gamma")
 @dataclass(frozen=True, init=False)
 class FilterConfig:
     """One configuration: a label, a value function (``None``: the nominal policy alone) and the
-    filter's :class:`~safety.filter_settings.FilterSettings`.
+    filter's :class:`~safety.filters.settings.FilterSettings`.
 
     ``FilterConfig(label, value_function=None, threshold=None, *, settings=None, **options)``: the
     threshold and any settings field by keyword (``kind="lookahead", backup_horizon=0.5``) make or
-    replace the settings (:func:`~safety.filter_settings.make_filter_settings`), checked here,
+    replace the settings (:func:`~safety.filters.settings.make_filter_settings`), checked here,
     before any episode runs. The settings' fields read back as attributes (``config.kind``).
     """
 
@@ -123,7 +123,7 @@ class EpisodeSettings:
             over the system's domain (``start_from="domain"``) or among the scene's own starts
             (``"scene"``).
         nominal: the nominal policy (float64 states ``(N, n)`` -> normalised actions ``(N, m_u)``);
-            default: the scene system's goal task (:func:`~studies.tasks.make_task`).
+            default: the scene system's goal task (:func:`~studies.goal_tasks.make_task`).
         pettingzoo: run through the PettingZoo parallel env, episode by episode, instead.
     """
 

@@ -27,13 +27,13 @@ import torch
 from reach.value_function import ValueFunction
 from reach_envs.scenes import Scene, make_scene
 from reach_envs.vector import ReachVectorEnv
-from safety.filter_settings import make_filter_settings
-from safety.metrics import wilson_interval
-from safety.verify import sample_superlevel_set, values_at
-from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper
+from safety.filters.settings import make_filter_settings
+from safety.filters.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper
+from safety.verification.metrics import wilson_interval
+from safety.verification.verify import sample_superlevel_set, values_at
 from studies.filter_configs import FilterConfig
 from studies.filter_tables import labelled, settings_columns
-from studies.tasks import GoalTask, make_task
+from studies.goal_tasks import GoalTask, make_task
 
 
 class _Tally:

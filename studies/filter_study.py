@@ -21,13 +21,13 @@ import numpy as np
 
 from reach.value_function import ValueFunction
 from reach_envs.scenes import Scene, make_scene
-from safety.filter_settings import FilterSettings, make_filter_settings
+from safety.filters.settings import FilterSettings, make_filter_settings
+from safety.filters.wrappers import SafetyFilterWrapper
 from safety.value_policies import worst_case_disturbance
-from safety.wrappers import SafetyFilterWrapper
 from studies.filter_configs import EpisodeSettings, FilterStudySettings
 from studies.filter_episodes import evaluate_filter_parallel, evaluate_filters, outside_states
 from studies.filter_tables import filter_table_rows, merge_filter_results, write_filter_results
-from studies.tasks import GoalTask, make_task
+from studies.goal_tasks import GoalTask, make_task
 
 
 def record_side_by_side(
@@ -140,7 +140,7 @@ def run_filter_study(
             ``thresholds``, ``kinds``, ``gammas``, ``episodes``, ``seed``, ``pursuer``,
             ``start_outside``, ``start_margin``, ``start_from``, ``nominal``, ``pettingzoo``,
             ``gif``, ``gif_threshold``, ``header``, ``title``, ``merge``, and the filters' shared
-            :class:`~safety.filter_settings.FilterSettings` fields (``time_to_go``,
+            :class:`~safety.filters.settings.FilterSettings` fields (``time_to_go``,
             ``backup_horizon``, ``backup_disturbance``, ``policy``).
 
     With ``gif``, three episodes are recorded (nominal, then the first value function under each

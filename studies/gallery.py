@@ -155,7 +155,7 @@ def write_slices(folder: str | os.PathLike, names: Sequence[str] | None = None, 
     nodes); systems with neither are skipped. Returns the files written."""
     # lazy: the solver, the models and matplotlib only when slices are drawn
     from groundtruth.solver import solve
-    from safety.sources import load_value_function
+    from safety.value_loading import load_value_function
     from studies.plots import plot_brt_slices
     from training import pretrained
 

@@ -156,10 +156,10 @@ def record_filtered_episode(
     from reach_envs.env import ReachEnv
     from reach_envs.recording import record_episode
     from reach_envs.scenes import system_scene
-    from safety.filter_settings import FilterSettings
-    from safety.sources import as_value_function
+    from safety.filters.settings import FilterSettings
+    from safety.filters.wrappers import SafetyFilterWrapper
+    from safety.value_loading import as_value_function
     from safety.value_policies import worst_case_disturbance
-    from safety.wrappers import SafetyFilterWrapper
 
     vf = as_value_function(value_function)
     if scene is None:

@@ -39,7 +39,7 @@ from reach.exit_codes import EXIT_PARTIAL
 from reach.systems import make_system
 from reach.threads import thread_policy
 from reach.validation import check_output_path, csv_floats, csv_items, device_arg, positive_int_arg
-from safety.verify import VerifySettings
+from safety.verification.verify import VerifySettings
 from studies.batch_verification import evaluate_many, markdown_table, report_failures
 from studies.step_budget_report import RESULTS
 from training import TrainConfig, Trainer, TrainingDivergedError

@@ -14,7 +14,6 @@ import io
 import json
 import math
 import os
-import warnings
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -96,11 +95,3 @@ def merge_rows(stored: Iterable[dict[str, Any]], new: Sequence[dict[str, Any]], 
     mine = {r[key]: r for r in new}
     return [mine.pop(r[key], r) for r in stored] + list(mine.values())
 
-
-def __getattr__(name: str) -> Any:
-    if name == "markdown_table":  # deprecated alias (renamed: studies.markdown_table is the verification table)
-        warnings.warn(
-            "studies.tables.markdown_table was renamed columns_table (removed in reach 0.3)", DeprecationWarning, 2
-        )
-        return columns_table
-    raise AttributeError(f"module 'studies.tables' has no attribute {name!r}")

@@ -275,7 +275,7 @@ def test_sigint_saves_and_the_run_resumes(tmp_path):
 
 
 def test_evaluate_merges_rows_instead_of_replacing_them(tmp_path, air3d_grid):
-    from safety.verify import VerifySettings
+    from safety.verification.verify import VerifySettings
     from studies.batch_verification import evaluate_many
 
     a = str(tiny_checkpoint(tmp_path / "a.pt"))
@@ -563,7 +563,7 @@ def test_an_interrupt_anywhere_is_one_line_and_exit_130(monkeypatch, capsys):
 def test_verify_settings_refuse_bad_rollout_settings_by_name(field, value):
     """The library path has no argparse in front of it: a verification refuses a setting that would
     stall, divide by zero or roll out with an unknown integrator before any rollout starts."""
-    from safety.verify import VerifySettings
+    from safety.verification.verify import VerifySettings
 
     with pytest.raises(ValueError, match=field):
         VerifySettings(**{field: value})

@@ -1,4 +1,4 @@
-"""Sound bounds of value networks over boxes (safety.bounds): every bound contains every sampled value.
+"""Sound bounds of value networks over boxes (safety.formal.bounds): every bound contains every sampled value.
 
 Soundness is checked with hypothesis for each layer kind (sine at two frequencies, ReLU, tanh, the
 linear output), for encodings with and without sin/cos headings, on boxes from nearly points to a
@@ -15,14 +15,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from reach.systems import Air3D, MultiVehicle9D
-from safety.bounds import (
+from safety.formal.bounds import (
     cos_interval,
     input_gradient_bounds,
     interval_bounds,
     mean_value_bounds,
     sin_interval,
 )
-from safety.linear_bounds import INTERMEDIATE, linear_bounds
+from safety.formal.linear_bounds import INTERMEDIATE, linear_bounds
 from training.network import Encoding, ValueNetwork
 
 SYSTEMS = {"air3d": Air3D(), "9d": MultiVehicle9D()}
@@ -138,7 +138,7 @@ def test_linear_relaxations_are_much_tighter_than_intervals(system):
 def test_linear_bounds_of_the_shipped_networks_contain_every_sample(source, log_half_width):
     """The trained networks (large weights, w0 = 30) are where relaxations are stressed: both ways of
     finding the layers' intervals must contain every sampled value, on 32 boxes of each size."""
-    from safety.sources import load_value_function
+    from safety.value_loading import load_value_function
 
     network = load_value_function(source).value_function.network.double()
     boxes = [_box(network, seed, log_half_width) for seed in range(32)]
@@ -157,7 +157,7 @@ def test_forward_intermediate_bounds_are_close_on_small_boxes_and_refuse_junk():
     """Carried forward, the layers' intervals cost a fraction and are nearly as tight where branch and
     bound ends (boxes of up to 1e-3 of the span: within 1.5x of back-substitution's width on the
     shipped Air3D network when this was written); an unknown mode is refused by name."""
-    from safety.sources import load_value_function
+    from safety.value_loading import load_value_function
 
     network = load_value_function("pretrained:air3d").value_function.network.double()
     boxes = [_box(network, seed, -3.0) for seed in range(32)]

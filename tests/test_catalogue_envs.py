@@ -163,7 +163,7 @@ def test_safety_filter_wraps_the_team_env_with_each_driver_acting_two_inputs():
     drivers act (a, psi) each), filters it as one input, and hands each driver back its two inputs."""
     import torch
 
-    from safety.wrappers import SafetyFilterParallelWrapper
+    from safety.filters.wrappers import SafetyFilterParallelWrapper
     from training.network import NeuralValueFunction, ValueNetwork
 
     torch.manual_seed(0)
@@ -189,7 +189,7 @@ def test_a_disc_of_thrust_takes_actions_inside_the_disc_and_scales_the_rest_onto
 
     from reach.systems import RocketLanding
     from reach_envs.spaces import inputs_of_actions
-    from safety.filter import project_inputs
+    from safety.filters.filter import project_inputs
     from safety.value_policies import GreedyPolicy
     from training.network import NeuralValueFunction, ValueNetwork
 

@@ -1,4 +1,4 @@
-"""Formal certification by branch and bound (safety.certify): what it proves holds at every sample.
+"""Formal certification by branch and bound (safety.formal.verifier): what it proves holds at every sample.
 
 A small sine network on Air3D (``V`` close to ``l``, so the set is close to ``{l >= c}``, which the
 evader can keep only in places) gives a mix of proven, refuted and unknown boxes in seconds. Every
@@ -20,8 +20,8 @@ from reach.integrators import make_stepper
 from reach.systems import Air3D, ControlAffineSystem
 from reach.systems.arrays import TORCH
 from reach.systems.box import Box
-from safety.certificate import certified_set, check_certificate, save_certificate
-from safety.certify import OUTSIDE, PROVEN, REFUTED, UNKNOWN, CertifySettings, certify
+from safety.formal.certificate import certified_set, check_certificate, save_certificate
+from safety.formal.verifier import OUTSIDE, PROVEN, REFUTED, UNKNOWN, CertifySettings, certify
 from training.network import Encoding, ValueNetwork
 
 
@@ -206,7 +206,7 @@ def test_the_certified_set_is_closed_and_its_file_checks(
     torus when this was written, every box but those meeting the disc), its file re-verifies from
     the file alone, and a changed model, level or box, or junk, is refused naming why; the same when
     the checker bounds the network a few boxes at a time."""
-    monkeypatch.setattr("safety.certificate.CHECK_CHUNK", chunk)
+    monkeypatch.setattr("safety.formal.certificate.CHECK_CHUNK", chunk)
     certificate = torus_certificate
     domain = Torus().domain_tensor(torch.float64, "cpu")
     assert certificate.kept_volume_share(domain) > 0.5
@@ -265,7 +265,7 @@ def test_boxes_cut_finer_before_the_closure_keep_at_least_as_much(torus_network,
     (from 0.891 to 0.910 of the torus when this was written), the parts tile what the boxes did, and the file checks."""
     from dataclasses import replace
 
-    from safety.certificate import _refined
+    from safety.formal.certificate import _refined
 
     domain = Torus().domain_tensor(torch.float64, "cpu")
     fine = replace(torus_result, settings=replace(TORUS, closure_relative_width=1 / 64))
@@ -318,7 +318,7 @@ def test_a_piece_on_a_box_face_needs_only_the_cell_on_its_side():
     """The closure's cells come from the boxes' own corners: a next-state piece that ends exactly on a
     face (a face the step leaves in place) needs only the cell on its side, one that pokes an ulp
     beyond needs the next cell too, and boxes whose corners disagree on an edge are refused."""
-    from safety.certificate import _Grid
+    from safety.formal.certificate import _Grid
 
     domain = torch.tensor([[-math.pi, math.pi]], dtype=torch.float64)
     third = torch.tensor([[-math.pi / 2]], dtype=torch.float64)  # an edge whose float is not (k / R) exact
@@ -378,7 +378,7 @@ def test_the_certified_filter_keeps_every_trajectory_safe(torus_network, torus_c
     """From 64 states of the certified set, 100 steps of random nominal inputs (some outside the control
     box) and random disturbances, through the filter: every state stays certified and outside the
     disc; inputs pushing into the disc are replaced, and a non-finite state is refused."""
-    from safety.certified_filter import CertifiedFilter
+    from safety.formal.certified_filter import CertifiedFilter
 
     filt = CertifiedFilter(torus_certificate, torus_network)
     system = Torus()
@@ -416,8 +416,8 @@ def test_the_wrappers_take_a_certificate_and_refuse_one_the_env_breaks(torus_net
     model are refused."""
     from reach_envs import make_env, make_vector_env
     from safety import SafetyFilterWrapper
-    from safety.certified_filter import CertifiedFilter
-    from safety.wrappers import SafetyFilterVectorWrapper
+    from safety.filters.wrappers import SafetyFilterVectorWrapper
+    from safety.formal.certified_filter import CertifiedFilter
     from training.network import NeuralValueFunction
 
     vf = NeuralValueFunction(torus_network)
@@ -462,7 +462,7 @@ def test_a_stopped_verifier_resumes_to_the_same_result_and_refuses_another_proof
     decided (the queued boxes are unknown). A file of another level or model is refused."""
     import dataclasses
 
-    import safety.certify as certify_module
+    import safety.formal.verifier as certify_module
 
     path = tmp_path / "progress.npz"
     stopped = certify(network, dataclasses.replace(SETTINGS, max_boxes=2 * SETTINGS.batch), resume=path)

@@ -23,9 +23,9 @@ from reach.integrators import make_stepper
 from reach.systems import Air3D, ControlAffineSystem, Dubins3D
 from reach.systems.arrays import TORCH
 from reach.systems.box import Box
-from safety.certificate import certified_set, check_certificate, save_certificate
-from safety.certified_filter import CertifiedFilter
-from safety.certify import ESCAPE, CertifySettings, _Verifier, certify, escape_rule, value_bounds
+from safety.formal.certificate import certified_set, check_certificate, save_certificate
+from safety.formal.certified_filter import CertifiedFilter
+from safety.formal.verifier import ESCAPE, CertifySettings, _Verifier, certify, escape_rule, value_bounds
 from training.network import ValueNetwork
 
 PUSH, GUST, RADIUS = 0.1, 0.05, 0.25
@@ -328,7 +328,7 @@ def test_after_a_refinement_e_holds_only_while_every_box_of_its_band_can_stay(ou
     assumed; with every band box staying, it is."""
     from dataclasses import replace
 
-    from safety.certificate import _close, _closure_cover
+    from safety.formal.certificate import _close, _closure_cover
 
     result, _ = with_escape
     verifier = _Verifier(outflow, result.settings, torch.device("cpu"), closure=True)

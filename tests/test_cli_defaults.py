@@ -10,7 +10,7 @@ from reach_cli import build_parser
 from reach_cli import evaluate as evaluate_command
 from reach_cli import sweep as sweep_command
 from reach_cli import train as train_command
-from safety.verify import VerifySettings
+from safety.verification.verify import VerifySettings
 from studies.sweeps.spec import SweepSpec
 from training import TrainConfig
 
@@ -141,7 +141,8 @@ def test_the_cli_starts_without_the_env_stack():
     code = (
         "import sys; from reach_cli import main; "
         "print(sorted(m for m in ('gymnasium', 'pettingzoo', 'matplotlib') if m in sys.modules)); "
-        "import safety, safety.rollout, safety.wrappers; from safety import rollout, SafetyFilterWrapper; "
+        "import safety, safety.verification.rollout, safety.filters.wrappers; "
+        "from safety import rollout, SafetyFilterWrapper; "
         "print(callable(rollout) and isinstance(SafetyFilterWrapper, type) and set(safety.__all__) <= set(dir(safety)))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split("\n")

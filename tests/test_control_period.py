@@ -7,9 +7,9 @@ import torch
 
 from reach.integrators import make_stepper
 from reach.systems.arrays import TORCH
-from safety.rollout import RolloutSettings, rollout
-from safety.sources import load_value_function
-from safety.verify import VerifySettings
+from safety.value_loading import load_value_function
+from safety.verification.rollout import RolloutSettings, rollout
+from safety.verification.verify import VerifySettings
 
 
 @pytest.fixture(scope="module")

@@ -174,8 +174,8 @@ def test_user_system_through_grid_training_verification_filter_and_sweep(tmp_pat
     from groundtruth import solve
     from groundtruth.solution import GridSolution
     from safety import SafetyFilter, load_value_function
-    from safety.verify import VerifySettings, sample_states, verify
-    from studies.filter_eval import run_filter_study
+    from safety.verification.verify import VerifySettings, sample_states, verify
+    from studies.filter_study import run_filter_study
     from studies.sweeps import SweepSpec, run_sweep
     from training import TrainConfig, Trainer
 

@@ -1,4 +1,4 @@
-"""The sparse cover of dyadic boxes (safety.dyadic_cover) answers as a dense table of every cell does."""
+"""The sparse cover of dyadic boxes (safety.formal.cover) answers as a dense table of every cell does."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from safety.dyadic_cover import BrickOwner, DenseCover, DenseOwner, DyadicCover, cells_in
+from safety.formal.cover import BrickOwner, DenseCover, DenseOwner, DyadicCover, cells_in
 
 
 def _partition(n: int, resolution: int, seed: int, splits: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -78,7 +78,7 @@ def test_the_owner_tables_and_the_cells_of_ranges_agree_with_a_painted_table(n, 
     assert torch.equal(table.owner(cells), owner[tuple(cells.unbind(-1))])
     assert torch.equal(table.owner(cells), DyadicCover(a[chosen], b[chosen], resolution).owner(cells))
     with pytest.MonkeyPatch.context() as patch:  # coarse cells of half the grid a side
-        patch.setattr("safety.dyadic_cover.BRICK_COARSE_MAX_CELLS", 2**n)
+        patch.setattr("safety.formal.cover.BRICK_COARSE_MAX_CELLS", 2**n)
         bricks = BrickOwner(a[chosen], b[chosen], resolution)
     assert bricks.shift >= 1 and torch.equal(bricks.owner(cells), table.owner(cells))
     listed, row = cells_in(a, b)
@@ -90,7 +90,7 @@ def test_the_owner_tables_and_the_cells_of_ranges_agree_with_a_painted_table(n, 
 def test_the_owner_tables_refuse_overlapping_boxes(monkeypatch):
     with pytest.raises(ValueError, match="overlap"):
         DenseOwner(torch.tensor([[0, 0], [1, 1]]), torch.tensor([[2, 2], [3, 3]]), 4)
-    monkeypatch.setattr("safety.dyadic_cover.BRICK_COARSE_MAX_CELLS", 4)  # coarse cells of 2 x 2
+    monkeypatch.setattr("safety.formal.cover.BRICK_COARSE_MAX_CELLS", 4)  # coarse cells of 2 x 2
     t = torch.tensor
     with pytest.raises(ValueError, match="overlap"):  # a small box inside a coarse cell a box holds whole
         BrickOwner(t([[0, 0], [1, 1]]), t([[2, 2], [2, 2]]), 4)

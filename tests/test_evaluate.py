@@ -227,7 +227,7 @@ def test_capped_networks_evaluate_on_the_chosen_device(pair_grid, checkpoints: P
 def test_chunk_size_follows_the_device_unless_given(checkpoints: Path, monkeypatch):
     """A CUDA GPU rolls out 262,144 states at once by default (the CPU's 16,384 leaves it launch-bound);
     ``reach evaluate`` records the size it used, and a given ``--chunk-size`` wins."""
-    from safety.rollout import CUDA_CHUNK_SIZE, RolloutSettings, default_chunk_size
+    from safety.verification.rollout import CUDA_CHUNK_SIZE, RolloutSettings, default_chunk_size
 
     assert default_chunk_size("cuda") == CUDA_CHUNK_SIZE == 262_144
     assert default_chunk_size("cpu") == default_chunk_size(torch.device("cpu")) == RolloutSettings.chunk_size

@@ -19,8 +19,8 @@ pytest.importorskip("onnx")
 
 from reach_runtime import Filter
 from safety import SafetyFilter, load_value_function
-from safety.export import export_filter
-from safety.filter_settings import FilterSettings
+from safety.filters.export import export_filter
+from safety.filters.settings import FilterSettings
 
 ROOT = Path(__file__).resolve().parents[1]
 DT = 0.05

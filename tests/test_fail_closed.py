@@ -163,7 +163,7 @@ def air3d_vf():
 
 def test_filter_settings_take_numpy_and_tensor_reals_and_refuse_a_negative_threshold(air3d_vf):
     from safety import SafetyFilter
-    from safety.filter_settings import FilterSettings
+    from safety.filters.settings import FilterSettings
 
     s = FilterSettings(threshold=np.float32(0.05), gamma=np.int64(2), backup_horizon=torch.tensor(0.5))
     assert (s.threshold, s.gamma, s.backup_horizon) == (pytest.approx(0.05), 2.0, 0.5)

@@ -12,13 +12,9 @@ import torch
 from reach.systems import Air3D, MultiVehicle9D
 from reach_cli import main
 from safety import worst_case_disturbance
-from studies.filter_eval import (
-    FilterConfig,
-    evaluate_filter_parallel,
-    evaluate_filters,
-    outside_states,
-)
-from studies.tasks import EvaderGoalTask, WaypointTask
+from studies.filter_configs import FilterConfig
+from studies.filter_episodes import evaluate_filter_parallel, evaluate_filters, outside_states
+from studies.goal_tasks import EvaderGoalTask, WaypointTask
 from training import NeuralValueFunction, ValueNetwork
 
 
@@ -104,7 +100,7 @@ def test_filter_eval_cli(air3d_grid, tmp_path: Path, capsys):
 
 def test_unknown_start_source_is_refused_before_any_episode(tmp_path: Path, capsys):
     """start_from names where --start-outside draws from; anything else fails with the bad value."""
-    from studies.filter_eval import run_filter_study
+    from studies.filter_study import run_filter_study
 
     vf = NeuralValueFunction(ValueNetwork(MultiVehicle9D(), "ssssl", width=16))
     with pytest.raises(ValueError, match=r"start_from must be one of .*'nowhere'"):
@@ -120,7 +116,7 @@ def test_unknown_start_source_is_refused_before_any_episode(tmp_path: Path, caps
 def test_a_bad_backup_horizon_is_refused_before_any_episode(tmp_path: Path, capsys):
     """The lookahead's backup horizon is checked when the configuration is made (library) and when
     the arguments are parsed (CLI), before the nominal episodes run."""
-    from studies.filter_eval import FilterConfig, run_filter_study
+    from studies.filter_study import run_filter_study
 
     vf = NeuralValueFunction(ValueNetwork(Air3D(), "ssssl", width=16))
     with pytest.raises(ValueError, match=r"backup_horizon .*-0.5"):
@@ -143,7 +139,7 @@ def test_filter_eval_merges_rows_of_the_same_episodes_and_refuses_others_before_
     """A second `reach filter-eval` into the same --out adds its rows (it erased the first's before);
     a rerun of a configuration replaces its row; a table of other episodes is refused, naming the
     setting, before a single episode runs."""
-    import studies.filter_eval as filter_eval
+    import studies.filter_study as filter_study
 
     grid = tmp_path / "air3d.npz"
     air3d_grid.save(grid)
@@ -167,7 +163,7 @@ def test_filter_eval_merges_rows_of_the_same_episodes_and_refuses_others_before_
     def no_episodes(*args, **kwargs):
         raise AssertionError("episodes ran before the table was checked")
 
-    monkeypatch.setattr(filter_eval, "evaluate_filters", no_episodes)
+    monkeypatch.setattr(filter_study, "evaluate_filters", no_episodes)
     for changed, setting in ((["--episodes", "13"], "episodes"), (["--seed", "4"], "seed")):
         assert main([*base, *changed, str(grid), "--thresholds", "0.05"]) == 2
         err = capsys.readouterr().err

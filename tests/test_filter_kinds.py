@@ -16,9 +16,9 @@ import torch
 
 from reach.systems.base import ControlAffineSystem
 from reach.systems.box import Box
-from safety.filter import SafetyFilter
-from safety.filter_settings import REMAINING, FilterSettings
-from safety.wrappers import _Adapter
+from safety.filters.filter import SafetyFilter
+from safety.filters.settings import REMAINING, FilterSettings
+from safety.filters.wrappers import _Adapter
 
 DT = 0.1
 

@@ -5,11 +5,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import warnings
 from pathlib import Path
 
 import gymnasium as gym
-import numpy as np
 import pytest
 import torch
 
@@ -17,8 +15,8 @@ import reach_envs  # noqa: F401  (registers the environments)
 from reach.systems import Air3D, MultiVehicle9D
 from reach_cli import main
 from safety import FilterSettings, SafetyFilter, SafetyFilterWrapper
-from safety.filter_settings import DEFAULT_GAMMA, FIELDS, default_threshold, make_filter_settings
-from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper
+from safety.filters.settings import DEFAULT_GAMMA, FIELDS, default_threshold, make_filter_settings
+from safety.filters.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper
 from studies.filter_configs import EpisodeSettings, FilterConfig, FilterGrid, FilterStudySettings, StudyOutput
 from training import NeuralValueFunction, ValueNetwork
 
@@ -138,19 +136,6 @@ def test_a_keyword_beside_settings_replaces_that_field_only():
     assert (f.kind, f.threshold, f.gamma) == ("smooth", 0.2, 3.0)
     f.threshold = 0.4  # the threshold may change between calls; settings read it back
     assert f.settings == FilterSettings(kind="smooth", threshold=0.4, gamma=3.0)
-
-
-def test_the_deprecated_check_still_refuses_and_warns():
-    from safety.filter import check_filter_settings
-
-    with pytest.warns(DeprecationWarning, match="FilterSettings"):
-        check_filter_settings("switch", 5.0, None, "robust", None)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        with pytest.raises(ValueError, match="-1"):
-            check_filter_settings("smooth", -1.0)
-        with pytest.raises(ValueError, match="'worst'"):
-            check_filter_settings("lookahead", backup_disturbance="worst")
 
 
 # ---------------------------------------------------------------------------- passed whole, every adapter
@@ -313,17 +298,3 @@ def test_the_cli_options_default_to_the_dataclass():
     assert math.isclose(float(f"{FilterSettings().gamma:g}"), DEFAULT_GAMMA)
 
 
-def test_the_old_module_still_holds_every_name():
-    import studies.filter_configs
-    import studies.filter_episodes
-    import studies.filter_eval as old
-    import studies.filter_study
-    import studies.filter_tables
-
-    assert old.FilterConfig is studies.filter_configs.FilterConfig
-    assert old.evaluate_filters is studies.filter_episodes.evaluate_filters
-    assert old.run_filter_study is studies.filter_study.run_filter_study
-    assert old.merge_filter_results is studies.filter_tables.merge_filter_results
-    for name in [*old.__all__, "filter_table", "write_filter_results", "FILTER_COLUMNS", "START_FROM", "_Tally"]:
-        assert hasattr(old, name), name
-    assert np.isfinite(old.default_threshold(Air3D(), 0.02))

@@ -10,9 +10,10 @@ import torch
 import reach_envs  # noqa: F401  (registers the environments)
 from reach.systems import Air3D, MultiVehicle9D
 from safety import SafetyFilter, SafetyFilterWrapper, worst_case_disturbance
-from safety.sources import load_value_function
-from safety.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper
-from studies.filter_eval import FilterConfig, evaluate_filters, outside_states
+from safety.filters.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper
+from safety.value_loading import load_value_function
+from studies.filter_configs import FilterConfig
+from studies.filter_episodes import evaluate_filters, outside_states
 from training import NeuralValueFunction, ValueNetwork
 
 

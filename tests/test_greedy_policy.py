@@ -8,11 +8,12 @@ import torch
 
 from reach.systems.base import Box, ControlAffineSystem
 from safety import SafetyFilter
-from safety.rollout import rollout
-from safety.sources import load_value_function
+from safety.value_loading import load_value_function
 from safety.value_policies import GREEDY_STEP, GreedyPolicy, OptimalPolicy
-from safety.verify import VerifySettings
-from studies.filter_eval import FilterConfig, evaluate_filters, outside_states
+from safety.verification.rollout import rollout
+from safety.verification.verify import VerifySettings
+from studies.filter_configs import FilterConfig
+from studies.filter_episodes import evaluate_filters, outside_states
 
 
 class _Plane(ControlAffineSystem):

@@ -1,4 +1,4 @@
-"""Interval arithmetic as a column backend (reach.intervals): every system's physics, bounded soundly.
+"""Interval arithmetic as a column backend (safety.formal.intervals): every system's physics, bounded soundly.
 
 For every registered system, on random boxes of states (from nearly points to a tenth of the domain),
 the interval drift-plus-inputs, margins and whole Euler and RK4 steps must contain the values the
@@ -17,9 +17,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from reach.integrators import make_stepper
-from reach.intervals import INTERVAL, Interval, box_columns
 from reach.systems import SYSTEMS
 from reach.systems.arrays import TORCH
+from safety.formal.intervals import INTERVAL, Interval, box_columns
 
 
 def _constructible(name: str) -> bool:
@@ -160,7 +160,7 @@ def test_sums_and_products_are_rounded_outward_and_exact_ones_are_not_widened(pa
     place stays exactly on its cell's edge."""
     from fractions import Fraction
 
-    from reach.intervals import _product_bounds, _sum_bounds
+    from safety.formal.intervals import _product_bounds, _sum_bounds
 
     a, b = (torch.tensor([v], dtype=torch.float64) for v in pair)
     bounds, exact = (

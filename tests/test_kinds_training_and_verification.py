@@ -17,10 +17,10 @@ import torch
 
 from groundtruth import solve
 from reach.systems import Dubins3D, DubinsReachAvoid
-from safety.metrics import violation_statistics
-from safety.rollout import rollout
-from safety.rollout_store import RolloutStore
-from safety.verify import VerifySettings, sample_states, verify
+from safety.verification.metrics import violation_statistics
+from safety.verification.rollout import rollout
+from safety.verification.rollout_store import RolloutStore
+from safety.verification.verify import VerifySettings, sample_states, verify
 from training import NeuralValueFunction, TrainConfig, Trainer, ValueNetwork
 from training.loss import _residual, hji_residual, residual_function
 
@@ -117,7 +117,7 @@ def test_a_reach_avoid_run_trains_and_reloads_in_a_new_process(tmp_path):
     rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     assert rows and all(math.isfinite(r["loss"]) for r in rows)
     code = (
-        "import torch; from safety.sources import load_value_function;"
+        "import torch; from safety.value_loading import load_value_function;"
         f"vf = load_value_function({str(tmp_path / 'run')!r}).value_function;"
         "x = vf.system.sample_states(8);"
         "print(vf.system.kind, vf.network.parameterisation, bool(torch.isfinite(vf.value(x, 2.0)).all()))"
@@ -175,7 +175,7 @@ def test_verification_certifies_the_reachable_set_below_minus_delta(reach_avoid_
     assert row["certified_volume"] == row["reachable_fraction"] > 0
     assert row["certified_samples"] == 200
     # the certification sample lies in {V < -delta}
-    from safety.verify import sample_superlevel_set
+    from safety.verification.verify import sample_superlevel_set
 
     fresh, _ = sample_superlevel_set(grid, row["delta"], 50, 1, 2.0)
     assert bool((grid.value(fresh, 2.0) < -row["delta"]).all())

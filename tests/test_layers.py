@@ -12,8 +12,8 @@ Floors, bottom up (``docs/design.md`` draws them):
 6. ``reach_cli`` (and ``reach.__main__``, the ``python -m reach`` entry) - the command line.
 
 Every ``import`` statement counts, function-local and ``TYPE_CHECKING`` ones included, and so does
-``importlib.import_module("literal")``. The only modules allowed to name a higher floor are the
-deprecation aliases (:data:`reach.deprecation.MOVED`), and no other module may import an alias.
+``importlib.import_module("literal")``. No module names a higher floor, with no exception: nothing has
+been released, so a moved path leaves no alias behind (the changelog says what moved).
 """
 
 from __future__ import annotations
@@ -29,11 +29,9 @@ from pathlib import Path
 
 import pytest
 
-from reach.deprecation import MOVED, SPLIT
-
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = (
-    "reach_runtime", "reach", "reach_envs", "groundtruth", "training", "safety", "studies", "reach_cli", "sweeps"
+    "reach_runtime", "reach", "reach_envs", "groundtruth", "training", "safety", "studies", "reach_cli"
 )  # fmt: skip
 FLOORS = {
     "reach_runtime": 0,
@@ -46,8 +44,6 @@ FLOORS = {
     "reach_cli": 6,
     "reach.__main__": 6,
 }
-#: an upward import on a line carrying this comment is a deprecated alias of a moved name
-ALIAS_MARK = "# deprecated alias"
 
 
 def _module_name(path: Path) -> str:
@@ -66,7 +62,6 @@ def _modules() -> dict[str, Path]:
 
 
 MODULES = _modules()
-ALIASES = {name for name in MODULES if name in MOVED or name in SPLIT}
 
 
 def _floor(module: str) -> int:
@@ -125,18 +120,14 @@ GRAPH = {module: _imports(module) for module in MODULES}
 
 def test_every_module_lies_on_a_floor():
     assert MODULES, "no modules found"
-    for module in set(MODULES) - ALIASES:
+    for module in MODULES:
         _floor(module)
 
 
-@pytest.mark.parametrize("module", sorted(set(MODULES) - ALIASES))
+@pytest.mark.parametrize("module", sorted(MODULES))
 def test_imports_run_down_the_floors(module):
     floor = _floor(module)
-    for target, line, text in GRAPH[module]:
-        if ALIAS_MARK in text:
-            continue
-        new = MOVED.get(target) or " or ".join(SPLIT.get(target, ()))
-        assert target not in ALIASES, f"{module}:{line} imports the deprecated alias {target}; use {new}"
+    for target, line, _ in GRAPH[module]:
         assert _floor(target) <= floor, f"{module}:{line} (floor {floor}) imports {target} (floor {_floor(target)})"
 
 
@@ -150,7 +141,7 @@ def test_envs_and_grid_solver_do_not_import_each_other():
 
 def test_no_import_loops():
     """No module reaches itself through imports, however deep and wherever the import sits."""
-    edges = {m: {t for t, _, text in GRAPH[m] if ALIAS_MARK not in text} for m in MODULES if m not in ALIASES}
+    edges = {m: {t for t, _, _ in GRAPH[m]} for m in MODULES}
     index: dict[str, int] = {}
     low: dict[str, int] = {}
     stack: list[str] = []
@@ -187,63 +178,12 @@ def test_no_import_loops():
     assert not loops, f"import loops: {loops}"
 
 
-#: imports every moved path afresh in one process (each alias's own import, warnings recorded) and
-#: prints, per path, the warning and whether the alias is the new module
-_ALIAS_PROBE = """
-import importlib, json, sys, warnings
-from reach.deprecation import MOVED
-out = {}
-for old in sorted(MOVED):
-    for name in [n for n in sys.modules if n == old or n.startswith(old + ".") or old.startswith(n + ".")]:
-        if name in MOVED:
-            del sys.modules[name]
-    new = importlib.import_module(MOVED[old])
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", DeprecationWarning)
-        module = importlib.import_module(old)
-    out[old] = {"warned": [str(w.message) for w in caught if w.category is DeprecationWarning], "same": module is new}
-print(json.dumps(out))
-"""
-
-
-@pytest.fixture(scope="module")
-def alias_probe() -> dict:
-    import json
-
-    out = subprocess.run([sys.executable, "-c", _ALIAS_PROBE], capture_output=True, text=True, check=True).stdout
-    return json.loads(out)
-
-
-@pytest.mark.parametrize("old", sorted(MOVED))
-def test_each_moved_path_is_an_alias_that_warns(old, alias_probe):
-    result = alias_probe[old]
-    parent = old.rpartition(".")[0]
-    warned_for = parent if parent in ALIASES else old  # a moved package's submodule warns for the package
-    assert any(w.startswith(f"{warned_for} moved to {MOVED[warned_for]}") for w in result["warned"]), result
-    assert result["same"], result
-
-
-@pytest.mark.parametrize("old", sorted(SPLIT))
-def test_each_split_module_is_an_alias_that_warns_and_holds_every_part(old):
-    import importlib
-
-    sys.modules.pop(old, None)
-    with pytest.warns(DeprecationWarning, match=f"{old} was split into"):
-        alias = importlib.import_module(old)
-    for part in SPLIT[old]:
-        new = importlib.import_module(part)
-        for name in new.__all__ if hasattr(new, "__all__") else [n for n in vars(new) if not n.startswith("_")]:
-            assert getattr(alias, name) is getattr(new, name), (old, part, name)
-
-
-def test_moved_names_of_safety_warn_and_resolve():
-    import studies
-
-    for name in ("evaluate_many", "load_results", "markdown_table"):
-        with pytest.warns(DeprecationWarning, match=f"safety.{name} moved to studies.{name}"):
-            import safety
-
-            assert getattr(safety, name) is getattr(studies, name)
+def test_no_alias_or_deprecation_machinery_is_left():
+    """Nothing has been released: a moved path leaves no alias module, no warning shim, no re-export."""
+    for module, path in MODULES.items():
+        source = path.read_text()
+        assert "DeprecationWarning" not in source, f"{module} still warns of a deprecated name"
+        assert "reach.deprecation" not in source, f"{module} imports the removed alias layer"
 
 
 def test_groundtruth_and_training_load_no_gymnasium():

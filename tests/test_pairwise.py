@@ -10,7 +10,7 @@ import torch
 from groundtruth.pairwise import PairwiseUnion, pair_system
 from reach.systems import Car, MultiVehicle, MultiVehicle9D, MultiVehicle12D, MultiVehicle15D
 from safety import rollout
-from safety.sources import load_value_function
+from safety.value_loading import load_value_function
 
 
 def _rigid_motion(x: torch.Tensor, angle: float, shift: tuple[float, float], n: int) -> torch.Tensor:

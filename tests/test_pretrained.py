@@ -11,10 +11,10 @@ import pytest
 
 import reach_envs
 from reach_cli import main
-from safety.metrics import wilson_interval
-from safety.sources import load_value_function
-from safety.verify import VerifySettings, sample_states, verify
-from safety.wrappers import SafetyFilterWrapper
+from safety.filters.wrappers import SafetyFilterWrapper
+from safety.value_loading import load_value_function
+from safety.verification.metrics import wilson_interval
+from safety.verification.verify import VerifySettings, sample_states, verify
 from training import pretrained
 
 NAMES = pretrained.names()
@@ -91,7 +91,7 @@ def test_model_reproduces_its_other_evaluations(name: str, index: int, pair_grid
     sample, with its recorded source and policy. A grid member of the source (the card's 101^3 pair
     grid, not package data) is the tests' 45^3 pair grid: it moves V only where the union is below
     the network."""
-    from safety.sources import composition_kind, member_sources
+    from safety.value_loading import composition_kind, member_sources
 
     card = pretrained.card(name)
     other = card.also_evaluated[index]
@@ -164,8 +164,8 @@ def test_starts_outside_the_learned_brt_come_from_the_scene() -> None:
     import torch
 
     from reach_envs.scenes import make_scene
-    from safety.verify import values_at
-    from studies.filter_eval import outside_states
+    from safety.verification.verify import values_at
+    from studies.filter_episodes import outside_states
 
     vf = load_value_function("pretrained:multivehicle9d").value_function
     scene = make_scene("three-car-merge")

@@ -8,8 +8,8 @@ import math
 import pytest
 import torch
 
-from safety.metrics import binomial_bound_holds, robust_level_search, scenario_epsilon
-from safety.verify import VerifySettings, sample_states, verify
+from safety.verification.metrics import binomial_bound_holds, robust_level_search, scenario_epsilon
+from safety.verification.verify import VerifySettings, sample_states, verify
 
 
 def _synthetic(n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -83,7 +83,7 @@ def test_bad_robust_settings_are_refused(kwargs, match):
 
 def _counting(monkeypatch) -> list[int]:
     """Count the states every rollout of a verification simulates."""
-    verify_module = importlib.import_module("safety.verify")  # the package's `verify` is the function
+    verify_module = importlib.import_module("safety.verification.verify")  # the package's `verify` is the function
 
     counts: list[int] = []
     real = verify_module.rollout
@@ -97,8 +97,8 @@ def _counting(monkeypatch) -> list[int]:
 
 
 def test_a_shared_delta_check_reuses_the_robust_checks_states_and_counts_the_same_failures(air3d_grid, monkeypatch):
-    from safety.rollout import rollout
-    from safety.verify import sample_superlevel_set
+    from safety.verification.rollout import rollout
+    from safety.verification.verify import sample_superlevel_set
 
     counts = _counting(monkeypatch)
     states = sample_states(air3d_grid.system, 400, 0)
@@ -127,7 +127,7 @@ def test_a_shared_delta_check_reuses_the_robust_checks_states_and_counts_the_sam
 
 
 def test_a_robust_level_above_delta_shares_nothing(air3d_grid, monkeypatch):
-    verify_module = importlib.import_module("safety.verify")  # the package's `verify` is the function
+    verify_module = importlib.import_module("safety.verification.verify")  # the package's `verify` is the function
 
     states = sample_states(air3d_grid.system, 400, 0)
     common = dict(samples=400, certify_samples=500, robust_samples=3000, target_eps=0.05, dt=0.01, share_samples=True)

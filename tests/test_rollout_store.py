@@ -7,11 +7,11 @@ from pathlib import Path
 import pytest
 import torch
 
-import safety.rollout_store as rollout_store
+import safety.verification.rollout_store as rollout_store
 from reach.systems import Air3D
 from reach.threads import thread_policy
-from safety.rollout_store import RolloutStore
-from safety.verify import VerifySettings, sample_states
+from safety.verification.rollout_store import RolloutStore
+from safety.verification.verify import VerifySettings, sample_states
 from studies.batch_verification import evaluate_many
 from training import NeuralValueFunction, ValueNetwork
 
@@ -145,7 +145,7 @@ def test_a_second_process_is_refused_before_it_simulates(tmp_path: Path) -> None
             sys.executable,
             "-c",
             "import sys, time\n"
-            "from safety.rollout_store import RolloutStore\n"
+            "from safety.verification.rollout_store import RolloutStore\n"
             f"s = RolloutStore({str(tmp_path / 's')!r}, {{'vf': 1}})\n"
             "print('held', flush=True)\n"
             "time.sleep(60)\n",
@@ -179,7 +179,7 @@ def test_a_table_claimed_with_other_settings_refuses_the_second_run_before_work(
 
 
 def test_a_step_longer_than_the_horizon_and_an_oversized_verification_are_refused() -> None:
-    from safety.verify import check_for_system
+    from safety.verification.verify import check_for_system
 
     system = Air3D()
     with pytest.raises(ValueError, match="dt must not exceed the horizon"):

@@ -27,7 +27,7 @@ from safety import (
     violation_statistics,
     wilson_interval,
 )
-from safety.verify import sample_superlevel_set
+from safety.verification.verify import sample_superlevel_set
 from training import Encoding, NeuralValueFunction, ValueNetwork
 
 

@@ -10,8 +10,8 @@ pytest.importorskip("ray")
 
 from reach.systems import Air3D
 from reach_cli import main
-from safety.sharding import RayBlocks, make_backend
-from safety.verify import VerifySettings, sample_states, verify
+from safety.verification.sharding import RayBlocks, make_backend
+from safety.verification.verify import VerifySettings, sample_states, verify
 from studies.batch_verification import evaluate_many
 from training.network import NeuralValueFunction, ValueNetwork
 

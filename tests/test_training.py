@@ -541,7 +541,7 @@ def test_policy_labels_bound_the_value_from_below(pair_grid):
     (J <= V <= union), here for an untrained network's arbitrary policy; and the rollout says more
     than the any-input floor of l alone."""
     from groundtruth.pairwise import PairwiseUnion
-    from training.labels import policy_lower_bound
+    from training.policy_lower_bounds import policy_lower_bound
 
     system = MultiVehicle9D()
     torch.manual_seed(0)
@@ -600,7 +600,7 @@ def test_mpc_labels_take_the_best_sampled_sequence(pair_grid):
     real control sequences, still at most the union of pairwise values. Beyond it they bootstrap
     from the network; a 9D run with them trains and logs the term."""
     from groundtruth.pairwise import PairwiseUnion
-    from training.labels import mpc_lower_bound, policy_lower_bound
+    from training.policy_lower_bounds import mpc_lower_bound, policy_lower_bound
 
     system = MultiVehicle9D()
     torch.manual_seed(0)

@@ -48,8 +48,8 @@ def test_only_the_package_imports_the_registry():
 def test_moved_names_import_from_where_they_were():
     import reach.systems
     import reach.systems.box
+    import reach.systems.class_names
     import reach.systems.deepreach_normalisation
-    import reach.systems.reference
     import training
     import training.run_directory
     import training.sampling
@@ -68,7 +68,7 @@ def test_moved_names_import_from_where_they_were():
     assert Box is reach.systems.Box is reach.systems.box.Box and Box((), ()) == NO_INPUT
     assert DeepReachNormalisation is reach.systems.DeepReachNormalisation
     assert DeepReachNormalisation is reach.systems.deepreach_normalisation.DeepReachNormalisation
-    assert system_reference is reach.systems.reference.system_reference
+    assert system_reference is reach.systems.class_names.system_reference
     assert import_path(Box) == "reach.systems.box:Box" and system_reference(SYSTEMS["air3d"]) == "air3d"
     assert Trainer is training.Trainer and callable(build_network) and "steps" in RESUME_OVERRIDABLE
     assert moved_run_seed is training.sampling.moved_run_seed

@@ -132,7 +132,6 @@ def test_env_states_must_be_real_numbers():
 
 
 def test_table_cells_escape_pipes_so_tables_render():
-    import warnings
 
     from studies import tables
 
@@ -140,7 +139,3 @@ def test_table_cells_escape_pipes_so_tables_render():
     header, rule, row = text.splitlines()
     assert header == r"| mean \|u - u_nom\| | b |" and row == r"| 1 \| 2 | x |"
     assert header.replace("\\|", "").count("|") == 3  # three unescaped separators: two cells
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        assert tables.markdown_table is tables.columns_table  # the old name, deprecated
-    assert any("renamed columns_table" in str(w.message) for w in caught)

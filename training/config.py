@@ -34,7 +34,7 @@ COMPILE_MIN_STEPS = 2000
 COMPILE_MIN_BUDGET_S = 120.0
 
 
-#: kinds of lower-bound labels (``TrainConfig.lower_bound``; training.labels)
+#: kinds of lower-bound labels (``TrainConfig.lower_bound``; training.policy_lower_bounds)
 LOWER_BOUNDS = ("policy", "mpc")
 
 
@@ -67,7 +67,7 @@ class TrainConfig(SystemSpecified):
     upper_bound: str | None = None
     upper_bound_weight: float = 1.0
     # systems without a disturbance: "policy" labels lower_bound_points sampled states every
-    # lower_bound_every steps with what the network's own policy achieves (training.labels, a lower
+    # lower_bound_every steps with what the network's own policy achieves (training.policy_lower_bounds, a lower
     # bound of V), "mpc" with the best of sampled control sequences bootstrapped by the network;
     # the loss adds lower_bound_weight * mean(relu(J - V)) on them
     lower_bound: str | None = None

@@ -183,7 +183,7 @@ def loss_terms(
     BRTs for a multi-vehicle system), which the residual alone does not enforce.
 
     ``lower_bound`` = ``(x, t, J)``: labelled points with a known lower bound ``J`` of the true value
-    (:func:`training.labels.policy_lower_bound`) add ``weights.lower_bound * mean(relu(J - V(x, t)))``.
+    (:func:`training.policy_lower_bounds.policy_lower_bound`) add ``weights.lower_bound * mean(relu(J - V(x, t)))``.
     """
     terms: dict[str, torch.Tensor] = {}
     total = x.new_zeros(())

@@ -548,7 +548,7 @@ class NeuralValueFunction:
 
     def unchecked(self) -> NeuralValueFunction:
         """The same network without the value-dependent checks of states and times (NaN, inf, the
-        time range), for a graph trace (:mod:`safety.export`): a trace cannot branch on values, and
+        time range), for a graph trace (:mod:`safety.filters.export`): a trace cannot branch on values, and
         the exported filter's runtime makes these checks before it runs the graph."""
         return _UncheckedNeuralValueFunction(self.network, self.matmul_dtype)
 

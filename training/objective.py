@@ -16,9 +16,9 @@ import torch
 from reach.systems import ControlAffineSystem, MultiVehicle
 from training import pretrained
 from training.config import TrainConfig
-from training.labels import check_lower_bound_system
 from training.loss import LossWeights, loss_terms, residual_function
 from training.network import ValueNetwork
+from training.policy_lower_bounds import check_lower_bound_system
 from training.sampling import Labels
 
 

@@ -12,8 +12,8 @@ from __future__ import annotations
 import torch
 
 from training.config import TrainConfig
-from training.labels import mpc_lower_bound, policy_lower_bound
 from training.network import LEARNED_BOUNDARY, ValueNetwork
+from training.policy_lower_bounds import mpc_lower_bound, policy_lower_bound
 
 #: the lower-bound term's labelled points ``(x, t, J)``
 Labels = tuple[torch.Tensor, torch.Tensor, torch.Tensor]

@@ -3,8 +3,7 @@
 The API reference (``docs/api/PACKAGE.md``) lists its modules by hand, in reading order; this hook
 warns (so ``mkdocs build --strict`` fails) when a package has a public module that its page does not
 document, so that a new module cannot go missing from the reference. Public: no part of the dotted
-name starts with ``_``, and it is not a deprecation alias (a path in ``reach.deprecation.MOVED`` or
-``SPLIT``, or a module that calls ``moved(__name__)``/``split(__name__)``), nor ``__main__``.
+name starts with ``_``, and it is not ``__main__``.
 """
 
 from __future__ import annotations
@@ -18,18 +17,9 @@ log = logging.getLogger("mkdocs.hooks.api_pages")
 
 PACKAGES = ("reach", "reach_envs", "groundtruth", "training", "safety", "studies", "reach_cli", "reach_runtime")
 BLOCK = re.compile(r"^:::\s+([\w.]+)\s*$", re.M)
-ALIAS_CALL = re.compile(r"^\s*(?:moved|split)\(\s*__name__", re.M)
 
 
-def _aliases() -> set[str]:
-    try:
-        from reach import deprecation
-    except Exception:  # the base package cannot be imported: mkdocstrings reports that itself
-        return set()
-    return set(getattr(deprecation, "MOVED", {})) | set(getattr(deprecation, "SPLIT", {}))
-
-
-def public_modules(root: Path, package: str, aliases: set[str]) -> list[str]:
+def public_modules(root: Path, package: str) -> list[str]:
     """The public modules of ``package`` (a folder under ``root``), the package itself included."""
     found = []
     base = root / package
@@ -41,17 +31,13 @@ def public_modules(root: Path, package: str, aliases: set[str]) -> list[str]:
             continue
         if not all((root.joinpath(*parts[:i]) / "__init__.py").is_file() for i in range(1, len(parts))):
             continue  # a folder that is not a package (data, templates)
-        name = ".".join(parts)
-        if name in aliases or ALIAS_CALL.search(path.read_text(encoding="utf-8", errors="replace")):
-            continue
-        found.append(name)
+        found.append(".".join(parts))
     return found
 
 
 def on_files(files: Any, config: Any) -> Any:
     root = Path(config["config_file_path"]).parent
     docs = Path(config["docs_dir"])
-    aliases = _aliases()
     for package in PACKAGES:
         if not (root / package / "__init__.py").is_file():
             continue
@@ -60,7 +46,7 @@ def on_files(files: Any, config: Any) -> Any:
             log.warning("api_pages: package %s has no API page (docs/api/%s.md)", package, package)
             continue
         documented = set(BLOCK.findall(page.read_text(encoding="utf-8")))
-        for module in public_modules(root, package, aliases):
+        for module in public_modules(root, package):
             if module not in documented:
                 log.warning("api_pages: docs/api/%s.md does not document %s (add '::: %s')", package, module, module)
     return files

@@ -38,10 +38,10 @@ import torch
 
 from reach.systems.arrays import FLOAT, TORCH, Backend, Column, is_number
 from reach.systems.box import NO_INPUT, Ball, Box, InputSet  # also importable from here, as before the split
+from reach.systems.class_names import system_reference
 from reach.systems.deepreach_normalisation import DeepReachNormalisation  # likewise
 from reach.systems.hamiltonian import FixedStateHamiltonian
 from reach.systems.problem import Objective, ProblemKind, problem_kind
-from reach.systems.reference import system_reference
 from reach.validation import positive_finite
 
 #: Sparse input matrix: {(state index, input index): entry}; absent entries are zero.
@@ -72,7 +72,7 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
     """
 
     #: short name (default: the class name in lower case); configs store the registered name or the
-    #: import path (:func:`reach.systems.reference.system_reference`)
+    #: import path (:func:`reach.systems.class_names.system_reference`)
     name: ClassVar[str]
     state_names: tuple[str, ...]
     #: (low, high) per state dimension; periodic dimensions span one period [-pi, pi)
@@ -169,7 +169,7 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
         where no such bound is known for this integrator.
 
         A proof obligation, declared per system with its argument in the docstring (and checked at
-        samples in the tests): a formal certificate (:mod:`safety.certify`) uses it to treat the
+        samples in the tests): a formal certificate (:mod:`safety.formal.verifier`) uses it to treat the
         states far from failure, where the value function is not trusted or not defined, without
         bounding the network there."""
         return None

@@ -29,9 +29,9 @@ from typing import Any, TypeVar
 
 from reach.systems.base import ControlAffineSystem
 
-# the names table and the naming rule live in reach.systems.reference (the base class needs them
+# the names table and the naming rule live in reach.systems.class_names (the base class needs them
 # without importing this module); they are part of the registry's interface, re-exported here
-from reach.systems.reference import SYSTEMS, import_path, system_reference
+from reach.systems.class_names import SYSTEMS, import_path, system_reference
 
 __all__ = [
     "SYSTEMS",

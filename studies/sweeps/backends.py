@@ -12,7 +12,7 @@ import multiprocessing
 from collections.abc import Iterator, Sequence
 from typing import Any
 
-from safety.sharding import as_completed, start_ray
+from safety.verification.sharding import as_completed, start_ray
 from studies.sweeps.task import run_task
 
 TaskArgs = tuple[str, dict[str, Any], str, int, "str | None", "int | None"]  # run_task's positional arguments

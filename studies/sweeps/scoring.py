@@ -59,8 +59,8 @@ class RolloutScorer:
 
     headline = (("violation_rate", False), ("delta", False), ("certified_volume", True), ("collision_rate", False))
 
-    #: the columns of :func:`safety.verify.verify` a sweep keeps (each kind of problem fills its own:
-    #: :data:`safety.metrics.KIND_COLUMNS`)
+    #: the columns of :func:`safety.verification.verify.verify` a sweep keeps (each kind of problem fills its own:
+    #: :data:`safety.verification.metrics.KIND_COLUMNS`)
     KEEP = (
         "problem",
         "violation_rate",
@@ -89,7 +89,10 @@ class RolloutScorer:
         device: str = "cpu",
         pairwise: str | os.PathLike | None = None,
     ) -> None:
-        from safety.verify import VerifySettings, sample_states  # lazy: the safety stack only for rollout scoring
+        from safety.verification.verify import (  # lazy: the safety stack only for rollout scoring
+            VerifySettings,
+            sample_states,
+        )
 
         # sweeps score many snapshots: no robust certification (it needs about a million rollouts)
         self.settings = VerifySettings(samples=samples, certify_samples=certify_samples, seed=seed, robust_samples=0)
@@ -106,8 +109,8 @@ class RolloutScorer:
 
     def __call__(self, vf: ValueFunction) -> dict[str, float]:
         # lazy: the safety stack only for rollout scoring
-        from safety.metrics import KIND_COLUMNS, containment_statistics
-        from safety.verify import values_at, verify
+        from safety.verification.metrics import KIND_COLUMNS, containment_statistics
+        from safety.verification.verify import values_at, verify
 
         row = verify(vf, self.states, self.settings, device=self.device, progress=False)
         if self.settings.fresh_samples == 0:  # no guarantee asked for: the volume a certificate would cover

@@ -157,7 +157,7 @@ def _slice_plot(spec: SweepSpec, out: Path, rows: list[dict[str, Any]], groundtr
     """BRT slices of the best and the worst layout (by the first headline metric), the seed nearest
     its layout's mean, final snapshot; the ground truth filled where there is one."""
     # lazy: loading and plotting only for the report's slices
-    from safety.sources import load_value_function
+    from safety.value_loading import load_value_function
     from studies.plots import plot_brt_slices
 
     metric, higher = headline_of(spec.evaluation)[0]

@@ -80,7 +80,7 @@ def run_task(
     (training seconds, evaluation excluded), ``steps_per_s`` and the scorer's metrics.
     """
     # lazy: the safety stack only when a task scores
-    from safety.sources import load_value_function
+    from safety.value_loading import load_value_function
     from studies.batch_verification import fingerprint
 
     if threads:

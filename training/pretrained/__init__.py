@@ -18,7 +18,7 @@ union of pairwise BRTs caps the N-car networks. The card:
 - ``sha256``: the digest of ``NAME.pt``, so a swapped or damaged file is refused by name.
 
 Anything that takes a value function takes ``"pretrained:NAME"`` (:data:`PREFIX`), through
-:func:`safety.sources.load_value_function`. ``reach pretrained`` lists the cards.
+:func:`safety.value_loading.load_value_function`. ``reach pretrained`` lists the cards.
 Maintainers add or replace a model with ``benchmarks/make_pretrained.py``.
 """
 

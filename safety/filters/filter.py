@@ -1,9 +1,9 @@
 """Safety filters around a value function: keep the nominal input unless the value says danger.
 
 ``SafetyFilter(vf, threshold, kind=...)(x, t, u_nominal) -> (u, info)``, batched over states; the
-options are one :class:`~safety.filter_settings.FilterSettings`, given whole
+options are one :class:`~safety.filters.settings.FilterSettings`, given whole
 (``SafetyFilter(vf, settings=FilterSettings(kind="smooth"))``) or field by field as keywords. Three
-kinds, one interface (every env adapter in :mod:`safety.wrappers` takes each):
+kinds, one interface (every env adapter in :mod:`safety.filters.wrappers` takes each):
 
 - ``"switch"`` (least-restrictive): keep ``u_nominal`` where ``V(x, t) > threshold``, else apply
   the backup input (by default the greedy input, see below; ``policy="gradient"``: ``u*``). Decides
@@ -45,7 +45,7 @@ relies on it, and whose every backup step would cost ``2^m_u + 1`` value evaluat
 one; and for the smooth filter, whose fallback is by definition the input that does best on its
 barrier condition (``u*``).
 
-The time-to-go ``t`` is the caller's choice (see :mod:`safety.wrappers`). Every kind fails closed: a
+The time-to-go ``t`` is the caller's choice (see :mod:`safety.filters.wrappers`). Every kind fails closed: a
 non-finite value, gradient or optimal input raises instead of passing the nominal input.
 
 Reach kinds (``system.kind`` ``"reach"`` or ``"reach-avoid"``, :mod:`reach.systems.problem`): the
@@ -68,10 +68,10 @@ decision reads ``V`` through :meth:`~reach.systems.problem.ProblemKind.orient` (
   derivative), and with ``t`` held fixed a car circling inside ``{V(., T) < 0}`` meets the
   condition while the deadline passes;
 - the backup input is ``u*`` (``policy="gradient"``; ``"greedy"`` is refused:
-  :func:`~safety.filter_settings.settings_for_system`).
+  :func:`~safety.filters.settings.settings_for_system`).
 
 The time-to-go counts down: the caller passes ``t = horizon - elapsed`` each step (the env adapters
-do, :mod:`safety.wrappers`), and the lookahead predicts at ``t - dt``, ``t - 2 dt``, ... (floored at
+do, :mod:`safety.filters.wrappers`), and the lookahead predicts at ``t - dt``, ``t - 2 dt``, ... (floored at
 0). Where ``t`` has run out (``t <= 0`` for the switch, ``t < dt`` for the lookahead, whose nominal
 step would end past the deadline) nothing can be certified and ``u*`` is applied. For avoid the
 lookahead evaluates its predictions at ``t`` itself (the fixed horizon of the env adapters; avoid's
@@ -84,7 +84,6 @@ refused at construction, naming both kinds.
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -96,7 +95,7 @@ from reach.systems.base import ControlAffineSystem
 from reach.systems.box import Ball, InputSet, require_box
 from reach.validation import positive_finite
 from reach.value_function import ValueFunction
-from safety.filter_settings import (
+from safety.filters.settings import (
     DEFAULT_GAMMA,
     DEFAULT_POLICIES,
     KINDS,
@@ -119,7 +118,6 @@ __all__ = [
     "FilterInfo",
     "FilterSettings",
     "SafetyFilter",
-    "check_filter_settings",
     "make_filter_settings",
     "require_served_kind",
     "resolve_policy",
@@ -127,18 +125,6 @@ __all__ = [
 
 #: slack (s) on the lookahead's "a whole step of time-to-go is left" (times summed in float arithmetic)
 TIME_SLACK = 1e-9
-
-
-def check_filter_settings(kind: str, *args: Any, **kwargs: Any) -> None:
-    """Deprecated (removed in reach 0.3): ``FilterSettings(kind, gamma=..., ...)`` checks its fields
-    when it is made. Kept as a thin wrapper: refuses what :class:`FilterSettings` refuses."""
-    warnings.warn(
-        "check_filter_settings is deprecated; FilterSettings(...) checks its fields when it is made "
-        "(removed in reach 0.3)",
-        DeprecationWarning,
-        stacklevel=2,
-    )
-    FilterSettings(kind, **dict(zip(("gamma", "backup_horizon", "backup_disturbance", "policy"), args)), **kwargs)
 
 
 def require_served_kind(served: ControlAffineSystem, value_system: ControlAffineSystem) -> None:
@@ -191,7 +177,7 @@ class SafetyFilter:
         threshold: the level treated as the boundary (a small positive margin buys robustness);
             ``None`` or not given: ``settings.threshold``, whose ``None`` here means 0 (the default
             rule for a filter acting every env step is the adapters', :meth:`FilterSettings.threshold_for`).
-        settings: the :class:`~safety.filter_settings.FilterSettings` (kind, gamma, backup horizon,
+        settings: the :class:`~safety.filters.settings.FilterSettings` (kind, gamma, backup horizon,
             backup disturbance, backup policy); default ``FilterSettings()``.
         dt: the step the lookahead predicts over (required for ``"lookahead"``; the env adapters
             pass the env's ``dt``).
@@ -201,7 +187,7 @@ class SafetyFilter:
             ``None``: the value function's own system.
         **options: any :class:`FilterSettings` field by name (``kind="smooth", gamma=2.0``), a
             convenience that replaces that field of ``settings``
-            (:func:`~safety.filter_settings.make_filter_settings`).
+            (:func:`~safety.filters.settings.make_filter_settings`).
 
     ``policy="greedy"`` backs up with :class:`~safety.value_policies.GreedyPolicy`, predicted with
     ``integrator`` in steps of ``dt``. ``settings`` (the threshold as now set) reads back the
@@ -297,7 +283,7 @@ class SafetyFilter:
         self, x: torch.Tensor, t: float | torch.Tensor, u_nominal: torch.Tensor
     ) -> tuple[torch.Tensor, FilterInfo]:
         """The decision itself, on inputs :meth:`__call__` has checked (the exported graph traces
-        this method: :mod:`safety.export`, :mod:`safety.tracing`).
+        this method: :mod:`safety.filters.export`, :mod:`safety.tracing`).
 
         A state outside the system's domain (headings wrapped first) keeps no nominal input, in every
         kind: a network there extrapolates beyond the states it was trained on, and its ``V`` is

@@ -1,6 +1,6 @@
 """Verification sharded over Ray: the blocks of a verification's rollouts as Ray tasks.
 
-A verification rolls out its states in blocks of ``chunk_size`` (:mod:`safety.rollout_store`). With a
+A verification rolls out its states in blocks of ``chunk_size`` (:mod:`safety.verification.rollout_store`). With a
 :class:`RayBlocks` backend those blocks run as Ray tasks, on a local Ray instance or the cluster at
 ``address``, the engine the sweeps already use (:mod:`studies.sweeps.backends`):
 
@@ -11,7 +11,7 @@ A verification rolls out its states in blocks of ``chunk_size`` (:mod:`safety.ro
 - the value function is put in Ray's object store once and shared by every task;
 - a worker lost mid-block (killed, a node gone) has its block re-run by Ray (``max_retries``); an
   exception in a block stops the verification with that error;
-- through a :class:`~safety.rollout_store.RolloutStore` (``reach evaluate``) each block is saved by
+- through a :class:`~safety.verification.rollout_store.RolloutStore` (``reach evaluate``) each block is saved by
   this process as it arrives, so an interrupted sharded run resumes with what was done, and no row
   is written until every block is in.
 
@@ -27,7 +27,7 @@ import torch
 
 from reach.validation import positive_finite
 from reach.value_function import ValueFunction
-from safety.rollout import RolloutResult, RolloutSettings, concat_results, rollout
+from safety.verification.rollout import RolloutResult, RolloutSettings, concat_results, rollout
 
 #: the backends ``reach evaluate --backend`` takes
 BACKENDS = ("local", "ray")

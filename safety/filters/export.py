@@ -7,7 +7,7 @@ needs to check its inputs and everything a reader needs to know what it holds (t
 parameters, the settings in force, ``dt`` and the integrator, the source and its fingerprint).
 
 **One implementation.** The graph is not a second filter written for ONNX: it is
-:meth:`safety.filter.SafetyFilter.decide` itself, traced by ``make_fx`` into ATen operations
+:meth:`safety.filters.filter.SafetyFilter.decide` itself, traced by ``make_fx`` into ATen operations
 (autograd of the margins included) and converted by torch's ONNX exporter. While it is traced,
 checks that would raise record into an ``untrusted`` output instead, and value-dependent shortcuts
 compute every row (:mod:`safety.tracing`): the traced decision is the eager one.
@@ -15,7 +15,7 @@ compute every row (:mod:`safety.tracing`): the traced decision is the eager one.
 **What is checked where.** The runtime checks shapes, NaN and inf, and the time-to-go's range
 before it runs the graph, as :meth:`SafetyFilter.__call__` does; the graph flags non-finite values,
 gradients and optimal inputs (``untrusted``: the runtime raises) and states outside the domain
-(``outside_domain``: the filter intervenes, :class:`~safety.filter_settings.FilterSettings`).
+(``outside_domain``: the filter intervenes, :class:`~safety.filters.settings.FilterSettings`).
 
 **Refused**, naming what: a value function that is not a network or a minimum of networks (a grid's
 interpolation is not traced), a network multiplying in reduced precision, an output path that is not
@@ -40,10 +40,10 @@ from reach.systems.base import ControlAffineSystem
 from reach.systems.box import Ball
 from reach.validation import check_output_path
 from reach.value_function import MinimumOf, ValueFunction, time_range
-from safety.filter import SafetyFilter
-from safety.filter_settings import REMAINING, FilterSettings, make_filter_settings, settings_for_system
-from safety.sources import as_value_function
+from safety.filters.filter import SafetyFilter
+from safety.filters.settings import REMAINING, FilterSettings, make_filter_settings, settings_for_system
 from safety.tracing import recording_trust
+from safety.value_loading import as_value_function
 from training.checkpoint import network_digest
 from training.network import NeuralValueFunction
 
@@ -251,7 +251,7 @@ def export_filter(
 
     Args:
         source: a value function, or where to load one (a run, a ``.pt`` file, ``pretrained:NAME``,
-            ``min:A,B``; :func:`~safety.sources.as_value_function`).
+            ``min:A,B``; :func:`~safety.value_loading.as_value_function`).
         out: the ``.onnx`` file to write (atomically; its folder is created).
         settings: the filter's :class:`FilterSettings`, or field by field in ``options``. An unset
             threshold takes the env adapters' rule for a filter acting every ``dt``

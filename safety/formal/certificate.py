@@ -1,6 +1,6 @@
 """A formally certified safe set from the verifier's boxes, its certificate file, and the checker.
 
-:func:`safety.certify.certify` proves boxes one at a time: on each **proven** box every state of
+:func:`safety.formal.verifier.certify` proves boxes one at a time: on each **proven** box every state of
 ``S_c = {V(x, T) >= c}`` is safe and has a backup input that keeps its next state in ``S_c``. Some
 boxes stay refuted or unknown, so ``S_c`` itself is not certified. :func:`certified_set` certifies
 instead ``S = union of the kept boxes``: every kept box holds no failure state (``l > 0`` on all of
@@ -22,13 +22,13 @@ none of the verifier's search: the fingerprint, system and settings must match; 
 must bound ``V < c``; every kept box must bound ``l > 0``; and with its stored input, each of its
 next-state pieces must lie within the kept boxes, or have ``V >= c`` and lie within the kept and
 outside boxes. The checker reuses the bounds
-(:mod:`safety.linear_bounds`, :mod:`reach.intervals`), not the search.
+(:mod:`safety.formal.linear_bounds`, :mod:`safety.formal.intervals`), not the search.
 
 Closure is checked on the cell grid of the boxes (the verifier's cover is dyadic), held sparsely by
-:class:`safety.dyadic_cover.DyadicCover`: its cost grows with the boxes, not with the ``R**n`` cells,
+:class:`safety.formal.cover.DyadicCover`: its cost grows with the boxes, not with the ``R**n`` cells,
 so the 6D and 9D systems' covers are checked as Air3D's are (grids up to ``2**62`` cells). The
 closure finds once which boxes each next-state piece meets (the owner of each of its cells, from a
-dense table where the grid is small enough, :class:`safety.dyadic_cover.DenseOwner`), so that a
+dense table where the grid is small enough, :class:`safety.formal.cover.DenseOwner`), so that a
 round costs one pass over those pairs, whatever the grid. With ``closure_refinements`` the cover
 then grows finer near the set's edge and the closure runs again (:func:`_split_at_edge`).
 """
@@ -47,8 +47,9 @@ import numpy as np
 import torch
 
 from reach.atomic import atomic_path
-from reach.intervals import Interval
-from safety.certify import (
+from safety.formal.cover import DenseOwner, DyadicCover, cells_in, cover_of, owner_of
+from safety.formal.intervals import Interval
+from safety.formal.verifier import (
     ESCAPE,
     OUTSIDE,
     PROVEN,
@@ -59,7 +60,6 @@ from safety.certify import (
     _Verifier,
     margin_bounds,
 )
-from safety.dyadic_cover import DenseOwner, DyadicCover, cells_in, cover_of, owner_of
 from training.checkpoint import network_digest
 from training.network import NeuralValueFunction, ValueNetwork
 

@@ -1,6 +1,6 @@
 """Linear bounds of a value network over boxes, propagated back through the layers (CROWN-style).
 
-:mod:`safety.bounds`' intervals forget how a layer's inputs are correlated, which on trained sine
+:mod:`safety.formal.bounds`' intervals forget how a layer's inputs are correlated, which on trained sine
 networks costs three to four orders of magnitude. Here every activation is instead enclosed between
 two parallel lines on its pre-activation interval (the chord's slope, each line's offset the
 exact extreme of ``f(z) - slope z`` over the interval, found among the endpoints and the points where
@@ -12,7 +12,7 @@ The heading encoding is the first layer: ``(t, x)`` maps linearly to ``(t', x_ke
 then elementwise to ``(t', x_kept, r sin theta, r cos theta)``, so sin and cos of the same heading
 stay tied to it.
 
-Same conventions as :mod:`safety.bounds`: float64 on the CPU, boxes ``(B, n)``, times scalars or
+Same conventions as :mod:`safety.formal.bounds`: float64 on the CPU, boxes ``(B, n)``, times scalars or
 ``(B,)``, and an outward margin that bounds the float64 rounding of every product and sum (the
 standard ``gamma_k = k u / (1 - k u)`` bound on a sum of products of ``k`` terms, applied to the
 same computation in absolute values).
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from safety.bounds import FUNCTION_ULPS, UNIT_ROUNDOFF, Interval, _check_box, interval_bounds, on_network_device
+from safety.formal.bounds import FUNCTION_ULPS, UNIT_ROUNDOFF, Interval, _check_box, interval_bounds, on_network_device
 from training.network import Sine, ValueNetwork
 
 __all__ = ["INTERMEDIATE", "linear_bounds"]
@@ -242,7 +242,7 @@ INTERMEDIATE = ("backward", "forward")
 def linear_bounds(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi, intermediate: str = "backward") -> Interval:
     """Sound bounds of ``network.raw(x, t)`` over each box (``(B, n)`` corners, times scalars or
     ``(B,)``), by linear relaxations carried back through the layers; intersected with
-    :func:`safety.bounds.interval_bounds`. The output is always bounded by back-substitution; the
+    :func:`safety.formal.bounds.interval_bounds`. The output is always bounded by back-substitution; the
     pre-activation intervals of the layers below, which the relaxations need, are back-substituted
     too (``intermediate="backward"``, ``O(layers^2 width^3)`` per box) or carried forward
     (``"forward"``, ``O(layers width^2 d)`` for ``d`` inputs, :func:`_forward_pre_activations`)."""

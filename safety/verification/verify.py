@@ -1,14 +1,14 @@
 """Verification of one value function: rollouts from sampled states, statistics, the guarantee.
 
 :func:`verify` rolls out ``N`` given states (the same states for every value function being
-compared), computes :func:`~safety.metrics.violation_statistics`, and, unless told not to, certifies
+compared), computes :func:`~safety.verification.metrics.violation_statistics`, and, unless told not to, certifies
 the delta-level on a *fresh* sample drawn uniformly from ``{V(x, T) > delta}`` (a delta chosen from
 one sample must be certified on another), giving the scenario ``eps`` for ``beta``.
 
 For reach and reach-avoid problems the same steps run on the other side of zero: the certified set
 is ``{V(x, T) < -delta}``, the states from which the learned policy reaches the target in time (and,
 for reach-avoid, without a collision) with confidence ``1 - beta``; every row names its ``problem``
-kind, and its columns are the kind's (:data:`~safety.metrics.KIND_COLUMNS`).
+kind, and its columns are the kind's (:data:`~safety.verification.metrics.KIND_COLUMNS`).
 """
 
 from __future__ import annotations
@@ -20,13 +20,19 @@ from typing import Any
 
 import torch
 
-from reach.memory import require_memory
+from reach.memory_check import require_memory
 from reach.systems import ControlAffineSystem
 from reach.threads import thread_policy
 from reach.value_function import ValueFunction
-from safety.metrics import KIND_COLUMNS, robust_level_search, scenario_epsilon, violation_statistics, wilson_interval
-from safety.rollout import RolloutResult, RolloutSettings, rollout
-from safety.rollout_store import RolloutStore
+from safety.verification.metrics import (
+    KIND_COLUMNS,
+    robust_level_search,
+    scenario_epsilon,
+    violation_statistics,
+    wilson_interval,
+)
+from safety.verification.rollout import RolloutResult, RolloutSettings, rollout
+from safety.verification.rollout_store import RolloutStore
 
 
 @dataclass(frozen=True)
@@ -188,9 +194,9 @@ def verify(
 ) -> dict[str, Any]:
     """Violation statistics of ``vf`` on ``states`` and, if asked, the certified delta-level.
 
-    With a ``store`` (:class:`~safety.rollout_store.RolloutStore`) every rollout is saved block by
+    With a ``store`` (:class:`~safety.verification.rollout_store.RolloutStore`) every rollout is saved block by
     block and a repeated call loads what an interrupted one finished: the same row, resumed. With a
-    ``backend`` (:class:`~safety.sharding.RayBlocks`) the blocks run on its workers: the same row.
+    ``backend`` (:class:`~safety.verification.sharding.RayBlocks`) the blocks run on its workers: the same row.
     Unless the caller chose a thread count, torch uses the cores other processes leave free while
     it runs (:func:`reach.threads.thread_policy`)."""
     check_for_system(vf.system, settings)
@@ -322,7 +328,7 @@ def _robust_certification(
     """Robust scenario certification (Lin & Bansal, L4DC 2024, Thm 2), in two independent samples.
 
     1. *Search*: ``N`` fresh uniform states (seed + 2) are rolled out, and
-       :func:`~safety.metrics.robust_level_search` picks the lowest level whose superlevel set they
+       :func:`~safety.verification.metrics.robust_level_search` picks the lowest level whose superlevel set they
        certify at ``target_eps``; the set's volume is estimated from the same uniform sample.
     2. *Certification*: ``N`` fresh states from ``{V > level}`` (seed + 3), rolled out; their ``k``
        failures give ``robust_eps``, the bound that holds with confidence ``1 - beta`` (a level

@@ -5,7 +5,7 @@ A system writes its physics once on columns (:mod:`reach.systems.arrays`). Run t
 over boxes), and it returns intervals that contain every value the physics takes on the boxes:
 the drift, the input matrices, the margins, and (through :func:`reach.integrators.make_stepper`,
 which is backend-generic) a whole Euler or RK4 step with the disturbance ranging over its box.
-Formal certification (:mod:`safety.bounds` and what builds on it) needs exactly these, for every
+Formal certification (:mod:`safety.formal.bounds` and what builds on it) needs exactly these, for every
 registered and user-written system alike.
 
 Sound means: every operation widens its result outward by a bound of its float64 rounding error
@@ -14,7 +14,7 @@ Sums and products do it exactly: an error-free transformation (Knuth's TwoSum, D
 TwoProduct) finds each one's rounding error, and the bound moves one ulp outward only on the side
 the error lies, not at all where the float result is exact. So ``x + 0`` and ``x * 0`` stay
 exact, and a box face that a step leaves in place stays exactly on the face, which the
-certificate's closure depends on (:mod:`safety.certificate`).
+certificate's closure depends on (:mod:`safety.formal.certificate`).
 Intervals forget correlations (``x - x`` is not 0), so bounds of long expressions are loose on
 large boxes and tighten as boxes shrink, which branch and bound provides.
 

@@ -1,6 +1,6 @@
 """A branch-and-bound verifier's progress on disk, so that a stopped run continues where it stopped.
 
-:func:`safety.certify.certify` given a progress file (``reach certify ... --resume FILE.npz``) saves its
+:func:`safety.formal.verifier.certify` given a progress file (``reach certify ... --resume FILE.npz``) saves its
 state there atomically every :data:`SAVE_EVERY_S` seconds and when it stops: the boxes still queued,
 the boxes decided with their status and backup input, the counterexamples, and the boxes handled and
 seconds spent so far. Started again with the same file, it loads that state and goes on; a run that

@@ -1,6 +1,6 @@
 """Boxes on a dyadic cell grid, held sparsely: which cells they cover, at any dimension.
 
-A certificate's boxes (:mod:`safety.certificate`) come from branch and bound: a first cover cut into
+A certificate's boxes (:mod:`safety.formal.certificate`) come from branch and bound: a first cover cut into
 halves again and again, so every box's corners are whole cells of a grid of ``R`` cells a dimension,
 and each box is a union of aligned cubes of ``2**level`` cells a side. Checking that a next-state box
 lies within the certified boxes needs "which boxes does this range of cells meet?". A dense table of

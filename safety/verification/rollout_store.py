@@ -44,7 +44,7 @@ import torch
 from reach.atomic import atomic_path
 from reach.locking import exclusive_lock
 from reach.value_function import ValueFunction
-from safety.rollout import RolloutResult, RolloutSettings, concat_results, rollout
+from safety.verification.rollout import RolloutResult, RolloutSettings, concat_results, rollout
 
 MANIFEST = "manifest.json"
 #: per-state outcome tensors a block keeps, with their dtypes
@@ -157,11 +157,11 @@ class RolloutStore:
         backend: Any = None,
         **run: Any,
     ) -> RolloutResult:
-        """:func:`~safety.rollout.rollout` of ``states`` in blocks of ``settings.chunk_size``,
+        """:func:`~safety.verification.rollout.rollout` of ``states`` in blocks of ``settings.chunk_size``,
         each loaded from the store if it holds that block of these states, else simulated and saved.
         The same outcomes as one call (the engine chunks the same way); ``wall_time`` and the work
         sum the blocks' own simulation, whenever it ran. A ``backend``
-        (:class:`~safety.sharding.RayBlocks`) simulates the missing blocks on its workers; this
+        (:class:`~safety.verification.sharding.RayBlocks`) simulates the missing blocks on its workers; this
         process alone writes the store."""
         if run.get("record"):
             raise ValueError("a RolloutStore keeps outcomes, not trajectories (record=True)")

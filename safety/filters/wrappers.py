@@ -1,6 +1,6 @@
 """The safety filter as environment wrappers: Gymnasium, Gymnasium vector, PettingZoo parallel.
 
-Each adapter reads the environment's exact (float64) state, asks :class:`~safety.filter.SafetyFilter`
+Each adapter reads the environment's exact (float64) state, asks :class:`~safety.filters.filter.SafetyFilter`
 for the input to apply, and steps the wrapped environment with it. Actions stay in the
 environments' normalised units ([-1, 1] per turn rate): a kept action passes through unchanged and
 a replaced one is ``u*`` normalised (a box corner, so exactly +-1, or 0 on a tie).
@@ -10,21 +10,21 @@ value function was trained for; a number fixes another horizon; ``"remaining"`` 
 in the episode (``horizon - elapsed``, floored at 0). Reach kinds (``"reach"``, ``"reach-avoid"``)
 have a deadline, the end of the episode: ``None`` means ``"remaining"`` there, so the time-to-go
 counts down every step, a fixed number is refused, and once it has run out the filter applies
-``u*`` (it can certify nothing; :mod:`safety.filter`).
+``u*`` (it can certify nothing; :mod:`safety.filters.filter`).
 
-Settings: the filter's options are one :class:`~safety.filter_settings.FilterSettings`, given whole
+Settings: the filter's options are one :class:`~safety.filters.settings.FilterSettings`, given whole
 (``SafetyFilterWrapper(env, vf, settings=FilterSettings(kind="lookahead"))``) or field by field as
 keywords (``SafetyFilterWrapper(env, vf, kind="lookahead")``); its defaults are the ones below.
 
 Filters: ``kind="switch"`` (default), ``"lookahead"`` (predicts one env step with the env's ``dt``
 and integrator, then ``backup_horizon`` seconds of the backup policy, default the system's horizon,
 along the ``backup_disturbance`` paths, default ``"robust"``)
-or ``"smooth"`` (``gamma``: the barrier rate); see :mod:`safety.filter`.
+or ``"smooth"`` (``gamma``: the barrier rate); see :mod:`safety.filters.filter`.
 
 Backup input: ``policy="greedy"`` applies :class:`~safety.value_policies.GreedyPolicy`'s input where a
 filter overrides the nominal input, ``"gradient"`` the gradient's ``u*``; ``None`` (default) takes
 the kind's default, greedy for the switch, gradient for the lookahead and the smooth filter (see
-:mod:`safety.filter`).
+:mod:`safety.filters.filter`).
 
 Threshold: a switch or smooth filter that acts once per environment step (zero-order hold) lets
 ``V`` fall by up to about ``|dl/dt|_max * dt`` before it can react, so their default threshold
@@ -36,8 +36,8 @@ filter checks the state after the step and a rollout of the backup policy after 
 threshold is 0 (on Air3D, 1,000 attacked episodes: no collision with the grid truth or the
 10-minute network).
 
-Certificate: ``certificate=CERT`` (a :class:`~safety.certificate.Certificate` or its ``.npz`` file,
-:mod:`safety.certify`) filters with :class:`~safety.certified_filter.CertifiedFilter` instead: inside
+Certificate: ``certificate=CERT`` (a :class:`~safety.formal.certificate.Certificate` or its ``.npz`` file,
+:mod:`safety.formal.verifier`) filters with :class:`~safety.formal.certified_filter.CertifiedFilter` instead: inside
 the certified set the nominal action is kept only where it is proven to stay in the set, otherwise
 the certificate's backup input is applied, so an episode that starts in the set stays safe for all
 time, by proof. The certificate is re-verified for ``value_function`` first, and refused, naming the
@@ -63,9 +63,9 @@ from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from reach.value_function import ValueFunction, check_time_coverage
 from reach_envs.spaces import inputs_of_actions
-from safety.filter import FilterInfo, SafetyFilter, require_served_kind
-from safety.filter_settings import DEFAULT_GAMMA, REMAINING, FilterSettings, default_threshold, make_filter_settings
-from safety.sources import as_value_function
+from safety.filters.filter import FilterInfo, SafetyFilter, require_served_kind
+from safety.filters.settings import DEFAULT_GAMMA, REMAINING, FilterSettings, default_threshold, make_filter_settings
+from safety.value_loading import as_value_function
 from training import pretrained
 
 __all__ = [
@@ -164,13 +164,13 @@ class _Adapter(_UnitAdapter):
 
 
 class _CertifiedAdapter(_UnitAdapter):
-    """The adapter of a certificate: :class:`~safety.certified_filter.CertifiedFilter`, refused where
+    """The adapter of a certificate: :class:`~safety.formal.certified_filter.CertifiedFilter`, refused where
     the env breaks one of the certificate's assumptions."""
 
     def __init__(self, system: Any, value_function: ValueFunction | str, scene: Any, certificate: Any) -> None:
         # lazy: the certificate machinery (bounds, intervals) only for a certified wrapper
-        from safety.certificate import Certificate, load_certificate
-        from safety.certified_filter import CertifiedFilter
+        from safety.formal.certificate import Certificate, load_certificate
+        from safety.formal.certified_filter import CertifiedFilter
 
         label = str(certificate) if not isinstance(certificate, Certificate) else "the certificate"
         cert = certificate if isinstance(certificate, Certificate) else load_certificate(certificate)
@@ -209,7 +209,7 @@ class _FilterAdapterMixin:
 
     ``threshold``, ``time_to_go`` and any other :class:`FilterSettings` field given by keyword
     (``kind="lookahead"``) replace that field of ``settings``
-    (:func:`~safety.filter_settings.make_filter_settings`); ``None`` leaves it as ``settings`` has it.
+    (:func:`~safety.filters.settings.make_filter_settings`); ``None`` leaves it as ``settings`` has it.
     """
 
     _adapter: _UnitAdapter
@@ -262,7 +262,7 @@ class _FilterAdapterMixin:
     @property
     def safety_filter(self) -> Any:
         """The filter in use: a :class:`SafetyFilter` (its ``threshold`` may be changed between steps),
-        or the :class:`~safety.certified_filter.CertifiedFilter` of a certificate."""
+        or the :class:`~safety.formal.certified_filter.CertifiedFilter` of a certificate."""
         return self._adapter.filter
 
     @property
@@ -277,7 +277,7 @@ class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordCons
 
     ``SafetyFilterWrapper(env, value_function=None, threshold=None, time_to_go=None, device="cpu",
     *, settings=None, **options)``: the filter's options are one
-    :class:`~safety.filter_settings.FilterSettings` (``settings``), or its fields by keyword.
+    :class:`~safety.filters.settings.FilterSettings` (``settings``), or its fields by keyword.
     Without ``value_function`` the filter uses the model shipped for the env
     (:func:`training.pretrained.for_env`: ``SafetyFilterWrapper(gym.make("Air3D-v0"))`` filters with
     ``"pretrained:air3d"``); an env no shipped model fits raises ``ValueError``.

@@ -20,7 +20,7 @@ random sine networks IBP stays 65-74x above it on small boxes and the mean-value
 3-4x. On the trained networks the weights are larger and the overestimation far worse: IBP
 1,100-15,000x at half-widths of 1e-3 to 1e-5 of the span, the mean-value form 180x (9D) and
 740x (Air3D) only at 1e-5. Neither is tight enough to certify a trained sine network by branch and
-bound at a useful box count; :mod:`safety.linear_bounds` (linear relaxations carried back through
+bound at a useful box count; :mod:`safety.formal.linear_bounds` (linear relaxations carried back through
 the layers) is, within 1.2x of the range from 1e-3 of the span down.
 
 Both compute in float64 and widen each step outward by an a-priori bound of its own rounding
@@ -42,7 +42,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from reach.intervals import FUNCTION_ULPS, UNIT_ROUNDOFF, cos_interval, sin_interval
+from safety.formal.intervals import FUNCTION_ULPS, UNIT_ROUNDOFF, cos_interval, sin_interval
 from training.network import Sine, ValueNetwork
 
 Interval = tuple[torch.Tensor, torch.Tensor]

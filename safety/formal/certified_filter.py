@@ -1,6 +1,6 @@
 """A safety filter that is safe for all time by proof: it keeps a certificate's set invariant.
 
-:mod:`safety.certificate` certifies a set ``S``, the union of its kept boxes (and the escape set
+:mod:`safety.formal.certificate` certifies a set ``S``, the union of its kept boxes (and the escape set
 ``E`` where it has one): from every state of ``S`` its box's backup input keeps the next state in
 ``S``, under every disturbance, and ``S`` never meets the failure set. :class:`CertifiedFilter` is
 the least restrictive filter that keeps ``S``:
@@ -18,7 +18,7 @@ the least restrictive filter that keeps ``S``:
   is not finite is refused with an error.
 
 Each decision bounds a few boxes (about a millisecond each on a CPU): a filter for a Python control
-loop, not for the 1 kHz exported path of :mod:`safety.export`.
+loop, not for the 1 kHz exported path of :mod:`safety.filters.export`.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import torch
 
-from safety.certificate import (
+from safety.formal.certificate import (
     Certificate,
     _Grid,
     check_provenance,
@@ -35,7 +35,7 @@ from safety.certificate import (
     load_certificate,
     verify_certificate,
 )
-from safety.certify import _network, _Verifier
+from safety.formal.verifier import _network, _Verifier
 from training.network import NeuralValueFunction, ValueNetwork
 
 __all__ = ["CertifiedFilter", "CertifiedInfo"]
@@ -53,9 +53,9 @@ class CertifiedInfo:
 
 
 class CertifiedFilter:
-    """The filter of a certificate (a :class:`~safety.certificate.Certificate` or its ``.npz`` path) for
+    """The filter of a certificate (a :class:`~safety.formal.certificate.Certificate` or its ``.npz`` path) for
     ``value_function``. ``verify=True`` (the default) re-verifies the certificate first
-    (:func:`~safety.certificate.verify_certificate`); ``False`` checks only that it was made for this
+    (:func:`~safety.formal.certificate.verify_certificate`); ``False`` checks only that it was made for this
     value function and system."""
 
     def __init__(

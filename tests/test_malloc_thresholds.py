@@ -1,4 +1,4 @@
-"""reach.heap: freed memory stays in the process inside ``retained_heap``, so pages are not faulted in again."""
+"""reach.malloc_thresholds: freed memory stays in the process inside ``retained_heap`` (pages not faulted again)."""
 
 from __future__ import annotations
 
@@ -8,12 +8,12 @@ import sys
 
 import pytest
 
-from reach import heap
+from reach import malloc_thresholds as heap
 
 CHURN = r"""
 import json, resource, sys
 import numpy as np
-from reach.heap import retained_heap
+from reach.malloc_thresholds import retained_heap
 
 def churn():
     for _ in range(12):

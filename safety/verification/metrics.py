@@ -87,7 +87,7 @@ def robust_level_search(
     two best), returns ``(level, n, k)`` for the largest set where :func:`binomial_bound_holds`, or
     None when no set qualifies (too few samples for ``target_eps``: ``k = 0`` needs
     ``n >= ln(1 / beta) / target_eps``). A level found by this search must be certified on a fresh
-    sample before it means anything (:func:`safety.verify.verify` does).
+    sample before it means anything (:func:`safety.verification.verify.verify` does).
     """
     if not (0.0 < target_eps < 1.0):
         raise ValueError(f"target_eps must lie in (0, 1), got {target_eps!r}")

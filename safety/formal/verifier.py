@@ -19,7 +19,7 @@ dimension, until it reaches ``min_relative_width`` (then **unknown**).
 If every box is outside or proven, then from any state of ``S_c`` a filter that applies the box's
 backup input keeps the state in ``S_c`` for all time, under the model's dynamics, the integrator's
 discrete time and any disturbance in its box, and ``S_c`` never meets the failure set: the
-certificate. Bounds: :mod:`safety.linear_bounds` for the network, :mod:`reach.intervals` for the
+certificate. Bounds: :mod:`safety.formal.linear_bounds` for the network, :mod:`safety.formal.intervals` for the
 margins and the step. This first version certifies avoid problems with the ``exact``, ``diff`` and
 ``vanilla`` output parameterisations.
 
@@ -49,12 +49,12 @@ from dataclasses import asdict, dataclass, field
 import torch
 
 from reach.integrators import check_integrator, make_stepper
-from reach.intervals import INTERVAL, Interval, IntervalBackend, box_columns
 from reach.systems import ControlAffineSystem
 from reach.systems.arrays import TORCH
 from reach.validation import positive_finite
-from safety.certify_progress import SAVE_EVERY_S, VerifierProgress, load_progress, save_progress
-from safety.linear_bounds import linear_bounds
+from safety.formal.intervals import INTERVAL, Interval, IntervalBackend, box_columns
+from safety.formal.linear_bounds import linear_bounds
+from safety.formal.progress import SAVE_EVERY_S, VerifierProgress, load_progress, save_progress
 from training.checkpoint import network_digest
 from training.network import NeuralValueFunction, ValueNetwork
 
@@ -121,7 +121,7 @@ class CertifySettings:
     #: boxes meeting the band below ``E`` are split down to this width (share of the span) to prove
     #: ``V >= c`` on all of them, and (b); the band is thin, so finer there costs little (``None``: as the rest)
     band_min_relative_width: float | None = None
-    #: before the closure (:func:`safety.certificate.certified_set`), boxes wider than this (share of
+    #: before the closure (:func:`safety.formal.certificate.certified_set`), boxes wider than this (share of
     #: the span) are cut into halves down to it, each with its own backup input: a coarse proven box
     #: needs one input for all of it, which a neutral game's flow may not allow (``None``: as proven)
     closure_relative_width: float | None = None
@@ -598,7 +598,7 @@ def certify(
     """Prove (or refute) that ``{V(x, T) >= c}`` is a safe, robustly invariant set (module docstring),
     bounding boxes on ``device`` (a GPU bounds many more boxes a second; float64 throughout).
 
-    ``resume``: a progress file (``.npz``, :mod:`safety.certify_progress`). The run saves its state
+    ``resume``: a progress file (``.npz``, :mod:`safety.formal.progress`). The run saves its state
     there as it goes and when it stops, and a run started again with the same file continues from
     it; a file made for another value function, system or proof is refused, naming the difference.
     The result's ``wall_time`` and ``boxes_handled`` then count every run."""

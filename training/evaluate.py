@@ -1,5 +1,0 @@
-"""Deprecated alias of :mod:`training.accuracy` (moved there; this path is removed in reach 0.3)."""
-
-from reach.deprecation import moved
-
-moved(__name__)
