@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
         card = pretrained.card(name)
         metrics = card.evaluation["metrics"]
         wrong = metrics.get("false_safe_rate", metrics.get("false_reachable_rate"))
-        volume = metrics.get("certified_volume")
+        volume = metrics.get("scenario_volume")
         system = make_system(card.system)
         vf = load_value_function(pretrained.PREFIX + name).value_function
         x = system.sample_states(args.states, generator=torch.Generator().manual_seed(args.seed))

@@ -55,7 +55,7 @@ tar czf "$out/$(basename "$run").tar.gz" "$run"
 fi
 # chunks of 2^18 states: the CPU default (16384) leaves the GPU launch-bound
 want score && timed "$out/evaluate.log" "${SCORE_SECONDS:-600}" $py -m reach evaluate "$run" "$run"/snapshots/*.pt \
-    --device cuda --chunk-size 262144 --samples 100000 --certify-samples 1000000 --pairwise "$pair" \
+    --device cuda --chunk-size 262144 --samples 100000 --scenario-samples 1000000 --pairwise "$pair" \
     --out "$out/evaluate.csv"
 want air3d && for attempt in first second; do
     timed "$out/air3d-$attempt.log" 90 $py -m reach groundtruth air3d --grid 101 --device cuda \

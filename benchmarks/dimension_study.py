@@ -9,11 +9,11 @@ Run (resumable: scored snapshots are kept and skipped)::
 Every fleet trains by the same recipe (:mod:`catalogue_recipes`: two hours of its quiet 2-core
 rate, under the union of pairwise BRTs), and keeps a snapshot of its network every 5 quiet minutes.
 ``score`` verifies each snapshot as ``reach evaluate`` does (``--samples`` uniform states, the
-gradient policy, no certification), so its false-safe rate is a statistical estimate with a Wilson
+gradient policy, no scenario bound), so its false-safe rate is a statistical estimate with a Wilson
 interval; ``report`` gives, per fleet, the first quiet minute from which the false-safe rate stays at
 most 0.1 % (a young network calls nearly every state unsafe, so the first crossing would say
 nothing), the rates at two hours, and the card-protocol volumes of the final model: a ``reach
-evaluate`` of the run directory given by ``--certified``, else the shipped card trained into it.
+evaluate`` of the run directory given by ``--scored``, else the shipped card trained into it.
 Minutes are quiet minutes (snapshot index x 5), not the wall time of a shared machine.
 """
 
@@ -45,7 +45,7 @@ def score(args: argparse.Namespace) -> int:
     from safety.verification.verify import VerifySettings
     from studies.batch_verification import evaluate_many
 
-    settings = VerifySettings(samples=args.samples, certify_samples=0, robust_samples=0, seed=args.seed)
+    settings = VerifySettings(samples=args.samples, scenario_samples=0, robust_samples=0, seed=args.seed)
     for cars, system, run in FLEETS:
         if args.fleets and system not in args.fleets.split(","):
             continue
@@ -128,10 +128,10 @@ def report(args: argparse.Namespace) -> int:
         stays = minutes_to_stay_below(curve)
         _, rate, n, unsafe = curve[-1]
         low, high = wilson_interval(round(rate * n), n)
-        final = _final_scores(run, args.certified)
+        final = _final_scores(run, args.scored)
         metrics = {} if final is None else final["metrics"]
-        volume = metrics.get("certified_volume")
-        robust, robust_eps = metrics.get("robust_certified_volume"), metrics.get("robust_eps")
+        volume = metrics.get("scenario_volume")
+        robust, robust_eps = metrics.get("robust_scenario_volume"), metrics.get("robust_eps")
         print(
             f"| {cars} | {3 * cars} | {'not by 120' if stays is None else f'{stays:.0f}'} | "
             f"{100 * rate:.3f} [{100 * low:.3f}, {100 * high:.3f}] | {100 * unsafe:.2f} | "
@@ -182,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     s.set_defaults(func=score)
     r = sub.add_parser("report")
     r.add_argument(
-        "--certified",
+        "--scored",
         action="append",
         default=[],
         help="a reach evaluate results file of a final run directory (card protocol); else its shipped card",

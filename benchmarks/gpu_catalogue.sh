@@ -68,7 +68,7 @@ for name in ${EVALUATE//,/ }; do
     pairwise=()
     case "$name" in multivehicle*) pairwise=(--pairwise "$PAIRWISE") ;; esac
     timeout -k 10 "$DEADLINE" $PY benchmarks/make_pretrained.py evaluate "$name" \
-        --samples 100000 --certify-samples 1000000 --chunk-size 262144 "${pairwise[@]}" --device "$DEVICE" \
+        --samples 100000 --scenario-samples 1000000 --chunk-size 262144 "${pairwise[@]}" --device "$DEVICE" \
         --out "$WORK/eval/$name.csv" --hardware "$hardware" >"$WORK/eval/card-$name.log" 2>&1 &
     pids+=($!)
 done

@@ -12,7 +12,7 @@ Two steps, each rerunnable:
 2. ``evaluate`` runs ``reach evaluate`` on ``pretrained:NAME`` (the shipped file, so the card
    scores exactly what ships) and records the command, the sample sizes and the metrics::
 
-       python benchmarks/make_pretrained.py evaluate air3d --samples 100000 --certify-samples 100000 \\
+       python benchmarks/make_pretrained.py evaluate air3d --samples 100000 --scenario-samples 100000 \\
            --ground-truth runs/air3d_gt.npz
 
    A grid ships the same way (``export-grid``): a grid solution, resampled to a compact grid,
@@ -67,13 +67,13 @@ CARD_COLUMNS = (
     "collision_ci_high",
     "delta",
     "eps",
-    "certified_samples",
-    "certified_failures",
-    "certified_volume",
+    "scenario_states",
+    "scenario_failures",
+    "scenario_volume",
     "robust_level",
     "robust_eps",
     "robust_failures",
-    "robust_certified_volume",
+    "robust_scenario_volume",
     "iou_volume",
     "mse_volume",
     "iou_slice",
@@ -178,13 +178,13 @@ def evaluate(args: argparse.Namespace) -> int:
     source = pretrained.PREFIX + args.name
     settings = VerifySettings(
         samples=args.samples,
-        certify_samples=args.certify_samples,
+        scenario_samples=args.scenario_samples,
         robust_samples=args.robust_samples,
         seed=args.seed,
         **({} if args.chunk_size is None else {"chunk_size": args.chunk_size}),
     )
     command = ["reach", "evaluate", source, "--samples", str(args.samples)]
-    command += ["--certify-samples", str(args.certify_samples), "--seed", str(args.seed)]
+    command += ["--scenario-samples", str(args.scenario_samples), "--seed", str(args.seed)]
     if args.robust_samples is not None:
         command += ["--robust-samples", str(args.robust_samples)]
     if args.chunk_size is not None:
@@ -216,7 +216,7 @@ def evaluate(args: argparse.Namespace) -> int:
     evaluation = {
         "command": " ".join(shlex.quote(c) for c in command) + " --out results.csv",
         "samples": args.samples,
-        "certify_samples": args.certify_samples,
+        "scenario_samples": args.scenario_samples,
         "robust_samples": args.robust_samples,
         "seed": args.seed,
         "hardware": args.hardware,
@@ -258,7 +258,7 @@ def record(args: argparse.Namespace) -> int:
         "command": args.command,
         "commit": args.commit,
         "samples": settings["samples"],
-        "certify_samples": settings.get("certify_samples"),
+        "scenario_samples": settings.get("scenario_samples"),
         "robust_samples": settings.get("robust_samples"),
         "seed": settings["seed"],
         "hardware": args.hardware,
@@ -300,7 +300,7 @@ def main() -> int:
     v = sub.add_parser("evaluate", help="score the shipped file with reach evaluate and record it in the card")
     v.add_argument("name")
     v.add_argument("--samples", type=int, default=100_000)
-    v.add_argument("--certify-samples", type=int, default=100_000)
+    v.add_argument("--scenario-samples", type=int, default=100_000)
     v.add_argument("--robust-samples", type=int, default=None)
     v.add_argument("--seed", type=int, default=0)
     v.add_argument("--chunk-size", type=positive_int_arg, default=None, help="states per rollout batch (memory only)")

@@ -13,7 +13,7 @@ shares the cores trains what a quiet one trains in that time) for every seed in 
 baseline reuses the 9D accuracy-against-time study's run of the same budget and seed where one
 exists (``--study``; same command, same defaults), so the study and the ablation share their
 baseline. ``score`` verifies as ``reach evaluate`` does, with the study's settings (``--samples``
-uniform states, ``--certify-samples`` fresh ones, the union of pairwise BRTs); ``report`` prints one
+uniform states, ``--scenario-samples`` fresh ones, the union of pairwise BRTs); ``report`` prints one
 row per change, the mean over seeds and each seed's value.
 
 The stages are :mod:`studies.step_budget_study`'s and the table :mod:`studies.step_budget_report`'s;

@@ -17,7 +17,7 @@ actually had). A killed run is resumed (as ``reach train --resume`` does), so st
 loses at most one checkpoint interval.
 
 ``score`` verifies every finished run as ``reach evaluate`` does, with the same ``--samples``
-uniform states and ``--certify-samples`` fresh states, and the union of pairwise BRTs
+uniform states and ``--scenario-samples`` fresh states, and the union of pairwise BRTs
 (``--pairwise``, solved once as by ``reach groundtruth relativepair --grid 101`` if missing), into
 one results table (rows merge, so scoring can be split across sessions). ``report`` prints the
 markdown table and draws ``OUT/accuracy_vs_time.png``.

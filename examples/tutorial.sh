@@ -24,7 +24,7 @@ step avoid-grid reach groundtruth my_systems:DubinsAvoid --grid 101 --out "$out/
 step avoid-train reach train --system my_systems:DubinsAvoid --steps 3000 --seed 0 \
     --groundtruth "$out/avoid_gt.npz" --out "$out/avoid"
 step avoid-evaluate reach evaluate "$out/avoid" "$out/avoid_gt.npz" --system my_systems:DubinsAvoid \
-    --ground-truth "$out/avoid_gt.npz" --samples 20000 --certify-samples 0 --robust-samples 0 \
+    --ground-truth "$out/avoid_gt.npz" --samples 20000 --scenario-samples 0 --robust-samples 0 \
     --out "$out/avoid_eval.csv"
 step avoid-filter reach filter-eval --policy gradient "$out/avoid_gt.npz" "$out/avoid" --system my_systems:DubinsAvoid \
     --filters switch,lookahead,smooth --pursuer worst-case --adversary "$out/avoid_gt.npz" \
@@ -36,7 +36,7 @@ step avoid-sweep reach sweep --system my_systems:DubinsAvoid --layouts ssssl,rrr
 step accel-grid reach groundtruth my_systems:DubinsAccel --grid 31 --out "$out/accel_gt.npz"
 step accel-train reach train --system my_systems:DubinsAccel --steps 3000 --seed 0 --out "$out/accel"
 step accel-evaluate reach evaluate "$out/accel" "$out/accel_gt.npz" --system my_systems:DubinsAccel \
-    --ground-truth "$out/accel_gt.npz" --samples 20000 --certify-samples 0 --robust-samples 0 \
+    --ground-truth "$out/accel_gt.npz" --samples 20000 --scenario-samples 0 --robust-samples 0 \
     --out "$out/accel_eval.csv"
 step accel-filter reach filter-eval --policy gradient "$out/accel_gt.npz" "$out/accel" --system my_systems:DubinsAccel \
     --filters switch,lookahead,smooth --pursuer worst-case --adversary "$out/accel_gt.npz" \
@@ -47,7 +47,7 @@ step gap-grid reach groundtruth my_systems:DubinsGap --grid 101 --out "$out/gap_
 step gap-train reach train --system my_systems:DubinsGap --steps 3000 --seed 0 \
     --groundtruth "$out/gap_gt.npz" --out "$out/gap"
 step gap-evaluate reach evaluate "$out/gap" "$out/gap_gt.npz" --system my_systems:DubinsGap \
-    --ground-truth "$out/gap_gt.npz" --samples 20000 --certify-samples 20000 --robust-samples 0 \
+    --ground-truth "$out/gap_gt.npz" --samples 20000 --scenario-samples 20000 --robust-samples 0 \
     --out "$out/gap_eval.csv"
 step gap-filter reach filter-eval --policy gradient "$out/gap_gt.npz" "$out/gap" --system my_systems:DubinsGap \
     --filters switch,lookahead --pursuer worst-case --adversary "$out/gap_gt.npz" \

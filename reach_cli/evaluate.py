@@ -27,8 +27,8 @@ from safety.verification.verify import VerifySettings
 VERIFY_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
     ("--samples", "samples", {"type": positive_int_arg}, "uniform states, the same for every model"),
     (
-        "--certify-samples",
-        "certify_samples",
+        "--scenario-samples",
+        "scenario_samples",
         {"type": nonnegative_int_arg},
         "fresh states for eps (None: --samples; 0 skips)",
     ),
@@ -63,12 +63,12 @@ VERIFY_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
         {"type": positive_int_arg},
         "states rolled out at once; on a CUDA GPU 262144 unless given",
     ),
-    ("--target-eps", "target_eps", {"type": probability_arg}, "robust certification: eps to certify"),
+    ("--target-eps", "target_eps", {"type": probability_arg}, "robust scenario verification: eps to bound"),
     (
         "--robust-samples",
         "robust_samples",
         {"type": nonnegative_int_arg},
-        "robust certification: fresh states for the search and again for the check (None: as certify; 0 skips)",
+        "robust scenario set: fresh states to search and again to check (None: as --scenario-samples; 0 skips)",
     ),
     (
         "--share-samples",

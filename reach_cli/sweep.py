@@ -37,8 +37,8 @@ SPEC_OPTIONS: tuple[tuple[str, str, dict[str, Any], str], ...] = (
     ("--eval-time", "eval_time", {"type": finite_float_arg}, "time to score at (None: the horizon)"),
     ("--samples", "samples", {"type": positive_int_arg}, "rollout evaluation: sampled states"),
     (
-        "--certify-samples",
-        "certify_samples",
+        "--scenario-samples",
+        "scenario_samples",
         {"type": nonnegative_int_arg},
         "rollout evaluation: fresh states (0: skip)",
     ),

@@ -10,7 +10,7 @@ that fails to load or evaluate becomes a row with its error, and the others go o
 
 Within a source, the rollouts are kept block by block in ``<out>.rollouts/`` (a
 :class:`~safety.verification.rollout_store.RolloutStore` per source, keyed by its fingerprint and the settings)
-until its row is written: a run killed in the middle of a million-state certification resumes
+until its row is written: a run killed in the middle of a million-state verification resumes
 where it stopped when the same command runs again (``rollout_blocks_resumed`` counts the blocks it
 loaded; ``rollout_seconds`` is the blocks' own simulation time, whichever run did it).
 """
@@ -34,6 +34,7 @@ from groundtruth.solution import GridSolution
 from reach.exit_codes import EXIT_PARTIAL
 from reach.json_files import read_json, restore_nan
 from reach.locking import exclusive_lock
+from reach.result_columns import current_names
 from reach.systems import ControlAffineSystem, make_system
 from reach.validation import check_float, check_output_path, settings_from
 from safety.value_loading import (
@@ -65,9 +66,9 @@ TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("failure_rate", "failure %", "pct"),
     ("delta", "delta", "{:.3g}"),  # 3 significant digits: small deltas are the point
     ("eps", "eps", "{:.2e}"),
-    ("certified_volume", "certified vol.", "{:.3f}"),
+    ("scenario_volume", "scenario vol.", "{:.3f}"),
     ("robust_eps", "robust eps", "{:.2e}"),
-    ("robust_certified_volume", "robust vol.", "{:.3f}"),
+    ("robust_scenario_volume", "robust vol.", "{:.3f}"),
     ("iou_volume", "IoU vol.", "{:.3f}"),
     ("mse_volume", "MSE vol.", "{:.2e}"),
     ("iou_slice", "IoU slice", "{:.3f}"),
@@ -112,7 +113,7 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
 
     Each kind of problem has its own columns (:data:`~safety.verification.metrics.KIND_COLUMNS`): an avoid row
     counts false *safe* claims and collisions, a reach row false *reachable* claims and failures, and
-    its delta certifies ``{V < -delta}``. Rows of several kinds get a ``problem`` column and a first
+    its delta bounds ``{V < -delta}``. Rows of several kinds get a ``problem`` column and a first
     line that says the table mixes kinds."""
     kinds = sorted({str(r["problem"]) for r in rows if r.get("problem")})
     if len(kinds) < 2:
@@ -120,7 +121,7 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
     columns = (TABLE_COLUMNS[0], ("problem", "problem", "{}"), *TABLE_COLUMNS[1:])
     note = (
         f"This table mixes kinds of problem ({', '.join(kinds)}): each row fills its own kind's columns, and "
-        "delta certifies {V > delta} for avoid rows, {V < -delta} for reach rows.\n\n"
+        "delta bounds {V > delta} for avoid rows, {V < -delta} for reach rows.\n\n"
     )
     return note + columns_table(rows, columns, drop_empty=True)
 
@@ -155,7 +156,7 @@ def _previous(out: Path, header: dict[str, Any], keep_errors: bool = False) -> d
     path = out.with_suffix(".json")
     if not path.exists():
         return {}
-    data = read_json(path, "existing results", hint="; move the file away to start over")
+    data = current_names(read_json(path, "existing results", hint="; move the file away to start over"))
     if isinstance(data.get("settings"), dict):  # files from before these settings existed used these values
         data["settings"] = _resolved(
             {
@@ -186,7 +187,7 @@ def _resolved(settings: dict[str, Any]) -> dict[str, Any]:
         parsed = VerifySettings(**settings)
     except (TypeError, ValueError):
         return settings
-    return {**settings, "certify_samples": parsed.fresh_samples, "robust_samples": parsed.robust_sample_count}
+    return {**settings, "scenario_samples": parsed.fresh_samples, "robust_samples": parsed.robust_sample_count}
 
 
 def pairwise_union_values(pairwise: str | os.PathLike, system: ControlAffineSystem, states: Any, horizon: float) -> Any:
@@ -354,7 +355,7 @@ def load_results(path: str | os.PathLike) -> list[dict[str, Any]]:
             f"{given} is not a results file of reach evaluate (expected one of {', '.join(RESULT_SUFFIXES[1:])})"
         )
     p = given.with_suffix(".json")
-    return restore_nan(read_json(p, "a reach evaluation file", expect_format=FORMAT)["results"])
+    return current_names(restore_nan(read_json(p, "a reach evaluation file", expect_format=FORMAT)["results"]))
 
 
 __all__ = ["References", "evaluate_many", "expand_sources", "load_results", "markdown_table", "report_failures"]

@@ -16,6 +16,7 @@ from typing import Any
 
 from reach.json_files import read_json, restore_nan
 from reach.locking import exclusive_lock
+from reach.result_columns import current_names
 from studies.filter_configs import FilterConfig
 from studies.tables import columns_table, merge_rows, write_results
 
@@ -107,7 +108,7 @@ def _stored_filter_table(out: str | os.PathLike, header: dict[str, Any]) -> dict
     path = Path(out).with_suffix(".json")
     if not path.exists():
         return {}
-    data = read_json(path, "existing filter results", hint="; move the file away to start over")
+    data = current_names(read_json(path, "existing filter results", hint="; move the file away to start over"))
     if not isinstance(data.get("results"), list):
         raise ValueError(f"{path} is not a filter results table; use another --out or delete it")
     data["results"] = restore_nan(data["results"])  # strict JSON wrote NaN as null

@@ -99,8 +99,8 @@ def _model(name: str) -> list[str]:
                 ("violation_rate", "violation %", 100),
                 ("false_safe_rate", "false safe %", 100),
                 ("false_reachable_rate", "false reachable %", 100),
-                ("certified_volume", "certified volume", 1),
-                ("robust_certified_volume", "robust volume", 1),
+                ("scenario_volume", "scenario volume", 1),
+                ("robust_scenario_volume", "robust volume", 1),
                 ("iou_volume", "IoU vs grid", 1),
             )
             if isinstance(m.get(key), (int, float))

@@ -22,6 +22,8 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
+from reach.result_columns import current_names
+
 #: the default recipe's runs (their layout); the accuracy-against-time table is of these
 BASELINE = "ssssl"
 #: the scored table in a study's folder
@@ -33,8 +35,8 @@ METRICS = (
     ("false_safe_rate", "false-safe rate"),
     ("collision_rate", "collision rate"),
     ("containment_miss_rate", "misses of the pairwise union"),
-    ("certified_volume", "delta-level certified volume"),
-    ("robust_certified_volume", "robust certified volume"),
+    ("scenario_volume", "delta-level scenario volume"),
+    ("robust_scenario_volume", "robust scenario volume"),
 )
 
 #: issue 18's goals for a recipe of at most two CPU hours, drawn as dashed lines (rates as fractions)
@@ -42,8 +44,8 @@ GOALS = {
     "false_safe_rate": 0.0002,
     "collision_rate": 0.187,
     "containment_miss_rate": 0.0,
-    "certified_volume": 0.55,
-    "robust_certified_volume": 0.80,
+    "scenario_volume": 0.55,
+    "robust_scenario_volume": 0.80,
 }
 
 
@@ -55,7 +57,7 @@ def read_results(out: Path) -> list[dict[str, str]] | None:
         print(f"{path}: run the score stage first", file=sys.stderr)
         return None
     with open(path) as fh:
-        return [r for r in csv.DictReader(fh) if not r.get("error")]
+        return [current_names(r) for r in csv.DictReader(fh) if not r.get("error")]
 
 
 def scored_settings(out: Path) -> dict[str, Any] | None:
@@ -84,7 +86,7 @@ def read_metrics(out: Path, also: Path | None = None) -> tuple[list[dict[str, st
 def seed_cells(rows: list[dict[str, str]], labels: set[str], keys: list[str]) -> tuple[int, list[str]]:
     """How many of ``rows`` carry one of ``labels`` (runs are labelled by their folder), and per
     metric in ``keys`` a cell "mean (each seed's value)": one row of the ablation and layout reports.
-    A value that is NaN (a certified volume where no level could be certified) shows as "none", and
+    A value that is NaN (a scenario volume where no level could be bounded) shows as "none", and
     the mean is then left out ("-"): averaging it away would flatter the row."""
     scored = sorted((r for r in rows if r["label"] in labels), key=lambda r: r["label"])
     cells = []

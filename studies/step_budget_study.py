@@ -171,11 +171,11 @@ def ensure_pairwise(path: Path) -> None:
 
 @dataclass(frozen=True)
 class Scoring:
-    """How a study scores its runs: the same uniform states and fresh certification states for every
+    """How a study scores its runs: the same uniform states and fresh scenario states for every
     run, the pairwise union for the containment columns, and where the rollouts run."""
 
     samples: int = 100_000
-    certify_samples: int = 1_000_000
+    scenario_samples: int = 1_000_000
     pairwise: str = DEFAULT_PAIRWISE
     device: str = "cpu"
     chunk_size: int | None = None  # states per batch (None: the verification's default)
@@ -183,7 +183,7 @@ class Scoring:
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> Scoring:
         """The settings :func:`add_run_arguments` parsed."""
-        return cls(args.samples, args.certify_samples, str(args.pairwise), args.device, args.chunk_size)
+        return cls(args.samples, args.scenario_samples, str(args.pairwise), args.device, args.chunk_size)
 
 
 def score_runs(runs: Iterable[Path], out: Path, scoring: Scoring) -> int:
@@ -196,7 +196,7 @@ def score_runs(runs: Iterable[Path], out: Path, scoring: Scoring) -> int:
         print("no finished runs yet", file=sys.stderr)
         return 1
     chunk = {} if scoring.chunk_size is None else {"chunk_size": scoring.chunk_size}
-    settings = VerifySettings(samples=scoring.samples, certify_samples=scoring.certify_samples, **chunk)
+    settings = VerifySettings(samples=scoring.samples, scenario_samples=scoring.scenario_samples, **chunk)
     table = out / RESULTS
     with thread_policy():  # as `reach evaluate`: sampling and the pairwise union too, not only the rollouts
         rows = evaluate_many(done, table, settings, pairwise=scoring.pairwise, device=scoring.device)
@@ -230,7 +230,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", type=int_list, default=[0, 1])
     parser.add_argument("--steps-per-minute", type=float, default=QUIET_STEPS_PER_MINUTE)
     parser.add_argument("--samples", type=int, default=100_000)
-    parser.add_argument("--certify-samples", type=int, default=1_000_000)
+    parser.add_argument("--scenario-samples", type=int, default=1_000_000)
     parser.add_argument("--pairwise", default=DEFAULT_PAIRWISE)
     parser.add_argument("--device", type=device_arg, default="cpu", help="train and score on this device (cpu or cuda)")
     parser.add_argument(

@@ -281,7 +281,7 @@ def test_evaluate_merges_rows_instead_of_replacing_them(tmp_path, air3d_grid):
     a = str(tiny_checkpoint(tmp_path / "a.pt"))
     b = str(tiny_checkpoint(tmp_path / "b.pt", layout="rrrrl"))
     out = tmp_path / "table.csv"
-    settings = VerifySettings(samples=20, certify_samples=0)
+    settings = VerifySettings(samples=20, scenario_samples=0)
     evaluate_many([a, b], out, settings, progress=False)
     evaluate_many([a], out, settings, progress=False)  # fewer sources: b's row stays
     evaluate_many([str(tmp_path / "missing.pt")], out, settings, system="air3d", progress=False)
@@ -305,7 +305,7 @@ def test_concurrent_evaluations_into_one_table_keep_every_row(tmp_path):
                 src,
                 "--samples",
                 "50",
-                "--certify-samples",
+                "--scenario-samples",
                 "0",
                 "--out",
                 out,
@@ -480,7 +480,7 @@ def test_corrupt_sources_become_error_rows(tmp_path):
     sources = [good, *(str(tmp_path / n) for n in ("empty.npz", "truncated.npz", "nosystem.pt", "loop_a"))]
     out = tmp_path / "r.csv"
     # the good source's row is written; the command says that 4 of 5 failed, with a non-zero status
-    assert main(["evaluate", *sources, "--samples", "20", "--certify-samples", "0", "--out", str(out)]) == 3
+    assert main(["evaluate", *sources, "--samples", "20", "--scenario-samples", "0", "--out", str(out)]) == 3
     rows = {Path(r["source"]).name: r for r in json.loads(out.with_suffix(".json").read_text())["results"]}
     assert not rows["good.pt"].get("error")
     for name in ("empty.npz", "truncated.npz", "nosystem.pt", "loop_a"):
@@ -495,7 +495,7 @@ def test_default_groundtruth_output_serves_rollouts(tmp_path):
     solution = GridSolution.load(out)
     assert solution.time_range == (0.0, pytest.approx(Air3D().horizon))
     assert len(solution.times) >= 11
-    code = main(["evaluate", str(out), "--samples", "20", "--certify-samples", "0", "--out", str(tmp_path / "r.csv")])
+    code = main(["evaluate", str(out), "--samples", "20", "--scenario-samples", "0", "--out", str(tmp_path / "r.csv")])
     assert code == 0
 
 

@@ -42,7 +42,7 @@ def test_run_all_quick_and_compare(tmp_path: Path):
 
 
 def _results(path: Path, labels: list[str]) -> None:
-    keys = ["violation_rate", "false_safe_rate", "collision_rate", "containment_miss_rate", "certified_volume"]
+    keys = ["violation_rate", "false_safe_rate", "collision_rate", "containment_miss_rate", "scenario_volume"]
     lines = [",".join(["label", *keys])]
     lines += [",".join([label, *(f"{0.01 * (i + 1) + 0.001 * k:.4f}" for k in range(len(keys)))]) for i, label in
               enumerate(labels)]  # fmt: skip
@@ -98,17 +98,17 @@ def test_nine_d_study_and_ablation_reports_read_the_scored_runs(tmp_path: Path):
     assert "| rrrrl | 18125 | 1 | 0.03 (0.03) |" in out.stdout
 
 
-def test_nine_d_study_cells_show_uncertified_seeds_and_runs_move_between_devices(tmp_path: Path, monkeypatch):
-    """A seed whose robust search certified nothing (NaN) shows as "none" and withholds the mean; a
+def test_nine_d_study_cells_show_unbounded_seeds_and_runs_move_between_devices(tmp_path: Path, monkeypatch):
+    """A seed whose robust search bounded nothing (NaN) shows as "none" and withholds the mean; a
     study run trains and resumes on the device the script was given."""
     from studies import step_budget_report as report
     from studies import step_budget_study as study
 
     rows = [
-        {"label": "x-seed1", "robust_certified_volume": "0.7", "violation_rate": "0.02"},
-        {"label": "x-seed0", "robust_certified_volume": "nan", "violation_rate": "0.04"},
+        {"label": "x-seed1", "robust_scenario_volume": "0.7", "violation_rate": "0.02"},
+        {"label": "x-seed0", "robust_scenario_volume": "nan", "violation_rate": "0.04"},
     ]
-    count, cells = report.seed_cells(rows, {"x-seed0", "x-seed1"}, ["robust_certified_volume", "violation_rate"])
+    count, cells = report.seed_cells(rows, {"x-seed0", "x-seed1"}, ["robust_scenario_volume", "violation_rate"])
     assert count == 2 and cells == ["- (none, 0.7)", "0.03 (0.04, 0.02)"]
 
     calls: list[tuple] = []
@@ -145,7 +145,7 @@ def test_step_budget_study_trains_resumes_and_scores_through_the_library(tmp_pat
     assert study.train_runs([study.PlannedRun(run, 3, 0, small)]) == 0 and study.finished(run)
     assert study.train_or_resume(run, 5, 0, small) == 0
     assert json.loads((run / "checkpoint.json").read_text())["steps"] == 5 and study.finished(run)
-    scoring = study.Scoring(samples=64, certify_samples=0, pairwise=str(pairwise))
+    scoring = study.Scoring(samples=64, scenario_samples=0, pairwise=str(pairwise))
     assert study.score_runs([run, study.run_path(out, "tiny", 0.01, 1)], out, scoring) == 0
     rows = report.read_results(out)
     assert [r["label"] for r in rows] == [run.name] and rows[0]["containment_miss_rate"] != ""

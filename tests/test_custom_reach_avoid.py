@@ -53,7 +53,7 @@ def test_the_command_line_runs_every_tool(tmp_path):
     )  # fmt: skip
     _run(
         "reach", "evaluate", run, gt, "--system", SYSTEM, "--ground-truth", gt, "--samples", "200",
-        "--certify-samples", "50", "--robust-samples", "0", "--out", str(tmp_path / "eval.csv"),
+        "--scenario-samples", "50", "--robust-samples", "0", "--out", str(tmp_path / "eval.csv"),
     )  # fmt: skip
     rows = json.loads((tmp_path / "eval.json").read_text())["results"]
     assert {r["problem"] for r in rows} == {"reach-avoid"} and all("false_reachable_rate" in r for r in rows)

@@ -196,7 +196,7 @@ def test_user_system_through_grid_training_verification_filter_and_sweep(tmp_pat
 
     # verification by rollouts
     states = sample_states(system, 200, 0)
-    row = verify(loaded, states, VerifySettings(samples=200, certify_samples=0, robust_samples=0), progress=False)
+    row = verify(loaded, states, VerifySettings(samples=200, scenario_samples=0, robust_samples=0), progress=False)
     assert 0.0 <= row["violation_rate"] <= 1.0 and row["samples"] == 200
 
     # a filter on the grid: never passes the nominal input inside the BRT
@@ -294,7 +294,7 @@ def test_cli_and_a_fresh_process_reload_a_user_system_run(tmp_path):
         str(run),
         "--samples",
         "50",
-        "--certify-samples",
+        "--scenario-samples",
         "0",
         "--robust-samples",
         "0",

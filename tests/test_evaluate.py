@@ -34,7 +34,7 @@ def checkpoints(tmp_path: Path) -> Path:
 def test_evaluate_two_checkpoints_with_bad_ones_beside(checkpoints: Path, capsys):
     out = checkpoints / "res.csv"
     sources = [str(checkpoints / n) for n in ("9d_ssrsl.pt", "9d_rrrsl.pt", "broken.pt", "air3d.pt", "nan.pt")]
-    args = ["evaluate", *sources, "--samples", "1500", "--certify-samples", "500", "--out", str(out), "--plot"]
+    args = ["evaluate", *sources, "--samples", "1500", "--scenario-samples", "500", "--out", str(out), "--plot"]
     assert main(args) == 3  # three sources fail: their rows say why, and so does the exit status
     captured = capsys.readouterr()
     table = captured.out
@@ -44,10 +44,10 @@ def test_evaluate_two_checkpoints_with_bad_ones_beside(checkpoints: Path, capsys
     for name in ("9d_ssrsl.pt", "9d_rrrsl.pt"):
         r = rows[name]
         assert not r.get("error")
-        assert r["samples"] == 1500 and r["certified_samples"] == 500
+        assert r["samples"] == 1500 and r["scenario_states"] == 500
         assert r["violation_rate"] == pytest.approx(r["false_safe_rate"] + r["false_unsafe_rate"])
         assert r["collision_rate"] >= 0.10  # ~12.7 % of the box starts in collision
-        assert 0 < r["eps"] < 1 and 0 <= r["certified_volume"] <= 1
+        assert 0 < r["eps"] < 1 and 0 <= r["scenario_volume"] <= 1
     assert "corrupt or unreadable" in rows["broken.pt"]["error"]
     assert "checkpoint is for system" in rows["air3d.pt"]["error"]
     assert "NaN or inf" in rows["nan.pt"]["error"]
@@ -78,8 +78,8 @@ def test_evaluate_two_checkpoints_with_bad_ones_beside(checkpoints: Path, capsys
 def test_same_states_for_every_model(checkpoints: Path):
     out = checkpoints / "a.csv"
     src = str(checkpoints / "9d_ssrsl.pt")
-    main(["evaluate", src, "--samples", "800", "--certify-samples", "0", "--out", str(out)])
-    main(["evaluate", src, "--samples", "800", "--certify-samples", "0", "--out", str(checkpoints / "b.csv")])
+    main(["evaluate", src, "--samples", "800", "--scenario-samples", "0", "--out", str(out)])
+    main(["evaluate", src, "--samples", "800", "--scenario-samples", "0", "--out", str(checkpoints / "b.csv")])
     a, b = load_results(out)[0], load_results(checkpoints / "b.csv")[0]
     for key in ("violation_rate", "collision_rate", "delta"):
         assert a[key] == b[key]
@@ -104,7 +104,7 @@ def test_grid_solution_evaluates_as_control_experiment(air3d_grid, tmp_path: Pat
     path = tmp_path / "air3d.npz"
     air3d_grid.save(path)
     out = tmp_path / "grid.csv"
-    assert main(["evaluate", str(path), "--samples", "2000", "--certify-samples", "0", "--out", str(out)]) == 0
+    assert main(["evaluate", str(path), "--samples", "2000", "--scenario-samples", "0", "--out", str(out)]) == 0
     row = load_results(out)[0]
     assert row["kind"] == "grid" and row["false_safe_rate"] < 3e-3
 
@@ -139,7 +139,7 @@ def test_evaluate_reports_containment_against_pairwise_union(pair_grid, checkpoi
                 "multivehicle9d",
                 "--samples",
                 "1000",
-                "--certify-samples",
+                "--scenario-samples",
                 "0",
                 "--pairwise",
                 str(pair),
@@ -160,7 +160,7 @@ def test_evaluate_reports_containment_against_pairwise_union(pair_grid, checkpoi
 def test_bfloat16_evaluation_applies_to_networks_and_records_it(air3d_grid, checkpoints: Path, tmp_path: Path):
     grid = tmp_path / "air3d.npz"
     air3d_grid.save(grid)
-    common = ["--system", "air3d", "--samples", "300", "--certify-samples", "0", "--dt", "0.01"]
+    common = ["--system", "air3d", "--samples", "300", "--scenario-samples", "0", "--dt", "0.01"]
     exact_out, fast_out = tmp_path / "exact.csv", tmp_path / "fast.csv"
     sources = [str(grid), str(checkpoints / "air3d.pt")]
     assert main(["evaluate", *sources, *common, "--out", str(exact_out)]) == 0
@@ -216,7 +216,7 @@ def test_capped_networks_evaluate_on_the_chosen_device(pair_grid, checkpoints: P
     out = checkpoints / "capped.csv"
     run = checkpoints / "9d_ssrsl.pt"
     sources = [f"min:{run},{pair}", f"cap:{run},{pair}"]
-    counts = ["--samples", "300", "--certify-samples", "200", "--robust-samples", "200"]
+    counts = ["--samples", "300", "--scenario-samples", "200", "--robust-samples", "200"]
     args = ["evaluate", *sources, "--system", "multivehicle9d", *counts, "--pairwise", str(pair)]
     assert main([*args, "--device", device, "--out", str(out)]) == 0
     rows = load_results(out)
@@ -246,7 +246,7 @@ def test_share_samples_is_a_setting_of_the_table(air3d_grid, tmp_path: Path):
     delta-level's states were reused, and a table of unshared rows refuses shared ones."""
     grid = tmp_path / "air3d.npz"
     air3d_grid.save(grid)
-    counts = ["--samples", "300", "--certify-samples", "200", "--robust-samples", "2000", "--target-eps", "0.05"]
+    counts = ["--samples", "300", "--scenario-samples", "200", "--robust-samples", "2000", "--target-eps", "0.05"]
     args = ["evaluate", str(grid), *counts, "--dt", "0.01"]
     assert main([*args, "--out", str(tmp_path / "alone.csv")]) == 0
     assert main([*args, "--out", str(tmp_path / "alone.csv"), "--share-samples"]) == 2  # other settings: refused
@@ -254,5 +254,5 @@ def test_share_samples_is_a_setting_of_the_table(air3d_grid, tmp_path: Path):
     assert main([*args, "--out", str(out), "--share-samples"]) == 0
     (alone,), (shared,) = load_results(tmp_path / "alone.csv"), load_results(out)
     assert json.loads(out.with_suffix(".json").read_text())["settings"]["share_samples"] is True
-    assert 0 < shared["certify_reused"] <= 200 and "certify_reused" not in alone
-    assert shared["robust_certified_volume"] == alone["robust_certified_volume"]
+    assert 0 < shared["scenario_reused"] <= 200 and "scenario_reused" not in alone
+    assert shared["robust_scenario_volume"] == alone["robust_scenario_volume"]

@@ -2,7 +2,7 @@
 
 The grid solver's side is in test_problem_kinds.py; here each downstream tool reads the kind from
 the system: the residual is the kind's variational inequality, a rollout succeeds by reaching the
-target, and verification certifies ``{V < -delta}``.
+target, and verification bounds ``{V < -delta}``.
 """
 
 from __future__ import annotations
@@ -154,16 +154,16 @@ def test_statistics_of_a_reach_kind_count_violations_both_ways():
     assert row["false_reachable_rate"] == pytest.approx(1 / 5)  # V = -0.2 claimed, failed
     assert row["false_unreachable_rate"] == pytest.approx(1 / 5)  # V = 0.3 denied, succeeded
     assert row["failure_rate"] == pytest.approx(2 / 5) and row["collision_rate"] == pytest.approx(1 / 5)
-    assert row["delta"] == pytest.approx(0.2)  # certified set {V < -0.2}
+    assert row["delta"] == pytest.approx(0.2)  # scenario set {V < -0.2}
     assert row["reachable_fraction"] == pytest.approx(1 / 5)
     assert "false_safe_rate" not in row and "safe_fraction" not in row
     with pytest.raises(ValueError, match="kind must be one of"):
         violation_statistics(v, failed, "escape")
 
 
-def test_verification_certifies_the_reachable_set_below_minus_delta(reach_avoid_grid, tmp_path):
+def test_verification_bounds_the_reachable_set_below_minus_delta(reach_avoid_grid, tmp_path):
     grid = reach_avoid_grid
-    settings = VerifySettings(samples=600, certify_samples=200, robust_samples=0, dt=0.01)
+    settings = VerifySettings(samples=600, scenario_samples=200, robust_samples=0, dt=0.01)
     states = sample_states(grid.system, settings.samples, settings.seed)
     with RolloutStore(tmp_path / "store", {"test": 1}) as store:
         row = verify(grid, states, settings, progress=False, store=store)
@@ -172,9 +172,9 @@ def test_verification_certifies_the_reachable_set_below_minus_delta(reach_avoid_
     assert row["problem"] == "reach-avoid"
     for key in ("false_reachable_rate", "false_unreachable_rate", "failure_rate", "failure_ci_low"):
         assert key in row and key in again and row[key] == again[key]
-    assert row["certified_volume"] == row["reachable_fraction"] > 0
-    assert row["certified_samples"] == 200
-    # the certification sample lies in {V < -delta}
+    assert row["scenario_volume"] == row["reachable_fraction"] > 0
+    assert row["scenario_states"] == 200
+    # the scenario sample lies in {V < -delta}
     from safety.verification.verify import sample_superlevel_set
 
     fresh, _ = sample_superlevel_set(grid, row["delta"], 50, 1, 2.0)
@@ -186,7 +186,7 @@ def test_a_results_table_names_the_kind_and_refuses_to_mix_kinds(reach_avoid_gri
 
     path = tmp_path / "ra.npz"
     reach_avoid_grid.save(path)
-    settings = VerifySettings(samples=300, certify_samples=0, robust_samples=0, dt=0.01)
+    settings = VerifySettings(samples=300, scenario_samples=0, robust_samples=0, dt=0.01)
     rows = evaluate_many([str(path)], tmp_path / "table", settings, progress=False)
     assert rows[0]["problem"] == "reach-avoid" and "false_reachable_rate" in rows[0]
     table = markdown_table(rows)
@@ -200,29 +200,29 @@ def test_a_results_table_names_the_kind_and_refuses_to_mix_kinds(reach_avoid_gri
     assert "for a avoid problem (dubins3d), not a reach problem" in rows[0]["error"]
 
 
-def test_robust_certification_of_a_reach_kind_certifies_below_minus_the_level(reach_avoid_grid):
+def test_robust_scenario_set_of_a_reach_kind_bounds_below_minus_the_level(reach_avoid_grid):
     grid = reach_avoid_grid
-    settings = VerifySettings(samples=200, certify_samples=0, robust_samples=3000, target_eps=0.1, beta=1e-3, dt=0.01)
+    settings = VerifySettings(samples=200, scenario_samples=0, robust_samples=3000, target_eps=0.1, beta=1e-3, dt=0.01)
     row = verify(grid, sample_states(grid.system, 200, 0), settings, progress=False)
     assert "robust_error" not in row, row.get("robust_error")
     level = row["robust_level"]
-    assert math.isfinite(level) and row["robust_eps"] <= 1.0 and row["robust_certified_volume"] > 0
-    # the certified set is {V < -level}: its volume is that share of a uniform sample
+    assert math.isfinite(level) and row["robust_eps"] <= 1.0 and row["robust_scenario_volume"] > 0
+    # the scenario set is {V < -level}: its volume is that share of a uniform sample
     x = sample_states(grid.system, 3000, settings.seed + 2)
     share = float((grid.value(x, 2.0) < -level).double().mean())
-    assert row["robust_certified_volume"] == pytest.approx(share, abs=1e-9)
+    assert row["robust_scenario_volume"] == pytest.approx(share, abs=1e-9)
 
 
-def test_a_reach_problem_has_no_collisions_and_certifies_its_reachable_set():
+def test_a_reach_problem_has_no_collisions_and_bounds_its_reachable_set():
     """A plain reach problem (DeepReach's Dubins3D, reach mode): nothing to collide with, success is
-    reaching the disc in time, and the same verification certifies {V < -delta}."""
+    reaching the disc in time, and the same verification bounds {V < -delta}."""
     grid = solve(Dubins3D("reach"), 21, [0.0, 0.5, 1.0], progress=False, compile=False)
     grid.outside = "clamp"
     x = torch.tensor([[0.5, 0.0, math.pi], [0.5, 0.0, 0.0], [0.0, 0.1, 0.0]])  # facing it, facing away, inside
     r = rollout(grid, x, dt=0.01, progress=False)
     assert r.kind == "reach" and not bool(r.collided.any())
     assert r.reached.tolist() == [True, False, True] and float(r.reach_time[2]) == 0.0
-    settings = VerifySettings(samples=400, certify_samples=100, robust_samples=0, dt=0.01)
+    settings = VerifySettings(samples=400, scenario_samples=100, robust_samples=0, dt=0.01)
     row = verify(grid, sample_states(grid.system, 400, 0), settings, progress=False)
-    assert row["problem"] == "reach" and "collision_rate" not in row and row["certified_samples"] == 100
-    assert row["failure_rate"] > 0 and row["certified_volume"] == row["reachable_fraction"] > 0
+    assert row["problem"] == "reach" and "collision_rate" not in row and row["scenario_states"] == 100
+    assert row["failure_rate"] > 0 and row["scenario_volume"] == row["reachable_fraction"] > 0

@@ -66,7 +66,7 @@ def test_model_reproduces_its_card(name: str) -> None:
     assert metrics, f"{name}: the card has no evaluation; run benchmarks/make_pretrained.py evaluate {name}"
     vf = load_value_function(pretrained.PREFIX + name).value_function
     n = SMALL_SAMPLE.get(name, DEFAULT_SMALL_SAMPLE)
-    settings = VerifySettings(samples=n, certify_samples=0, robust_samples=0, seed=card.evaluation["seed"] + 7919)
+    settings = VerifySettings(samples=n, scenario_samples=0, robust_samples=0, seed=card.evaluation["seed"] + 7919)
     row = verify(vf, sample_states(vf.system, n, settings.seed), settings, progress=False)
     # false safe is an avoid problem's wrong claim, false reachable a reach or reach-avoid problem's
     keys = ("violation_rate", "false_safe_rate", "false_reachable_rate", "failure_rate", "collision_rate")
@@ -106,7 +106,7 @@ def test_model_reproduces_its_other_evaluations(name: str, index: int, pair_grid
     vf = load_value_function(f"{kind}:{','.join(members)}" if kind else members[0]).value_function
     n = SMALL_SAMPLE.get(name, DEFAULT_SMALL_SAMPLE)
     seed = other["seed"] + 7919
-    settings = VerifySettings(samples=n, certify_samples=0, robust_samples=0, seed=seed, policy=other["policy"])
+    settings = VerifySettings(samples=n, scenario_samples=0, robust_samples=0, seed=seed, policy=other["policy"])
     row = verify(vf, sample_states(vf.system, n, seed), settings, progress=False)
     for key in ("violation_rate", "false_safe_rate", "collision_rate"):
         low, high = wilson_interval(round(row[key] * n), n, z=Z)
@@ -154,7 +154,7 @@ def test_cli_lists_cards_and_evaluates_a_shipped_model(capsys, tmp_path) -> None
     assert main(["pretrained", "nope"]) == 2
     assert "no pretrained model 'nope'" in capsys.readouterr().err
     out = tmp_path / "eval.csv"
-    assert main(["evaluate", "pretrained:air3d", "--samples", "300", "--certify-samples", "0", "--out", str(out)]) == 0
+    assert main(["evaluate", "pretrained:air3d", "--samples", "300", "--scenario-samples", "0", "--out", str(out)]) == 0
     assert "pretrained:air3d" in out.read_text()
 
 
@@ -196,7 +196,7 @@ def test_maintainers_record_another_evaluation_in_a_card(tmp_path, monkeypatch) 
         shutil.copy(f, tmp_path / f.name)
     monkeypatch.setattr(pretrained, "DIRECTORY", tmp_path)
     out = tmp_path / "greedy.csv"
-    counts = ["--samples", "200", "--certify-samples", "0", "--robust-samples", "0"]
+    counts = ["--samples", "200", "--scenario-samples", "0", "--robust-samples", "0"]
     assert main(["evaluate", "pretrained:air3d", "--policy", "greedy", *counts, "--out", str(out)]) == 0
     results = json.loads(out.with_suffix(".json").read_text())
     record = ["make_pretrained.py", "record", "air3d", str(out.with_suffix(".json")), "--label", "greedy"]

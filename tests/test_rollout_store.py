@@ -46,10 +46,10 @@ def test_an_interrupted_evaluation_resumes_to_the_same_row(tmp_path: Path, monke
     uninterrupted run writes; the store is gone once the row is written. (A block's cost is its
     steps, not its states: the block count sets this test's time.)"""
     run = "pretrained:air3d"
-    settings = VerifySettings(samples=200, certify_samples=200, robust_samples=200, target_eps=0.2, chunk_size=128)
+    settings = VerifySettings(samples=200, scenario_samples=200, robust_samples=200, target_eps=0.2, chunk_size=128)
     whole = evaluate_many([run], tmp_path / "whole.csv", settings, progress=False)[0]
     assert not whole.get("error") and whole["rollout_blocks_resumed"] == 0, whole.get("error")
-    assert whole["robust_failures"] is not None and whole["certified_samples"] == 200, whole.get("robust_error")
+    assert whole["robust_failures"] is not None and whole["scenario_states"] == 200, whole.get("robust_error")
     assert not (tmp_path / "whole.csv.rollouts").exists()
     blocks = 2 + 2 + 2 + 2  # ceil(200 / 128) for the samples, the fresh states, the search and the check
 
@@ -171,10 +171,10 @@ def test_a_table_claimed_with_other_settings_refuses_the_second_run_before_work(
 
     save_checkpoint(run, ValueNetwork(Air3D(), "ssssl", width=16))
     out = tmp_path / "t.csv"
-    evaluate_many([str(run)], out, VerifySettings(samples=200, certify_samples=0, robust_samples=0), progress=False)
+    evaluate_many([str(run)], out, VerifySettings(samples=200, scenario_samples=0, robust_samples=0), progress=False)
     with pytest.raises(ValueError, match="holds results for other settings"):
         evaluate_many(
-            [str(run)], out, VerifySettings(samples=200, certify_samples=0, robust_samples=0, dt=0.005), progress=False
+            [str(run)], out, VerifySettings(samples=200, scenario_samples=0, robust_samples=0, dt=0.005), progress=False
         )
 
 

@@ -234,7 +234,7 @@ def test_rollout_sweep_on_9d_scores_every_kth_snapshot(tmp_path, pair_grid):
         width=8,
         train={"points": 128},
         samples=64,
-        certify_samples=0,
+        scenario_samples=0,
         rollout_every=2,
         pairwise=str(tmp_path / "pair.npz"),
     )
@@ -243,7 +243,7 @@ def test_rollout_sweep_on_9d_scores_every_kth_snapshot(tmp_path, pair_grid):
     rows = json.loads((out / "results.json").read_text())["results"]
     assert [r["snapshot"] for r in rows] == [2, 4]
     for r in rows:
-        assert 0 <= r["violation_rate"] <= 1 and r["delta"] >= 0 and 0 <= r["certified_volume"] <= 1
+        assert 0 <= r["violation_rate"] <= 1 and r["delta"] >= 0 and 0 <= r["scenario_volume"] <= 1
         assert 0 <= r["containment_miss_rate"] <= r["union_fraction"] <= 1
     assert "violation %" in report.read_text() and "misses union %" in report.read_text()
     with pytest.raises(ValueError, match="rollout-evaluation"):

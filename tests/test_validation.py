@@ -139,3 +139,20 @@ def test_table_cells_escape_pipes_so_tables_render():
     header, rule, row = text.splitlines()
     assert header == r"| mean \|u - u_nom\| | b |" and row == r"| 1 \| 2 | x |"
     assert header.replace("\\|", "").count("|") == 3  # three unescaped separators: two cells
+
+
+def test_results_written_with_the_old_words_load_under_the_new_names(tmp_path):
+    """A results file and a model card written before "certify" came to mean a proof only still load,
+    their statistical columns read into the scenario names."""
+    import json
+
+    from reach.result_columns import current_names
+    from studies.batch_verification import FORMAT, load_results
+
+    old = {"source": "a", "certified_volume": 0.5, "certify_samples": 10, "robust_certified_volume": None}
+    (tmp_path / "r.json").write_text(json.dumps({"format": FORMAT, "results": [old]}))
+    (row,) = load_results(tmp_path / "r.json")
+    assert row["scenario_volume"] == 0.5 and row["scenario_samples"] == 10 and "certified_volume" not in row
+    assert "robust_scenario_volume" in row
+    both = current_names({"certified_volume": 1.0, "scenario_volume": 2.0, "nested": [{"certify_error": "x"}]})
+    assert both == {"scenario_volume": 2.0, "nested": [{"scenario_error": "x"}]}

@@ -100,11 +100,11 @@ def _card_row(model: str, what: str, trained: str, m: dict) -> str:
 
     # an avoid row's false safe, a reach or reach-avoid row's false reachable: the same error, a wrong claim
     false_claim = cell("false_safe_rate", 100) if "false_safe_rate" in m else cell("false_reachable_rate", 100)
-    volume, eps = m.get("robust_certified_volume"), m.get("robust_eps")
+    volume, eps = m.get("robust_scenario_volume"), m.get("robust_eps")
     robust = f"{volume:.3g} ({eps:.2g})" if isinstance(volume, (int, float)) and isinstance(eps, (int, float)) else "-"
     return (
         f"| {model} | {what} | {trained} | {cell('violation_rate', 100)} | {false_claim} | "
-        f"{cell('collision_rate', 100)} | {cell('certified_volume')} | {robust} | "
+        f"{cell('collision_rate', 100)} | {cell('scenario_volume')} | {robust} | "
         f"{cell('containment_miss_rate', 100)} | {cell('iou_volume')} |"
     )
 

@@ -18,7 +18,7 @@ DeepReach's verification code, and Lin & Bansal's scenario optimisation):
 
 Reach and reach-avoid problems mirror all of it on the other side of zero: a value function claims
 *reachable* where ``V < 0`` (the boundary, of measure zero, counts as no claim), a rollout *fails*
-when it does not reach the target in time without a collision, and the certified set is
+when it does not reach the target in time without a collision, and the scenario set is
 ``{V < -delta}``. The functions here take values *oriented* so that ``> 0`` is the claim
 (:meth:`~reach.systems.problem.ProblemKind.orient`: ``-V`` for reach kinds) and the per-state
 failures, so one implementation serves every kind; :func:`violation_statistics` names its columns
@@ -69,7 +69,7 @@ def scenario_epsilon(k: int, n: int, beta: float = 1e-16) -> float:
 
 
 def binomial_bound_holds(k: int, n: int, eps: float, beta: float) -> bool:
-    """Whether ``k`` failures among ``n`` samples certify ``eps`` at confidence ``1 - beta``:
+    """Whether ``k`` failures among ``n`` samples bound ``eps`` at confidence ``1 - beta``:
     ``P(Bin(n, eps) <= k) <= beta`` (equivalently ``scenario_epsilon(k, n, beta) <= eps``)."""
     if n < 1 or k >= n:
         return False
@@ -79,14 +79,14 @@ def binomial_bound_holds(k: int, n: int, eps: float, beta: float) -> bool:
 def robust_level_search(
     values: torch.Tensor, failed: torch.Tensor, target_eps: float, beta: float, candidates: int = 256
 ) -> tuple[float, int, int] | None:
-    """The lowest level whose superlevel set ``{V > level}`` the samples certify at ``target_eps``.
+    """The lowest level whose superlevel set ``{V > level}`` the samples bound at ``target_eps``.
 
     ``values`` and ``failed`` are ``V(x, T)`` and rollout outcomes of states drawn uniformly from
     the domain, so those in ``{V > level}`` are uniform on that set. Among candidate levels (the
     sampled values themselves, on a coarse grid of ``candidates`` set sizes, then refined between the
     two best), returns ``(level, n, k)`` for the largest set where :func:`binomial_bound_holds`, or
     None when no set qualifies (too few samples for ``target_eps``: ``k = 0`` needs
-    ``n >= ln(1 / beta) / target_eps``). A level found by this search must be certified on a fresh
+    ``n >= ln(1 / beta) / target_eps``). A level found by this search must be checked on a fresh
     sample before it means anything (:func:`safety.verification.verify.verify` does).
     """
     if not (0.0 < target_eps < 1.0):
@@ -133,7 +133,7 @@ def wilson_interval(successes: int, n: int, z: float = 1.959963984540054) -> tup
 
 #: per kind of problem, the names :func:`violation_statistics` gives its columns: a wrong claim on
 #: the good side, a wrong claim on the other side, the failed rollouts, and the share of the states
-#: in the certified set (``{V > delta}`` for avoid, ``{V < -delta}`` for reach kinds)
+#: in the scenario set (``{V > delta}`` for avoid, ``{V < -delta}`` for reach kinds)
 KIND_COLUMNS = {
     "avoid": ("false_safe_rate", "false_unsafe_rate", "collision_rate", "safe_fraction"),
     "reach": ("false_reachable_rate", "false_unreachable_rate", "failure_rate", "reachable_fraction"),
@@ -164,7 +164,7 @@ def violation_statistics(
     false_denial = int(((v <= 0) & ~failed).sum())
     failures = v[failed]
     delta_raw = float(failures.max()) if failures.numel() else -math.inf
-    claim, denial, failure, certified = KIND_COLUMNS[kind]
+    claim, denial, failure, in_set = KIND_COLUMNS[kind]
     row: dict[str, float] = {
         "samples": n,
         "violation_rate": (false_claim + false_denial) / n,
@@ -173,7 +173,7 @@ def violation_statistics(
         failure: int(failed.sum()) / n,
         "delta_raw": delta_raw,
         "delta": max(0.0, delta_raw),
-        certified: float((v > max(0.0, delta_raw)).double().mean()),
+        in_set: float((v > max(0.0, delta_raw)).double().mean()),
     }
     if kind == "reach-avoid" and collided is not None:
         row["collision_rate"] = int(collided.bool().sum()) / n

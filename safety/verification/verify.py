@@ -1,11 +1,11 @@
 """Verification of one value function: rollouts from sampled states, statistics, the guarantee.
 
 :func:`verify` rolls out ``N`` given states (the same states for every value function being
-compared), computes :func:`~safety.verification.metrics.violation_statistics`, and, unless told not to, certifies
+compared), computes :func:`~safety.verification.metrics.violation_statistics`, and, unless told not to, bounds
 the delta-level on a *fresh* sample drawn uniformly from ``{V(x, T) > delta}`` (a delta chosen from
-one sample must be certified on another), giving the scenario ``eps`` for ``beta``.
+one sample must be checked on another), giving the scenario ``eps`` for ``beta``.
 
-For reach and reach-avoid problems the same steps run on the other side of zero: the certified set
+For reach and reach-avoid problems the same steps run on the other side of zero: the scenario set
 is ``{V(x, T) < -delta}``, the states from which the learned policy reaches the target in time (and,
 for reach-avoid, without a collision) with confidence ``1 - beta``; every row names its ``problem``
 kind, and its columns are the kind's (:data:`~safety.verification.metrics.KIND_COLUMNS`).
@@ -40,7 +40,7 @@ class VerifySettings:
     """What a verification run depends on; results are comparable only under equal settings."""
 
     samples: int = 100_000
-    certify_samples: int | None = None  # None: as many as ``samples``; 0: skip the guarantee
+    scenario_samples: int | None = None  # None: as many as ``samples``; 0: skip the guarantee
     beta: float = 1e-16
     seed: int = 0
     dt: float = 0.0025
@@ -50,10 +50,10 @@ class VerifySettings:
     #: "bfloat16": networks' hidden products in bfloat16 during rollouts (faster, inexact; other
     #: value functions are always rolled out exactly, and each row records what was used)
     matmul_precision: str = "float32"
-    #: robust scenario certification (Lin & Bansal, L4DC 2024, Thm 2): the largest {V > level} whose
-    #: unsafe fraction is certified at most ``target_eps``; searched on ``robust_samples`` fresh
-    #: uniform states, then certified on as many fresh states from the set (None: as many as
-    #: ``certify_samples`` resolves to; 0 skips). ``k = 0`` needs ln(1/beta) / target_eps samples
+    #: robust scenario verification (Lin & Bansal, L4DC 2024, Thm 2): the largest {V > level} whose
+    #: unsafe fraction is bounded by ``target_eps``; searched on ``robust_samples`` fresh
+    #: uniform states, then checked on as many fresh states from the set (None: as many as
+    #: ``scenario_samples`` resolves to; 0 skips). ``k = 0`` needs ln(1/beta) / target_eps samples
     #: (123k at the defaults), so the 100k default finds no level and says so in ``robust_error``.
     target_eps: float = 3e-4
     robust_samples: int | None = None
@@ -72,8 +72,9 @@ class VerifySettings:
     def __post_init__(self) -> None:
         if isinstance(self.samples, bool) or not isinstance(self.samples, int) or self.samples < 1:
             raise ValueError(f"samples must be a positive integer, got {self.samples!r}")
-        if self.certify_samples is not None and (not isinstance(self.certify_samples, int) or self.certify_samples < 0):
-            raise ValueError(f"certify_samples must be an integer >= 0, got {self.certify_samples!r}")
+        n = self.scenario_samples
+        if n is not None and (not isinstance(n, int) or n < 0):
+            raise ValueError(f"scenario_samples must be an integer >= 0, got {self.scenario_samples!r}")
         if not (0.0 < self.beta < 1.0):
             raise ValueError(f"beta must lie in (0, 1), got {self.beta!r}")
         if not (0.0 < self.target_eps < 1.0):
@@ -100,7 +101,7 @@ class VerifySettings:
 
     @property
     def fresh_samples(self) -> int:
-        return self.samples if self.certify_samples is None else self.certify_samples
+        return self.samples if self.scenario_samples is None else self.scenario_samples
 
     @property
     def robust_sample_count(self) -> int:
@@ -132,7 +133,7 @@ BYTES_PER_STATE = 4 + 1 + 8 + 8 + 16 + 1 + 8
 
 def estimate_rollout_bytes(state_dim: int, settings: VerifySettings) -> int:
     """Peak memory of a verification on the host: the sampled states and their outcomes, plus the
-    largest fresh sample (the certification's, or the robust search's and its check)."""
+    largest fresh sample (the scenario sample's, or the robust search's and its check)."""
     fresh = max(settings.fresh_samples, 2 * settings.robust_sample_count)
     states = settings.samples + fresh
     return int(states * (BYTES_PER_STATE_AND_DIM * state_dim + BYTES_PER_STATE))
@@ -173,7 +174,7 @@ def sample_superlevel_set(
         if draws >= max_draws:
             raise ValueError(
                 f"only {have} of {n} states found in {{V > {level:.4g}}} after {draws} uniform draws; "
-                "the set is too small to certify"
+                "the set is too small to bound"
             )
         x = system.sample_states(batch, generator=gen, dtype=torch.float32)
         draws += batch
@@ -192,7 +193,7 @@ def verify(
     store: RolloutStore | None = None,
     backend: Any = None,
 ) -> dict[str, Any]:
-    """Violation statistics of ``vf`` on ``states`` and, if asked, the certified delta-level.
+    """Violation statistics of ``vf`` on ``states`` and, if asked, the delta-level with its scenario bound.
 
     With a ``store`` (:class:`~safety.verification.rollout_store.RolloutStore`) every rollout is saved block by
     block and a repeated call loads what an interrupted one finished: the same row, resumed. With a
@@ -244,11 +245,11 @@ def _verify(
     row["rollout_seconds"] = result.wall_time
     row["work_fraction"] = result.work_fraction
     row["state_steps_per_second"] = result.state_steps / max(result.wall_time, 1e-12)
-    row.update(certified_samples=0, certified_failures=None, eps=math.nan, certified_volume=math.nan)
+    row.update(scenario_states=0, scenario_failures=None, eps=math.nan, scenario_volume=math.nan)
     robust: tuple[dict[str, Any], RolloutResult | None] | None = None
     if settings.robust_sample_count:
         # first where the delta-level's check may reuse the robust check's states
-        robust = _robust_certification(vf, settings, horizon, common, device, store)
+        robust = _robust_scenario_set(vf, settings, horizon, common, device, store)
     if settings.fresh_samples:
         reused = None
         # only a level at or below delta makes {V > delta} part of the set the robust check sampled
@@ -258,16 +259,16 @@ def _verify(
         try:
             k, n, used = _delta_check(vf, row["delta"], settings, horizon, common, device, store, reused)
         except ValueError as err:
-            row["certify_error"] = str(err)
+            row["scenario_error"] = str(err)
         else:
             row.update(
-                certified_samples=n,
-                certified_failures=k,
+                scenario_states=n,
+                scenario_failures=k,
                 eps=scenario_epsilon(k, n, settings.beta) if k < n else 1.0,
-                certified_volume=row[KIND_COLUMNS[kind][3]],
+                scenario_volume=row[KIND_COLUMNS[kind][3]],
             )
             if settings.share_samples:
-                row["certify_reused"] = used
+                row["scenario_reused"] = used
     if robust is not None:
         row.update(robust[0])
     row["wall_time"] = time.perf_counter() - start
@@ -305,7 +306,7 @@ def _delta_check(
     return failures, n, used
 
 
-def robust_certification(
+def robust_scenario_set(
     vf: ValueFunction,
     settings: VerifySettings,
     horizon: float,
@@ -313,11 +314,11 @@ def robust_certification(
     device: str | torch.device,
     store: RolloutStore | None = None,
 ) -> dict[str, Any]:
-    """The robust certification's columns (see :func:`_robust_certification`)."""
-    return _robust_certification(vf, settings, horizon, common, device, store)[0]
+    """The robust scenario verification's columns (see :func:`_robust_scenario_set`)."""
+    return _robust_scenario_set(vf, settings, horizon, common, device, store)[0]
 
 
-def _robust_certification(
+def _robust_scenario_set(
     vf: ValueFunction,
     settings: VerifySettings,
     horizon: float,
@@ -325,14 +326,14 @@ def _robust_certification(
     device: str | torch.device,
     store: RolloutStore | None = None,
 ) -> tuple[dict[str, Any], RolloutResult | None]:
-    """Robust scenario certification (Lin & Bansal, L4DC 2024, Thm 2), in two independent samples.
+    """Robust scenario verification (Lin & Bansal, L4DC 2024, Thm 2), in two independent samples.
 
     1. *Search*: ``N`` fresh uniform states (seed + 2) are rolled out, and
        :func:`~safety.verification.metrics.robust_level_search` picks the lowest level whose superlevel set they
-       certify at ``target_eps``; the set's volume is estimated from the same uniform sample.
+       bound at ``target_eps``; the set's volume is estimated from the same uniform sample.
     2. *Certification*: ``N`` fresh states from ``{V > level}`` (seed + 3), rolled out; their ``k``
        failures give ``robust_eps``, the bound that holds with confidence ``1 - beta`` (a level
-       chosen on one sample means nothing until a second one certifies it).
+       chosen on one sample means nothing until a second one bounds it).
 
     Returns the columns, and the check's outcomes (None where no level was found)."""
     n = settings.robust_sample_count
@@ -342,7 +343,7 @@ def _robust_certification(
         "robust_level": math.nan,
         "robust_eps": math.nan,
         "robust_failures": None,
-        "robust_certified_volume": math.nan,
+        "robust_scenario_volume": math.nan,
     }
     search_states = sample_states(vf.system, n, settings.seed + 2)
     search = _rollout(store, "robust-search", vf, search_states, common)
@@ -350,7 +351,7 @@ def _robust_certification(
     if found is None:
         need = math.ceil(math.log(1 / settings.beta) / settings.target_eps)
         out["robust_error"] = (
-            f"no level is certified at eps {settings.target_eps:g} by {n} samples (k = 0 needs at least {need})"
+            f"no level is bounded at eps {settings.target_eps:g} by {n} samples (k = 0 needs at least {need})"
         )
         return out, None
     level, inside, _ = found
@@ -365,6 +366,6 @@ def _robust_certification(
         robust_level=level,
         robust_eps=scenario_epsilon(k, check.num_states, settings.beta) if k < check.num_states else 1.0,
         robust_failures=k,
-        robust_certified_volume=inside / n,
+        robust_scenario_volume=inside / n,
     )
     return out, check

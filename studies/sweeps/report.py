@@ -29,7 +29,7 @@ METRIC_FORMATS: dict[str, tuple[str, str]] = {
     "mse_slice": ("MSE slice", "{:.2e}"),
     "violation_rate": ("violation %", "pct"),
     "delta": ("delta", "{:.3f}"),
-    "certified_volume": ("certified vol.", "{:.3f}"),
+    "scenario_volume": ("scenario vol.", "{:.3f}"),
     "collision_rate": ("collision %", "pct"),
     "containment_miss_rate": ("misses union %", "pct"),
 }

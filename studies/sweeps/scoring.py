@@ -55,9 +55,9 @@ class GroundTruthScorer:
 
 
 class RolloutScorer:
-    """Violation rate, collision rate, delta-level and certified volume from rollouts of the policy."""
+    """Violation rate, collision rate, delta-level and scenario volume from rollouts of the policy."""
 
-    headline = (("violation_rate", False), ("delta", False), ("certified_volume", True), ("collision_rate", False))
+    headline = (("violation_rate", False), ("delta", False), ("scenario_volume", True), ("collision_rate", False))
 
     #: the columns of :func:`safety.verification.verify.verify` a sweep keeps (each kind of problem fills its own:
     #: :data:`safety.verification.metrics.KIND_COLUMNS`)
@@ -75,8 +75,8 @@ class RolloutScorer:
         "delta_raw",
         "safe_fraction",
         "eps",
-        "certified_volume",
-        "certified_failures",
+        "scenario_volume",
+        "scenario_failures",
         "rollout_seconds",
     )
 
@@ -84,7 +84,7 @@ class RolloutScorer:
         self,
         system: ControlAffineSystem,
         samples: int,
-        certify_samples: int | None,
+        scenario_samples: int | None,
         seed: int,
         device: str = "cpu",
         pairwise: str | os.PathLike | None = None,
@@ -94,8 +94,8 @@ class RolloutScorer:
             sample_states,
         )
 
-        # sweeps score many snapshots: no robust certification (it needs about a million rollouts)
-        self.settings = VerifySettings(samples=samples, certify_samples=certify_samples, seed=seed, robust_samples=0)
+        # sweeps score many snapshots: no robust scenario verification (it needs about a million rollouts)
+        self.settings = VerifySettings(samples=samples, scenario_samples=scenario_samples, seed=seed, robust_samples=0)
         self.states = sample_states(system, samples, seed)
         self.device = device
         settings = {k: v for k, v in self.settings.to_dict().items() if k not in ("target_eps", "robust_samples")}
@@ -113,8 +113,8 @@ class RolloutScorer:
         from safety.verification.verify import values_at, verify
 
         row = verify(vf, self.states, self.settings, device=self.device, progress=False)
-        if self.settings.fresh_samples == 0:  # no guarantee asked for: the volume a certificate would cover
-            row["certified_volume"] = row[KIND_COLUMNS[row["problem"]][3]]
+        if self.settings.fresh_samples == 0:  # no guarantee asked for: the volume a scenario set would cover
+            row["scenario_volume"] = row[KIND_COLUMNS[row["problem"]][3]]
         out = {k: row[k] for k in self.KEEP if k in row}
         if self.union_values is not None:
             learned = values_at(vf, self.states, vf.system.horizon, device=self.device)

@@ -49,7 +49,7 @@ class SweepSpec(SystemSpecified):
     """Every (layout, seed) is trained with the same budget and evaluated at ``snapshots`` points.
 
     ``evaluation`` is ``"groundtruth"`` (value MSE and BRT IoU against a grid solution, for systems
-    of at most 3 dimensions) or ``"rollout"`` (violation rate, delta-level and certified volume from
+    of at most 3 dimensions) or ``"rollout"`` (violation rate, delta-level and scenario volume from
     ``samples`` rollouts); ``"auto"`` picks the first where a grid is feasible. Rollouts are costly,
     so with ``rollout_every = k`` only every k-th snapshot (and always the last) is rolled out.
     ``pairwise`` (a two-car ``relativepair`` solution) adds the share of states in the union of
@@ -72,7 +72,7 @@ class SweepSpec(SystemSpecified):
     eval_time: float | None = None
     slice_value: float | None = None  # None: the system's reference slice value
     samples: int = 10_000
-    certify_samples: int | None = None
+    scenario_samples: int | None = None
     rollout_every: int = 1
     eval_seed: int = 0
     pairwise: str | None = None

@@ -227,7 +227,7 @@ def write_report(
     else:
         parts.append(
             f"Rollouts of the learned policy from {spec.samples} uniform states (seed {spec.eval_seed}): violation "
-            "rate (both kinds), collision rate, delta-level and certified volume (the fraction of the box with "
+            "rate (both kinds), collision rate, delta-level and scenario volume (the fraction of the box with "
             "V > delta)"
             + (
                 f", and the share of states in the union of pairwise BRTs `{Path(spec.pairwise).name}` that a "

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from reach.atomic import atomic_path
+from reach.result_columns import current_names
 from reach.threads import apply_thread_policy
 from studies.sweeps.scoring import GroundTruthScorer, RolloutScorer
 from studies.sweeps.spec import SweepSpec
@@ -42,7 +43,7 @@ def _scorer(spec: Any, groundtruth: str | None) -> Any:
             scorer = GroundTruthScorer(system, groundtruth, spec.eval_time, spec.slice_value)
         else:
             scorer = RolloutScorer(
-                system, spec.samples, spec.certify_samples, spec.eval_seed, spec.device, spec.pairwise
+                system, spec.samples, spec.scenario_samples, spec.eval_seed, spec.device, spec.pairwise
             )
         _SCORERS.clear()
         _SCORERS[ident] = scorer
@@ -60,7 +61,7 @@ def _train(spec: Any, layout: str, seed: int, directory: Path) -> None:
 
 def _read_scores(path: Path, key: dict[str, Any]) -> dict[str, Any]:
     try:
-        data = json.loads(path.read_text())
+        data = current_names(json.loads(path.read_text()))
     except (OSError, json.JSONDecodeError):
         return {}
     return data.get("snapshots", {}) if data.get("scorer") == key else {}

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from reach.json_files import read_json
+from reach.result_columns import current_names
 from reach.systems import make_system
 
 #: a source naming a shipped model: ``"pretrained:air3d"``
@@ -113,8 +114,8 @@ _CARD_METRICS = (
     ("failure_rate", "failure %", 100.0),
     ("collision_rate", "collision %", 100.0),
     ("delta", "delta", 1.0),
-    ("certified_volume", "certified vol.", 1.0),
-    ("robust_certified_volume", "robust vol.", 1.0),
+    ("scenario_volume", "scenario vol.", 1.0),
+    ("robust_scenario_volume", "robust vol.", 1.0),
     ("robust_eps", "at eps", 1.0),
     ("iou_volume", "IoU vol.", 1.0),
     ("containment_miss_rate", "misses union %", 100.0),
@@ -169,7 +170,7 @@ def _check_name(name: str) -> str:
 def card(name: str) -> ModelCard:
     """The model card of a shipped model; an unknown name raises ``ValueError`` listing the known ones."""
     path = DIRECTORY / f"{_check_name(name)}{CARD_SUFFIX}"
-    data = read_json(path, "a model card")
+    data = current_names(read_json(path, "a model card"))
     return ModelCard.from_dict(data, str(path))
 
 

@@ -1,4 +1,4 @@
-"""Robust scenario certification (Lin & Bansal, L4DC 2024, Thm 2): search on one sample, certify on another."""
+"""Robust scenario verification (Lin & Bansal, L4DC 2024, Thm 2): search on one sample, check on another."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ def _synthetic(n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     return v, torch.rand(n, generator=g) < p
 
 
-def test_search_returns_the_largest_certified_set():
+def test_search_returns_the_largest_bounded_set():
     v, failed = _synthetic(50_000)
     level, n, k = robust_level_search(v, failed, target_eps=0.01, beta=1e-6)
     assert n == int((v > level).sum()) and k == int((failed & (v > level)).sum())
@@ -47,23 +47,23 @@ def test_too_few_samples_find_no_level():
         robust_level_search(v, failed, 0.0, 1e-16)
 
 
-def test_verify_reports_the_robust_columns_from_a_fresh_certification(air3d_grid):
+def test_verify_reports_the_robust_columns_from_a_fresh_sample(air3d_grid):
     states = sample_states(air3d_grid.system, 400, 0)
-    settings = VerifySettings(samples=400, certify_samples=0, robust_samples=3000, target_eps=0.05, dt=0.01)
+    settings = VerifySettings(samples=400, scenario_samples=0, robust_samples=3000, target_eps=0.05, dt=0.01)
     row = verify(air3d_grid, states, settings, progress=False)
     assert row["robust_samples"] == 3000 and row["robust_target_eps"] == 0.05
-    assert math.isfinite(row["robust_level"]) and 0.5 < row["robust_certified_volume"] < 1.0
+    assert math.isfinite(row["robust_level"]) and 0.5 < row["robust_scenario_volume"] < 1.0
     assert isinstance(row["robust_failures"], int)
     assert row["robust_eps"] == pytest.approx(scenario_epsilon(row["robust_failures"], 3000, settings.beta))
     skipped = verify(
-        air3d_grid, states, VerifySettings(samples=400, certify_samples=0, robust_samples=0, dt=0.01), progress=False
+        air3d_grid, states, VerifySettings(samples=400, scenario_samples=0, robust_samples=0, dt=0.01), progress=False
     )
     assert "robust_level" not in skipped
 
 
 def test_verify_says_why_when_no_level_qualifies(air3d_grid):
     states = sample_states(air3d_grid.system, 200, 0)
-    settings = VerifySettings(samples=200, certify_samples=0, robust_samples=500, dt=0.01)
+    settings = VerifySettings(samples=200, scenario_samples=0, robust_samples=500, dt=0.01)
     row = verify(air3d_grid, states, settings, progress=False)
     assert "needs at least" in row["robust_error"] and math.isnan(row["robust_level"])
 
@@ -102,17 +102,17 @@ def test_a_shared_delta_check_reuses_the_robust_checks_states_and_counts_the_sam
 
     counts = _counting(monkeypatch)
     states = sample_states(air3d_grid.system, 400, 0)
-    common = dict(samples=400, certify_samples=1000, robust_samples=3000, target_eps=0.05, dt=0.01)
+    common = dict(samples=400, scenario_samples=1000, robust_samples=3000, target_eps=0.05, dt=0.01)
     alone = verify(air3d_grid, states, VerifySettings(**common), progress=False)
     rolled_alone = sum(counts)
     counts.clear()
     shared = verify(air3d_grid, states, VerifySettings(**common, share_samples=True), progress=False)
-    used = shared["certify_reused"]
+    used = shared["scenario_reused"]
     assert alone["robust_level"] <= alone["delta"] and 0 < used <= 1000
     # the same statistics and robust columns; only the delta-level's check differs, by its reuse
-    for key in ("delta", "violation_rate", "robust_level", "robust_failures", "robust_eps", "certified_volume"):
+    for key in ("delta", "violation_rate", "robust_level", "robust_failures", "robust_eps", "scenario_volume"):
         assert shared[key] == alone[key]
-    assert shared["certified_samples"] == 1000 and sum(counts) == rolled_alone - used
+    assert shared["scenario_states"] == 1000 and sum(counts) == rolled_alone - used
     # its failures are those of the robust check's first `used` states in {V > delta}, plus the top-up's
     horizon = air3d_grid.system.horizon
     check, _ = sample_superlevel_set(air3d_grid, alone["robust_level"], 3000, 0 + 3, horizon)
@@ -122,7 +122,7 @@ def test_a_shared_delta_check_reuses_the_robust_checks_states_and_counts_the_sam
     if used < 1000:
         top_up, _ = sample_superlevel_set(air3d_grid, alone["delta"], 1000 - used, 0 + 1, horizon)
         expected += int(rollout(air3d_grid, top_up, dt=0.01, progress=False).failed.sum())
-    assert shared["certified_failures"] == expected
+    assert shared["scenario_failures"] == expected
     assert shared["eps"] == pytest.approx(scenario_epsilon(expected, 1000, 1e-16))
 
 
@@ -130,12 +130,12 @@ def test_a_robust_level_above_delta_shares_nothing(air3d_grid, monkeypatch):
     verify_module = importlib.import_module("safety.verification.verify")  # the package's `verify` is the function
 
     states = sample_states(air3d_grid.system, 400, 0)
-    common = dict(samples=400, certify_samples=500, robust_samples=3000, target_eps=0.05, dt=0.01, share_samples=True)
+    common = dict(samples=400, scenario_samples=500, robust_samples=3000, target_eps=0.05, dt=0.01, share_samples=True)
     delta = verify(air3d_grid, states, VerifySettings(**common), progress=False)["delta"]
     # a level above delta: its superlevel set misses part of {V > delta}, so its states are not reused
     monkeypatch.setattr(verify_module, "robust_level_search", lambda v, f, eps, beta: (delta + 0.05, 1, 0))
     row = verify(air3d_grid, states, VerifySettings(**common), progress=False)
-    assert row["robust_level"] == delta + 0.05 and row["certify_reused"] == 0 and row["certified_samples"] == 500
+    assert row["robust_level"] == delta + 0.05 and row["scenario_reused"] == 0 and row["scenario_states"] == 500
 
 
 def test_share_samples_must_be_a_bool():
