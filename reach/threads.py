@@ -1,15 +1,17 @@
-"""How many torch threads to use: the cores other processes leave free.
+"""How many torch threads to use: the cores that work of this process's priority or higher leaves free.
 
 torch starts one OpenMP thread per core. When other processes keep those cores busy, its threads
-spin-wait on each other: on the project's 2-core machine with two other CPU-bound processes, a small
-``reach evaluate`` (2,000 9D states) took 19.6-35.0 s with 2 threads against 12.2-14.6 s with 1;
-on the idle machine 2 threads were faster (5.5-6.6 s against 6.9-8.4 s). The default is therefore
-the cores other processes leave free, at least one; ``--threads`` or ``OMP_NUM_THREADS`` overrides
-it. "Busy" is counted now, not averaged: on Linux, the threads runnable at this moment
-(``/proc/loadavg``'s running count) less this process's own, the median of three reads 10 ms apart.
-The 1-minute load average, used where ``/proc`` is missing, lags: it decays with a one-minute time
-constant, so for over a minute after a job on both cores of a 2-core machine it still rounds to 1
-or more, and the next command would start on one core of an idle machine.
+spin-wait on each other, and the run slows by more than the share of the cores it lost (measured:
+docs/results/benchmarks.md). The default is therefore the cores other work leaves free, at least one;
+``--threads`` or ``OMP_NUM_THREADS`` overrides it.
+
+"Busy" counts only work that competes with this process: on Linux, the threads of other processes
+runnable at this moment whose nice value is at most this process's own (a ``nice -n 19`` batch job
+yields its core to us, so it does not count) and whose scheduling policy is not ``SCHED_IDLE``; the
+median of three reads 10 ms apart. Where the threads' states cannot be read, ``/proc/loadavg``'s
+running count (every priority) stands in, and where ``/proc`` is missing, the 1-minute load average,
+which lags: it decays with a one-minute time constant, so for over a minute after a job on both cores
+of a 2-core machine it still rounds to 1 or more.
 
 The library's long entry points (:meth:`training.Trainer.train`, :func:`safety.verification.verify.verify`) apply
 the same policy for their duration through :func:`thread_policy`, unless the caller chose a count:
@@ -45,20 +47,72 @@ def usable_cores() -> int:
         return os.cpu_count() or 1
 
 
+#: ``SCHED_IDLE``: a thread of this policy runs only where nothing else wants the core
+_SCHED_IDLE = 5
+
+
+def _stat_fields(path: str) -> list[str] | None:
+    """The fields of a ``/proc/.../stat`` file after the command name (state first), or None where it
+    vanished or cannot be read (the command name may hold spaces and parentheses: split after the last)."""
+    try:
+        with open(path) as fh:
+            stat = fh.read()
+    except OSError:
+        return None
+    return stat[stat.rindex(")") + 2 :].split()
+
+
+def competing_runnable(own_nice: int | None = None) -> int | None:
+    """Threads of other processes runnable right now (Linux) that compete with this process: nice value
+    at most ``own_nice`` (default: this process's) and a policy other than ``SCHED_IDLE``. None where
+    ``/proc`` holds no per-thread states."""
+    if own_nice is None:
+        own_nice = os.getpriority(os.PRIO_PROCESS, 0)
+    own = str(os.getpid())
+    try:
+        pids = [p for p in os.listdir("/proc") if p.isdigit() and p != own]
+    except OSError:
+        return None
+    count, read_any = 0, False
+    for pid in pids:
+        try:
+            tasks = os.listdir(f"/proc/{pid}/task")
+        except OSError:  # the process ended, or is not ours to read
+            continue
+        for task in tasks:
+            fields = _stat_fields(f"/proc/{pid}/task/{task}/stat")
+            if fields is None or len(fields) < 39:
+                continue
+            read_any = True
+            count += competes(fields, own_nice)
+    return count if read_any else None
+
+
+def competes(fields: list[str], own_nice: int) -> bool:
+    """Whether a thread, given by its ``stat`` fields after the command name, competes for a core with
+    work of nice value ``own_nice``: runnable (state ``R``, field 3 of proc(5)), nice (field 19) at most
+    ``own_nice``, and not ``SCHED_IDLE`` (policy, field 41)."""
+    return fields[0] == "R" and int(fields[16]) <= own_nice and int(fields[38]) != _SCHED_IDLE
+
+
 def runnable_elsewhere() -> int | None:
-    """Threads of other processes runnable right now (Linux): ``/proc/loadavg``'s count of running
-    scheduling entities, less this process's own running threads. None where ``/proc`` is missing."""
+    """Threads of other processes runnable right now (Linux) that compete with this one
+    (:func:`competing_runnable`); where per-thread states cannot be read, ``/proc/loadavg``'s count of
+    running scheduling entities (every priority), less this process's own running threads. None where
+    ``/proc`` is missing."""
+    try:
+        competing = competing_runnable()
+    except (OSError, ValueError, IndexError):
+        competing = None
+    if competing is not None:
+        return competing
     try:
         with open("/proc/loadavg") as fh:
             running = int(fh.read().split()[3].split("/")[0])
         own = 0
         for task in os.listdir("/proc/self/task"):
-            try:
-                with open(f"/proc/self/task/{task}/stat") as fh:
-                    stat = fh.read()
-            except OSError:  # the thread ended between the listing and the read
-                continue
-            own += stat[stat.rindex(")") + 2] == "R"  # the state follows the command name
+            fields = _stat_fields(f"/proc/self/task/{task}/stat")
+            own += fields is not None and fields[0] == "R"
         return max(0, running - own)
     except (OSError, ValueError, IndexError):
         return None
@@ -66,7 +120,8 @@ def runnable_elsewhere() -> int | None:
 
 def free_cores() -> int:
     """Cores not taken by other work (at least 1, at most :func:`usable_cores`): those less the threads other
-    processes have runnable now (median of three reads, see the module docstring), or, where that
+    processes of this process's priority or higher have runnable now (median of three reads, see the module
+    docstring), or, where that
     cannot be read, less the 1-minute load average."""
     cores = usable_cores()
     counts = []

@@ -188,3 +188,43 @@ def test_a_closed_pipe_ends_the_command_quietly():
     err = proc.stderr.read()
     assert proc.wait(timeout=60) == 141
     assert err == ""
+
+
+def test_work_at_a_lower_priority_does_not_count_as_busy():
+    """A ``nice -n 19`` job yields its core: its runnable threads do not compete with ours, and the
+    same job at our own priority does (read from the children's own /proc entries)."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    from reach import threads
+
+    if threads.competing_runnable() is None:
+        pytest.skip("no per-thread states in /proc on this platform")
+    own = os.getpriority(os.PRIO_PROCESS, 0)
+    spin = [sys.executable, "-c", "while True: pass"]
+    seen = {}
+    for label, argv in (("niced", ["nice", "-n", "19", *spin]), ("same", spin)):
+        child = subprocess.Popen(argv)
+        try:
+            deadline, verdict = time.monotonic() + 5.0, None
+            while time.monotonic() < deadline and verdict is None:
+                fields = threads._stat_fields(f"/proc/{child.pid}/stat")
+                if fields is not None and fields[0] == "R" and (label == "same" or int(fields[16]) > own):
+                    verdict = threads.competes(fields, own)
+                time.sleep(0.02)
+        finally:
+            child.kill()
+            child.wait()
+        seen[label] = verdict
+    assert seen == {"niced": own >= 19, "same": True}, seen
+    # the rule itself, on stat fields: runnable, nice, SCHED_IDLE
+    fields = ["R"] + ["0"] * 40
+    assert threads.competes(fields, 0)
+    fields[16] = "19"
+    assert not threads.competes(fields, 0) and threads.competes(fields, 19)
+    fields[16], fields[38] = "0", "5"
+    assert not threads.competes(fields, 0)
+    fields[38], fields[0] = "0", "S"
+    assert not threads.competes(fields, 0)
