@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from groundtruth import solve
+from groundtruth import SolverSettings, solve
 from reach.systems import make_system
 
 REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference" / "air3d_levelset_slice.npz"
@@ -101,9 +101,7 @@ def main() -> None:
                 system,
                 n,
                 [1.0],
-                compile=args.compile == "on",
-                dissipation=args.dissipation,
-                tube=args.tube,
+                settings=SolverSettings(compile=args.compile == "on", dissipation=args.dissipation, tube=args.tube),
                 progress=False,
             )
             wall = time.perf_counter() - t0

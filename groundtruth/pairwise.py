@@ -18,6 +18,7 @@ from collections.abc import Sequence
 
 import torch
 
+from groundtruth.settings import SolverSettings
 from groundtruth.solution import GridSolution
 from groundtruth.solver import solve
 from reach.systems import TORCH, MultiVehicle, RelativePair, system_from_config
@@ -50,18 +51,21 @@ def solve_pairs(
     grid: int | Sequence[int] = 81,
     times: Sequence[float] | None = None,
     half_width: float = 1.6,
-    **solve_kwargs,
+    *,
+    settings: SolverSettings | None = None,
+    progress: bool = True,
 ) -> dict[RelativePair, GridSolution]:
     """Grid solutions of every distinct pair problem (one for the 9D system: its cars are identical).
 
-    ``times`` default to 11 evenly spaced times over the horizon (the union interpolates between them).
+    ``times`` default to 11 evenly spaced times over the horizon (the union interpolates between them);
+    ``settings`` and ``progress`` go to every :func:`~groundtruth.solver.solve`.
     """
     times = list(times) if times is not None else [system.horizon * k / 10 for k in range(11)]
     out: dict[RelativePair, GridSolution] = {}
     for i, j in _ordered_pairs(system):
         pair = pair_system(system, i, j, half_width)
         if pair not in out:
-            out[pair] = solve(pair, grid, times, **solve_kwargs)
+            out[pair] = solve(pair, grid, times, settings=settings, progress=progress)
             out[pair].outside = "clamp"
     return out
 

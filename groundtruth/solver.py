@@ -22,12 +22,12 @@ import itertools
 import math
 import time
 from collections.abc import Callable, Sequence
-from typing import Literal
 
 import torch
 from tqdm.auto import tqdm
 
 from groundtruth.grid import Grid
+from groundtruth.settings import SolverSettings
 from groundtruth.solution import GridSolution
 from groundtruth.weno import SCALE as WENO_SCALE
 from groundtruth.weno import mean_and_half_jump
@@ -39,8 +39,6 @@ from reach.systems.base import ControlAffineSystem
 from reach.systems.registry import make_system
 
 MAX_DIM = 4
-#: Above this CFL number TVD-RK3 with WENO5 is not guaranteed stable (the scheme's linear limit is ~1).
-CFL_STABLE = 1.0
 #: ``compile=None`` compiles on CPU only for at least this many node updates (nodes x RK3 steps):
 #: torch.compile costs 15-30 s once per new system or grid, and pays off only on large work.
 #: Measured with the heap kept (reach.malloc_thresholds) and the leaner WENO5 (fresh inductor cache, one process,
@@ -114,22 +112,13 @@ def check_memory(shape: Sequence[int], num_times: int, dtype: torch.dtype = torc
     return require_memory(estimate_solve_bytes(shape, num_times, dtype), what, "use a coarser grid or fewer --times")
 
 
-#: how :func:`solve` enforces the problem after each step (see its ``tube`` argument)
-TUBES = ("min_with_target", "min_over_time", "set")
-
-
 def solve(
     system: ControlAffineSystem | str,
     grid: Grid | int | Sequence[int],
     times: Sequence[float],
     *,
-    cfl: float = 0.75,
-    dissipation: Literal["global", "local"] = "local",
-    dtype: torch.dtype = torch.float32,
-    device: torch.device | str = "cpu",
-    compile: bool | None = None,
+    settings: SolverSettings | None = None,
     progress: bool = True,
-    tube: Literal["min_with_target", "min_over_time", "set"] = "min_with_target",
 ) -> GridSolution:
     """Solve the value function of ``system``'s problem on ``grid`` and keep it at the given ``times``.
 
@@ -143,27 +132,16 @@ def solve(
             import path ``package.module:ClassName``.
         grid: a :class:`Grid`, or node counts (int or per dimension) over the system's domain.
         times: output times-to-go (>= 0, increasing); the last one is the horizon.
-        cfl: Courant number; values above 1 are refused (TVD-RK3 + WENO5 is unstable there).
-        dissipation: ``"local"`` (default) uses each node's own bound on ``|dH/dp_i|`` over the
-            whole input box; ``"global"`` uses the largest bound over the grid everywhere (more
-            diffusive: on Air3D at 101^3 it is 6e-3 away from the MATLAB toolbox slice, local 1.4e-4).
-        dtype: precision of the computation (float32 by default, float64 for references).
-        device: where the computation runs.
-        compile: fuse the right-hand side with ``torch.compile``. ``None`` (default) decides from
-            the work: on CPU, compile for at least :data:`COMPILE_MIN_NODE_UPDATES` node updates
-            (falling back to eager mode if compiling fails); on other devices stay eager (on an
-            H100, eager Air3D 101^3 took 11.5 s, compiled 13.0 s once cached and 36.2 s on a first
-            run).
+        settings: the scheme's accuracy and time-stepping options (:class:`SolverSettings`: CFL
+            number, dissipation, tube, dtype, device, compilation); ``None``: the defaults.
         progress: show a tqdm bar over simulated time.
-        tube: how the tube is enforced after each step. ``"min_with_target"`` (default) is the
-            variational inequality ``V <- min(V, l)`` (DeepReach's form). ``"min_over_time"`` is
-            the MATLAB toolbox's ``minVOverTime``, ``V <- min(V_new, V_old)``: the same exact
-            solution, but numerically monotone in time; with ``min_with_target`` numerical
-            diffusion at kinks of ``V`` can raise ``V`` by a few 1e-3 between output times.
-            ``"set"`` solves the backward reachable *set* instead of the tube: no minimum with
-            ``l``, so ``V(x, t) <= 0`` means "in the set exactly at time ``t``" (reach at ``t``, or
-            fail at ``t``). For reach-avoid every option then applies ``V <- max(V, -g)``.
     """
+    if settings is None:
+        settings = SolverSettings()
+    elif not isinstance(settings, SolverSettings):
+        raise ValueError(f"settings must be a groundtruth.SolverSettings, got {settings!r}")
+    cfl, dissipation, tube = settings.cfl, settings.dissipation, settings.tube
+    dtype, device, compile = settings.dtype, settings.device, settings.compile
     system = make_system(system)
     if system.state_dim > MAX_DIM:
         raise ValueError(f"the grid solver handles at most {MAX_DIM} dimensions, {system.name} has {system.state_dim}")
@@ -176,15 +154,6 @@ def solve(
         raise ValueError(f"times must be finite and >= 0, got {list(times)}")
     if any(b <= a for a, b in itertools.pairwise(out_times)):
         raise ValueError(f"times must be strictly increasing, got {out_times}")
-    if not (math.isfinite(cfl) and 0 < cfl <= CFL_STABLE):
-        raise ValueError(
-            f"cfl={cfl} is outside (0, {CFL_STABLE}]: TVD-RK3 with WENO5 is only stable "
-            "up to a Courant number of about 1"
-        )
-    if tube not in TUBES:
-        raise ValueError(f"tube must be one of {TUBES}, got {tube!r}")
-    if dissipation not in ("global", "local"):
-        raise ValueError(f"dissipation must be 'global' or 'local', got {dissipation!r}")
 
     need = check_memory(grid.shape, len(out_times), dtype)
 

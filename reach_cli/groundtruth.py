@@ -9,6 +9,7 @@ from typing import Any
 import torch
 
 from groundtruth.grid import Grid
+from groundtruth.settings import DISSIPATIONS, SolverSettings
 from groundtruth.solver import MAX_DIM, check_memory, default_output_times, solve
 from reach.systems import make_system
 from reach.validation import (
@@ -20,6 +21,9 @@ from reach.validation import (
     positive_float_arg,
 )
 from reach_cli.options import add_subparser, signature_default
+
+#: the --dtype choices
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
 def add_parser(sub: Any) -> None:
@@ -40,16 +44,26 @@ def add_parser(sub: Any) -> None:
         "--cfl",
         type=positive_float_arg,
         default=None,
-        help=f"Courant number (default {signature_default(solve, 'cfl')})",
+        help=f"Courant number (default {signature_default(SolverSettings, 'cfl')})",
     )
     p.add_argument(
         "--dissipation",
-        choices=["local", "global"],
+        choices=list(DISSIPATIONS),
         default=None,
-        help=f"Lax-Friedrichs dissipation (default {signature_default(solve, 'dissipation')})",
+        help=f"Lax-Friedrichs dissipation (default {signature_default(SolverSettings, 'dissipation')})",
     )
-    p.add_argument("--dtype", choices=["float32", "float64"], default=None, help="default float32")
-    p.add_argument("--device", type=device_arg, default=None, help="cpu or cuda (default cpu)")
+    p.add_argument(
+        "--dtype",
+        choices=list(DTYPES),
+        default=None,
+        help=f"default {str(signature_default(SolverSettings, 'dtype')).replace('torch.', '')}",
+    )
+    p.add_argument(
+        "--device",
+        type=device_arg,
+        default=None,
+        help=f"cpu or cuda (default {signature_default(SolverSettings, 'device')})",
+    )
     p.add_argument(
         "--compile",
         choices=["auto", "on", "off"],
@@ -59,6 +73,18 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--out", required=True, help="output .npz")
     p.add_argument("--plot", default=None, help="also draw zero-level slices to this PNG")
     p.set_defaults(func=run)
+
+
+def settings_from_args(args: argparse.Namespace) -> SolverSettings:
+    """The solver settings the options ask for; an option left out keeps :class:`SolverSettings`' default."""
+    options = {
+        "cfl": args.cfl,
+        "dissipation": args.dissipation,
+        "dtype": DTYPES[args.dtype] if args.dtype else None,
+        "device": args.device,
+        "compile": None if args.compile == "auto" else args.compile == "on",
+    }
+    return SolverSettings(**{k: v for k, v in options.items() if v is not None})
 
 
 def parse_grid(text: str, ndim: int) -> int | list[int]:
@@ -94,20 +120,12 @@ def run(args: argparse.Namespace) -> int:
     else:
         times = default_output_times(horizon)
     grid = parse_grid(args.grid, system.state_dim)
-    dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype or "float32"]
-    check_memory(Grid.for_system(system, grid).shape, len(times), dtype)
+    settings = settings_from_args(args)
+    check_memory(Grid.for_system(system, grid).shape, len(times), settings.dtype)
     check_output_path(args.out, "--out")
     if args.plot:
         check_output_path(args.plot, "--plot")
-    options = {"cfl": args.cfl, "dissipation": args.dissipation, "device": args.device}
-    solution = solve(
-        system,
-        grid,
-        times,
-        dtype=dtype,
-        compile=None if args.compile == "auto" else args.compile == "on",
-        **{k: v for k, v in options.items() if v is not None},
-    )
+    solution = solve(system, grid, times, settings=settings)
     path = solution.save(args.out)
     scheme = solution.metadata["scheme"]
     print(

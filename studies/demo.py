@@ -30,6 +30,7 @@ def run_demo(
 ) -> Path:
     """Run the Air3D demo into ``out``; returns the report's path."""
     # lazy: the demo's stack only when it runs (the CLI's parser imports this module)
+    from groundtruth.settings import SolverSettings
     from groundtruth.solution import GridSolution
     from groundtruth.solver import solve
     from reach.systems import Air3D
@@ -51,7 +52,7 @@ def run_demo(
     gt_path = out / "air3d_gt.npz"
     if not gt_path.exists():
         log(f"[1/5] ground truth: Air3D on a {grid}^3 grid to t = 1.1")
-        solve(system, grid, times, progress=progress, compile=compile).save(gt_path)
+        solve(system, grid, times, settings=SolverSettings(compile=compile), progress=progress).save(gt_path)
     gt = GridSolution.load(gt_path, outside="clamp")
 
     run = out / "air3d-ssssl"

@@ -33,7 +33,7 @@ from typing import Any
 
 import torch
 
-from groundtruth import Grid, solve
+from groundtruth import Grid, SolverSettings, solve
 from groundtruth.solver import check_memory, default_output_times
 from reach.exit_codes import EXIT_PARTIAL
 from reach.systems import make_system
@@ -152,7 +152,7 @@ def solve_pairwise(path: Path) -> Path:
     check_memory(Grid.for_system(system, 101).shape, len(times), torch.float32)
     check_output_path(path, "pairwise grid")
     with thread_policy():
-        solution = solve(system, 101, times, dtype=torch.float32)
+        solution = solve(system, 101, times, settings=SolverSettings(dtype=torch.float32))
     saved = solution.save(path)
     shape, steps = "x".join(map(str, solution.grid.shape)), solution.metadata["scheme"]["steps"]
     print(

@@ -43,11 +43,12 @@ def device(request: pytest.FixtureRequest) -> str:
 @pytest.fixture(scope="session")
 def air3d_grid():
     """An Air3D grid solution (51^3, 23 times over the 1.1 s horizon), solved once per session (~8 s)."""
+    from groundtruth import SolverSettings
     from groundtruth.solver import solve
     from reach.systems import Air3D
 
     times = [round(1.1 * k / 22, 6) for k in range(23)]
-    sol = solve(Air3D(), 51, times, compile=False, progress=False)
+    sol = solve(Air3D(), 51, times, settings=SolverSettings(compile=False), progress=False)
     sol.outside = "clamp"
     return sol
 
@@ -55,10 +56,11 @@ def air3d_grid():
 @pytest.fixture(scope="session")
 def pair_grid():
     """The 9D system's cooperative two-car problem on a coarse 45^3 grid (11 times), ~3 s."""
+    from groundtruth import SolverSettings
     from groundtruth.pairwise import solve_pairs
     from reach.systems import MultiVehicle9D
 
-    (solution,) = solve_pairs(MultiVehicle9D(), 45, compile=False, progress=False).values()
+    (solution,) = solve_pairs(MultiVehicle9D(), 45, settings=SolverSettings(compile=False), progress=False).values()
     return solution
 
 

@@ -271,7 +271,9 @@ def test_rows_trained_against_the_union_solve_the_pair_grid_first(tmp_path: Path
     monkeypatch.setattr(study, "solve", grid_solve)
     assert solve_pairwise(pairwise) == pairwise
     [(name, grid, times, options)] = solved
-    assert (name, grid, options) == ("relativepair", 101, {"dtype": torch.float32})
+    from groundtruth import SolverSettings
+
+    assert (name, grid, options) == ("relativepair", 101, {"settings": SolverSettings(dtype=torch.float32)})
     assert times[0] == 0 and all(0 < b - a <= 0.1 + 1e-9 for a, b in itertools.pairwise(times))
 
 

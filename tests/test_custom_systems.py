@@ -171,7 +171,7 @@ def test_hamiltonian_and_optimal_inputs_match_brute_force_over_the_box_corners(s
 
 # ---------------------------------------------------------------------- the tutorial's path, toy size
 def test_user_system_through_grid_training_verification_filter_and_sweep(tmp_path):
-    from groundtruth import solve
+    from groundtruth import SolverSettings, solve
     from groundtruth.solution import GridSolution
     from safety import SafetyFilter, load_value_function
     from safety.verification.verify import VerifySettings, sample_states, verify
@@ -180,7 +180,9 @@ def test_user_system_through_grid_training_verification_filter_and_sweep(tmp_pat
     from training import TrainConfig, Trainer
 
     # grid: by import path, saved and reloaded
-    solution = solve("my_systems:DubinsAvoid", 21, [0.0, 0.5, 1.0], compile=False, progress=False)
+    solution = solve(
+        "my_systems:DubinsAvoid", 21, [0.0, 0.5, 1.0], settings=SolverSettings(compile=False), progress=False
+    )
     solution.save(tmp_path / "gt.npz")
     assert GridSolution.load(tmp_path / "gt.npz").system == DubinsAvoid()
     brt = float((solution.values[-1] <= 0).float().mean())

@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from groundtruth import Grid, GridSolution, solve
+from groundtruth import Grid, GridSolution, SolverSettings, solve
 from groundtruth.plotting import plot_zero_level_slices
 from reach.systems import Air3D, MultiVehicle9D
 from reach_cli import main
@@ -47,7 +49,7 @@ def air3d_101() -> GridSolution:
 
 @pytest.fixture(scope="module")
 def air3d_coarse() -> GridSolution:
-    return solve(Air3D(), 41, [0.0, 0.25, 0.5, 1.0], compile=False, progress=False)
+    return solve(Air3D(), 41, [0.0, 0.25, 0.5, 1.0], settings=SolverSettings(compile=False), progress=False)
 
 
 def test_matches_toolbox_slice_at_101(air3d_101, reference):
@@ -61,7 +63,7 @@ def test_matches_toolbox_slice_at_101(air3d_101, reference):
 def test_grid_convergence(air3d_101, reference):
     errors = []
     for n in (31, 51):
-        sol = solve(Air3D(), n, [1.0], compile=False, progress=False)
+        sol = solve(Air3D(), n, [1.0], settings=SolverSettings(compile=False), progress=False)
         errors.append(np.abs(_slice_values(sol, reference) - reference["LS"]).mean())
     errors.append(np.abs(_slice_values(air3d_101, reference) - reference["LS"]).mean())
     assert errors[0] > errors[1] > errors[2], errors
@@ -101,7 +103,9 @@ def test_air3d_symmetry(air3d_coarse, air3d_101):
 
 
 def test_min_over_time_tube_is_monotone_and_nested():
-    sol = solve(Air3D(), 41, [0.0, 0.25, 0.5, 1.0], compile=False, progress=False, tube="min_over_time")
+    sol = solve(
+        Air3D(), 41, [0.0, 0.25, 0.5, 1.0], settings=SolverSettings(compile=False, tube="min_over_time"), progress=False
+    )
     v = sol.values
     assert (v[1:] <= v[:-1]).all()
     brt = v <= 0
@@ -208,7 +212,7 @@ def test_save_load_round_trip_and_corrupt_files(air3d_coarse, tmp_path):
 
 def test_solver_refuses_bad_settings():
     with pytest.raises(ValueError, match=r"cfl=1\.5.*stable"):
-        solve(Air3D(), 21, [0.1], cfl=1.5, progress=False)
+        solve(Air3D(), 21, [0.1], settings=SolverSettings(cfl=1.5), progress=False)
     with pytest.raises(ValueError, match="at most 4 dimensions"):
         solve(MultiVehicle9D(), 5, [0.1], progress=False)
     with pytest.raises(ValueError, match="increasing"):
@@ -217,8 +221,40 @@ def test_solver_refuses_bad_settings():
         solve(Air3D(), 4, [0.1], progress=False)
 
 
+@pytest.mark.parametrize(
+    ("options", "named"),
+    [
+        ({"cfl": 0.0}, "cfl=0.0"),
+        ({"cfl": float("nan")}, "cfl=nan"),
+        ({"cfl": True}, "True"),
+        ({"dissipation": "lokal"}, "'lokal'"),
+        ({"tube": "tube"}, "'tube'"),
+        ({"dtype": torch.int32}, "torch.int32"),
+        ({"dtype": "float32"}, "'float32'"),
+        ({"device": "gpu"}, "'gpu'"),
+        ({"device": 0}, "0"),
+        ({"compile": "yes"}, "'yes'"),
+        ({"compile": 1}, "1"),
+    ],
+)
+def test_solver_settings_refuse_bad_values_when_made(options, named):
+    """Settings are checked at construction, and the error names the bad value."""
+    with pytest.raises(ValueError, match=re.escape(named)):
+        SolverSettings(**options)
+
+
+def test_solver_settings_are_frozen_and_their_defaults_are_the_solvers():
+    settings = SolverSettings()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        settings.cfl = 0.5
+    assert (settings.cfl, settings.dissipation, settings.tube) == (0.75, "local", "min_with_target")
+    assert (settings.dtype, settings.device, settings.compile) == (torch.float32, "cpu", None)
+    with pytest.raises(ValueError, match="SolverSettings, got"):
+        solve(Air3D(), 21, [0.1], settings={"cfl": 0.5}, progress=False)
+
+
 def test_stable_at_the_cfl_limit():
-    sol = solve(Air3D(), 31, [0.5], cfl=1.0, compile=False, progress=False)
+    sol = solve(Air3D(), 31, [0.5], settings=SolverSettings(cfl=1.0, compile=False), progress=False)
     assert torch.isfinite(sol.values).all()
     assert sol.values.min() >= -0.25 - 1e-3  # never below min l: the scheme stays bounded
 
@@ -249,6 +285,25 @@ def test_cli_writes_file_and_plot(tmp_path, capsys):
     assert "beyond" in capsys.readouterr().err
 
 
+def test_cli_builds_the_solver_settings_from_its_options():
+    """Options left out keep SolverSettings' defaults; given ones reach the solver whole."""
+    import argparse
+
+    from reach_cli.groundtruth import add_parser, settings_from_args
+
+    parser = argparse.ArgumentParser()
+    add_parser(parser.add_subparsers())
+    plain = parser.parse_args(["groundtruth", "air3d", "--out", "g.npz"])
+    assert settings_from_args(plain) == SolverSettings()
+    options = ["--cfl", "0.5", "--dissipation", "global", "--dtype", "float64", "--device", "cpu", "--compile", "off"]
+    given = parser.parse_args(["groundtruth", "air3d", "--out", "g.npz", *options])
+    assert settings_from_args(given) == SolverSettings(
+        cfl=0.5, dissipation="global", dtype=torch.float64, device="cpu", compile=False
+    )
+    with pytest.raises(ValueError, match=r"cfl=1\.5"):
+        settings_from_args(parser.parse_args(["groundtruth", "air3d", "--out", "g.npz", "--cfl", "1.5"]))
+
+
 def test_plot_helper(air3d_coarse, tmp_path):
     path = plot_zero_level_slices(air3d_coarse, tmp_path / "s.png", slice_values=[math.pi / 2])
     assert path.stat().st_size > 5_000
@@ -265,8 +320,8 @@ def test_auto_compile_decides_from_the_work(monkeypatch):
     solver.solve(Air3D(), 11, [0.0, 0.1], progress=False)
     monkeypatch.setattr(solver, "COMPILE_MIN_NODE_UPDATES", 100)
     solver.solve(Air3D(), 11, [0.0, 0.1], progress=False)
-    solver.solve(Air3D(), 11, [0.0, 0.1], progress=False, compile=False)
-    solver.solve(Air3D(), 11, [0.0, 0.1], progress=False, compile=True)
+    solver.solve(Air3D(), 11, [0.0, 0.1], settings=SolverSettings(compile=False), progress=False)
+    solver.solve(Air3D(), 11, [0.0, 0.1], settings=SolverSettings(compile=True), progress=False)
     assert seen == [False, None, False, True]
 
 

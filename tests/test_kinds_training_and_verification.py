@@ -15,7 +15,7 @@ import sys
 import pytest
 import torch
 
-from groundtruth import solve
+from groundtruth import SolverSettings, solve
 from reach.systems import Dubins3D, DubinsReachAvoid
 from safety.verification.metrics import violation_statistics
 from safety.verification.rollout import rollout
@@ -31,7 +31,9 @@ SMALL = 31
 def reach_avoid_grid():
     """DubinsReachAvoid's value on a coarse grid, every 0.25 s to its 2 s horizon, read beyond its
     edge at the nearest node (rollouts may leave the domain and come back)."""
-    grid = solve(DubinsReachAvoid(), SMALL, [0.25 * k for k in range(9)], progress=False, compile=False)
+    grid = solve(
+        DubinsReachAvoid(), SMALL, [0.25 * k for k in range(9)], settings=SolverSettings(compile=False), progress=False
+    )
     grid.outside = "clamp"
     return grid
 
@@ -193,7 +195,7 @@ def test_a_results_table_names_the_kind_and_refuses_to_mix_kinds(reach_avoid_gri
     assert "false reachable %" in table and "false safe %" not in table and "mixes" not in table
     mixed = markdown_table([*rows, {"label": "air", "problem": "avoid", "false_safe_rate": 0.0}])
     assert mixed.startswith("This table mixes kinds of problem (avoid, reach-avoid)")
-    avoid = solve(Dubins3D("avoid"), 21, [0.0, 1.0], progress=False, compile=False)
+    avoid = solve(Dubins3D("avoid"), 21, [0.0, 1.0], settings=SolverSettings(compile=False), progress=False)
     avoid_path = tmp_path / "avoid.npz"
     avoid.save(avoid_path)
     rows = evaluate_many([str(avoid_path)], tmp_path / "other", settings, system=Dubins3D("reach"), progress=False)
@@ -216,7 +218,7 @@ def test_robust_scenario_set_of_a_reach_kind_bounds_below_minus_the_level(reach_
 def test_a_reach_problem_has_no_collisions_and_bounds_its_reachable_set():
     """A plain reach problem (DeepReach's Dubins3D, reach mode): nothing to collide with, success is
     reaching the disc in time, and the same verification bounds {V < -delta}."""
-    grid = solve(Dubins3D("reach"), 21, [0.0, 0.5, 1.0], progress=False, compile=False)
+    grid = solve(Dubins3D("reach"), 21, [0.0, 0.5, 1.0], settings=SolverSettings(compile=False), progress=False)
     grid.outside = "clamp"
     x = torch.tensor([[0.5, 0.0, math.pi], [0.5, 0.0, 0.0], [0.0, 0.1, 0.0]])  # facing it, facing away, inside
     r = rollout(grid, x, dt=0.01, progress=False)

@@ -218,11 +218,11 @@ def test_network_capped_by_the_union_misses_none_of_it_and_follows_the_active_gr
 
 
 def _air3d_grid(tmp_path):
-    from groundtruth import solve
+    from groundtruth import SolverSettings, solve
     from reach.systems import Air3D
 
     path = tmp_path / "air3d.npz"
-    solve(Air3D(), 11, [0.0, 1.0], compile=False, progress=False).save(path)
+    solve(Air3D(), 11, [0.0, 1.0], settings=SolverSettings(compile=False), progress=False).save(path)
     return path
 
 

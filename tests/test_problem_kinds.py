@@ -9,7 +9,7 @@ import math
 import pytest
 import torch
 
-from groundtruth import solve
+from groundtruth import SolverSettings, solve
 from reach.systems import TORCH, Dubins3D, DubinsReachAvoid, make_system
 from reach.systems.base import ControlAffineSystem
 from reach.systems.box import Box
@@ -26,7 +26,7 @@ def _values(solution, x: torch.Tensor, t: float) -> torch.Tensor:
 
 @pytest.fixture(scope="module")
 def reach_solution():
-    return solve(Dubins3D("reach"), GRID, [0.0, 0.5, 1.0], progress=False, compile=False)
+    return solve(Dubins3D("reach"), GRID, [0.0, 0.5, 1.0], settings=SolverSettings(compile=False), progress=False)
 
 
 def test_the_kind_sets_the_game_and_the_meaning_of_the_sublevel_set():
@@ -62,7 +62,7 @@ def test_a_reach_tube_matches_the_straight_line_time_to_the_target(reach_solutio
 
 def test_the_set_is_inside_the_tube_and_the_target_is_reached_at_once(reach_solution):
     system = Dubins3D("reach")
-    brs = solve(system, GRID, [0.0, 0.5, 1.0], progress=False, compile=False, tube="set")
+    brs = solve(system, GRID, [0.0, 0.5, 1.0], settings=SolverSettings(compile=False, tube="set"), progress=False)
     x = system.sample_states(4000, torch.Generator().manual_seed(2), dtype=torch.float64)
     tube, exact_time = _values(reach_solution, x, 1.0), _values(brs, x, 1.0)
     # reach *at* T is harder than reach *by* T (up to the 41-node grid's diffusion, 1.1e-3 here)
@@ -76,7 +76,7 @@ def test_reach_avoid_without_an_obstacle_is_reach(reach_solution):
     free = DubinsReachAvoid(
         wind=1e-9, goal=(0.0, 0.0), goal_radius=0.25, obstacle=(30.0, 30.0), obstacle_radius=0.01, horizon=1.0
     )
-    solution = solve(free, GRID, [0.0, 0.5, 1.0], progress=False, compile=False)
+    solution = solve(free, GRID, [0.0, 0.5, 1.0], settings=SolverSettings(compile=False), progress=False)
     x = free.sample_states(4000, torch.Generator().manual_seed(3), dtype=torch.float64)
     diff = (_values(solution, x, 1.0) - _values(reach_solution, x, 1.0)).abs()
     assert float(diff.max()) < 1e-4
@@ -84,7 +84,7 @@ def test_reach_avoid_without_an_obstacle_is_reach(reach_solution):
 
 def test_an_obstacle_blocks_the_straight_path_and_is_never_entered():
     system = DubinsReachAvoid()
-    solution = solve(system, SMALL, [0.0, 2.0], progress=False, compile=False)
+    solution = solve(system, SMALL, [0.0, 2.0], settings=SolverSettings(compile=False), progress=False)
     nodes = solution.grid.columns(torch.float64, "cpu")
     v = solution.values[-1].double()
     g = torch.broadcast_to(system.constraint_margin_columns(nodes, TORCH), v.shape)
@@ -93,7 +93,7 @@ def test_an_obstacle_blocks_the_straight_path_and_is_never_entered():
     # behind the obstacle, facing the goal: the straight line crosses the obstacle, so it must go round
     behind = torch.tensor([[-0.3, 0.0, 0.0]], dtype=torch.float64)
     free = DubinsReachAvoid(obstacle=(30.0, 30.0), obstacle_radius=0.01)
-    free_solution = solve(free, SMALL, [0.0, 2.0], progress=False, compile=False)
+    free_solution = solve(free, SMALL, [0.0, 2.0], settings=SolverSettings(compile=False), progress=False)
     assert float(_values(solution, behind, 2.0)) > float(_values(free_solution, behind, 2.0)) + 0.05
     assert float(_values(free_solution, behind, 2.0)) < 0  # without the obstacle: straight there in 2 s
     assert solution.metadata["scheme"]["kind"] == "reach-avoid"

@@ -36,11 +36,12 @@ def tiny_spec(**overrides) -> SweepSpec:
 @pytest.fixture(scope="module")
 def gt21(tmp_path_factory):
     """A coarse Air3D ground truth shared by the sweeps here (their own solve is tested once)."""
+    from groundtruth import SolverSettings
     from groundtruth.solver import solve
     from reach.systems import Air3D
 
     path = tmp_path_factory.mktemp("gt") / "air3d21.npz"
-    solve(Air3D(), 21, [0.1 * k for k in range(11)], compile=False, progress=False).save(path)
+    solve(Air3D(), 21, [0.1 * k for k in range(11)], settings=SolverSettings(compile=False), progress=False).save(path)
     return str(path)
 
 
