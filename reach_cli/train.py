@@ -31,7 +31,7 @@ from reach.validation import (
 )
 from reach_cli.options import add_subparser, default
 from training import TrainConfig, Trainer, TrainingDivergedError, parse_duration
-from training.distributed import Processes, joined
+from training.distributed import JOIN_TIMEOUT_S, Processes, joined
 from training.network import PARAMETERISATIONS
 from training.run_directory import RESUME_OVERRIDABLE, RunDirectory
 
@@ -194,6 +194,13 @@ def add_parser(sub: Any) -> None:
         "--distributed ...): each takes an even share of every step's points, DistributedDataParallel averages "
         "their gradients (gloo on the CPU, NCCL on CUDA, a GPU per process); rank 0 alone writes the run",
     )
+    p.add_argument(
+        "--join-timeout",
+        type=positive_float_arg,
+        default=JOIN_TIMEOUT_S,
+        metavar="SECONDS",
+        help="--distributed: how long each process waits for all the others to join (default: %(default)g)",
+    )
     p.set_defaults(func=run)
 
 
@@ -233,7 +240,7 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError("give --out RUN_DIR for a new run (or --resume RUN_DIR)")
         config = TrainConfig(**fields).validate()  # before loading a ground truth or building anything
     # --distributed: torchrun's environment, the device and the batch's shares are checked before joining
-    with joined(config) if args.distributed else contextlib.nullcontext(Processes()) as processes:
+    with joined(config, args.join_timeout) if args.distributed else contextlib.nullcontext(Processes()) as processes:
         evaluator = _evaluator(args) if processes.main else None  # rank 0 evaluates and reports
         if args.resume:
             trainer = Trainer.resume(args.resume, evaluator=evaluator, processes=processes, **fields)

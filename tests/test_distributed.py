@@ -183,3 +183,27 @@ def test_a_bad_distributed_start_is_one_line_before_any_work(tmp_path, monkeypat
 def test_rank_seeds_keep_rank_0_on_the_run_seed_and_the_others_off_every_run_seed():
     assert rank_seed(7, 0) == 7
     assert all(rank_seed(seed, rank) >= 2**32 for seed in (0, 7, 2**32 - 1) for rank in range(1, 1000))
+
+
+def test_waiting_for_peers_says_so_and_times_out_in_one_line(tmp_path):
+    """A process whose peers never come says it waits, then gives up after --join-timeout with one
+    line naming the rendezvous (torch's own timeout), not after torch's default half hour."""
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    env = {**os.environ, "RANK": "0", "WORLD_SIZE": "2", "LOCAL_RANK": "0", "MASTER_ADDR": "127.0.0.1"}
+    env["MASTER_PORT"] = str(port)
+    argv = [sys.executable, "-m", "reach", "train", "--distributed", "--join-timeout", "2", "--steps", "1"]
+    start = time.monotonic()
+    done = subprocess.run([*argv, "--out", str(tmp_path / "run")], env=env, capture_output=True, text=True, timeout=120)
+    assert time.monotonic() - start < 60
+    assert done.returncode == 2, done.stderr
+    assert f"waiting for the 2 processes to join at 127.0.0.1:{port} (up to 2 s)" in done.stderr
+    last = done.stderr.strip().splitlines()[-1]
+    assert "error: distributed training: rank 0 waited 2 s" in last and "--join-timeout" in last, last
+    assert not (tmp_path / "run" / "checkpoint.pt").exists()

@@ -63,3 +63,46 @@ def test_backend_choices_are_checked_before_any_work(tmp_path, capsys):
     assert main(args) == 2
     assert "--address needs --backend ray" in capsys.readouterr().err
     assert not (tmp_path / "r.csv").exists()
+
+
+def test_ray_setup_is_refused_up_front_in_one_line(tmp_path, monkeypatch, capsys):
+    """A missing Ray, a malformed address and an address nothing answers at are bad input (exit 2),
+    refused within seconds and before any source is evaluated (not a failed source, exit 3)."""
+    import importlib.util
+    import socket
+    import time
+
+    from reach_cli import main
+    from safety.verification import sharding
+
+    real_find_spec = importlib.util.find_spec
+
+    def ray_as(found):
+        return lambda name, *a: found if name == "ray" else real_find_spec(name, *a)
+
+    monkeypatch.setattr(importlib.util, "find_spec", ray_as(None))
+    with pytest.raises(ValueError, match=r"needs Ray: pip install"):
+        sharding.check_ray_ready(None)
+    out = tmp_path / "r.csv"
+    assert main(["evaluate", "pretrained:air3d", "--samples", "10", "--backend", "ray", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "needs Ray" in err and len(err.strip().splitlines()) == 1 and not out.exists()
+    monkeypatch.setattr(importlib.util, "find_spec", ray_as(object()))
+    for bad in ("nohost", "host:port", ":6379", "host:70000"):
+        with pytest.raises(ValueError, match="is not HOST:PORT"):
+            sharding.check_ray_ready(bad)
+    with socket.socket() as sock:  # a port nothing listens on: bound, never listening
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+        start = time.monotonic()
+        with pytest.raises(ValueError, match=rf"127.0.0.1:{port}: no Ray cluster answers there"):
+            sharding.check_ray_ready(f"127.0.0.1:{port}", timeout=2.0)
+        assert time.monotonic() - start < 10
+        argv = ["evaluate", "pretrained:air3d", "--samples", "10", "--backend", "ray", "--address", f"127.0.0.1:{port}"]
+        assert main([*argv, "--out", str(out)]) == 2
+        assert "no Ray cluster answers" in capsys.readouterr().err and not out.exists()
+    with socket.socket() as server:  # something listening: the address passes the check
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        sharding.check_ray_ready(f"ray://127.0.0.1:{server.getsockname()[1]}")
+    sharding.check_ray_ready("auto")

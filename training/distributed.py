@@ -18,7 +18,9 @@ A run of one process, ``Processes()``, runs no collective at all.
 from __future__ import annotations
 
 import contextlib
+import datetime
 import os
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import TypeVar
@@ -27,6 +29,7 @@ import torch
 import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
 
+from reach.validation import positive_finite
 from training.config import TrainConfig
 
 #: what torchrun sets in every process it starts (``init_process_group``'s ``env://`` reads them)
@@ -137,12 +140,19 @@ def torchrun_environment() -> tuple[int, int, int]:
     return rank, world_size, numbers["LOCAL_RANK"]
 
 
+#: seconds a process waits for all of its peers to join before it gives up (``reach train --join-timeout``)
+JOIN_TIMEOUT_S = 300.0
+
+
 @contextlib.contextmanager
-def joined(config: TrainConfig) -> Iterator[Processes]:
+def joined(config: TrainConfig, timeout_s: float = JOIN_TIMEOUT_S) -> Iterator[Processes]:
     """Join the process group of the processes torchrun started to train ``config`` (gloo on the CPU,
     NCCL on CUDA) for the ``with`` block, and leave it after. The environment, the device and the
     batch's shares are checked first, so a bad start fails at once in every process instead of
-    leaving the others waiting for it."""
+    leaving the others waiting for it. Joining waits at most ``timeout_s`` seconds for every peer
+    (torch's own rendezvous timeout), saying on stderr that it waits; then ``ValueError`` says who
+    was missing."""
+    timeout_s = positive_finite("join timeout (s)", timeout_s)
     rank, world_size, local_rank = torchrun_environment()
     device = torch.device(config.device)
     backend = BACKENDS.get(device.type)
@@ -165,7 +175,20 @@ def joined(config: TrainConfig) -> Iterator[Processes]:
         if not dist.is_nccl_available():
             raise ValueError(f"this torch build ({torch.__version__}) has no NCCL for distributed training on CUDA")
         torch.cuda.set_device(local_rank)
-    dist.init_process_group(backend)
+    where = f"{os.environ['MASTER_ADDR']}:{os.environ['MASTER_PORT']}"
+    print(
+        f"rank {rank}: waiting for the {world_size} processes to join at {where} (up to {timeout_s:g} s)",
+        file=sys.stderr,
+        flush=True,
+    )
+    try:
+        dist.init_process_group(backend, timeout=datetime.timedelta(seconds=timeout_s))
+    except dist.DistError as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise ValueError(
+            f"distributed training: rank {rank} waited {timeout_s:g} s at {where} and not all {world_size} processes "
+            f"joined ({first}); start every process, or give a longer --join-timeout"
+        ) from err
     try:
         yield Processes(rank, world_size, local_rank, backend)
     finally:

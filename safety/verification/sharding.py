@@ -20,6 +20,8 @@ A verification rolls out its states in blocks of ``chunk_size`` (:mod:`safety.ve
 
 from __future__ import annotations
 
+import importlib.util
+import socket
 from collections.abc import Iterator, Sequence
 from typing import Any
 
@@ -37,14 +39,41 @@ def _rollout_block(value_function: ValueFunction, states: torch.Tensor, settings
     return rollout(value_function, states, settings, **run)
 
 
+#: seconds to wait for a Ray cluster's address to accept a connection before refusing it
+CONNECT_TIMEOUT_S = 5.0
+#: what ``ray.init(address=...)`` takes besides ``HOST:PORT``: the cluster on this machine, found by Ray
+RAY_ADDRESS_WORDS = ("auto", "local")
+
+
+def check_ray_ready(address: str | None = None, timeout: float = CONNECT_TIMEOUT_S) -> None:
+    """Refuse, in one line and before any work, what would make Ray fail late: Ray not installed, an
+    address that is not ``HOST:PORT`` (optionally ``ray://HOST:PORT``, or ``auto``/``local``), or one
+    where nothing accepts a TCP connection within ``timeout`` seconds (Ray itself retries an
+    unreachable address for minutes)."""
+    if importlib.util.find_spec("ray") is None:
+        raise ValueError("the ray backend needs Ray: pip install 'reach-hj[ray]'")
+    if address is None or address in RAY_ADDRESS_WORDS:
+        return
+    text = address.removeprefix("ray://")
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"--address {address!r} is not HOST:PORT (or ray://HOST:PORT, auto, local)")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout):
+            pass
+    except OSError as err:
+        raise ValueError(
+            f"--address {address}: no Ray cluster answers there within {timeout:g} s ({err.strerror or err})"
+        ) from err
+
+
 def start_ray(address: str | None = None) -> tuple[Any, bool]:
     """``(ray, started)``: Ray, connected to the cluster at ``address`` or to a local instance (started
     here where none runs, without a dashboard); ``started`` says whether the caller should shut it
     down. ``ValueError`` where Ray is not installed. The sweeps' Ray backend starts Ray the same way."""
-    try:
-        import ray  # lazy: optional extra, only for the Ray backends
-    except ImportError as err:
-        raise ValueError("the ray backend needs Ray: pip install 'reach[ray]'") from err
+    check_ray_ready(address)
+    import ray  # lazy: optional extra, only for the Ray backends
+
     if ray.is_initialized():
         return ray, False
     kwargs: dict[str, Any] = {"address": address} if address else {"include_dashboard": False}
@@ -133,8 +162,9 @@ def make_backend(name: str | None, address: str | None = None) -> RayBlocks | No
             raise ValueError("--address needs --backend ray")
         return None
     if name == "ray":
+        check_ray_ready(address)  # a missing Ray or a bad address is bad input, refused before any source
         return RayBlocks(address=address)
     raise ValueError(f"backend must be one of {BACKENDS}, got {name!r}")
 
 
-__all__ = ["BACKENDS", "RayBlocks", "as_completed", "make_backend", "start_ray"]
+__all__ = ["BACKENDS", "CONNECT_TIMEOUT_S", "RayBlocks", "as_completed", "check_ray_ready", "make_backend", "start_ray"]

@@ -29,6 +29,7 @@ from tqdm.auto import tqdm
 from reach.atomic import atomic_path
 from reach.locking import run_lock
 from reach.validation import check_int, check_output_dir
+from safety.verification.sharding import check_ray_ready
 from studies.sweeps.report import claims_table, final_rows, plot_pareto, rank_layouts, summary_table
 from studies.sweeps.scoring import headline_of
 from studies.sweeps.spec import SweepSpec, store_spec
@@ -89,6 +90,10 @@ def run_sweep(
     spec.validate()
     if backend not in ("local", "ray"):
         raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
+    if backend == "ray":
+        check_ray_ready(address)  # Ray missing or an address nothing answers at: refused before any run
+    elif address is not None:
+        raise ValueError("--address needs --backend ray")
     check_int("workers", workers, 1)
     if threads is not None:
         check_int("threads", threads, 1)
