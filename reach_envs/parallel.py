@@ -193,7 +193,11 @@ class MultiVehicleParallelEnv(ParallelEnv):
         u = list(self._centre)  # inputs of agents that are no longer live stay at their box centre
         for agent in self.agents:
             indices = self._inputs[agent]
-            for k, v in zip(indices, check_action(actions[agent], (len(indices),)).tolist()):
+            try:
+                given = check_action(actions[agent], (len(indices),))
+            except ValueError as err:  # name whose action it was: every agent's fails the same way
+                raise ValueError(f"agent {agent!r}: {err}") from err
+            for k, v in zip(indices, given.tolist()):
                 u[k] = self._centre[k] + self._half[k] * (-1.0 if v < -1.0 else (1.0 if v > 1.0 else v))
         previous = self._state
         d = self.sim.disturbance(previous, self._rng)

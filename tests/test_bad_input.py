@@ -535,6 +535,17 @@ def test_pettingzoo_reset_reports_collision_truthfully():
         penv.reset(seed=0, options={"sate": state})
 
 
+def test_a_pettingzoo_action_of_the_wrong_size_names_its_agent():
+    from reach_envs.parallel import parallel_env
+
+    penv = parallel_env(system="narrowpassage")  # two drivers, each acting (a, psi)
+    penv.reset(seed=0)
+    actions = {agent: np.zeros(2, dtype=np.float32) for agent in penv.agents}
+    actions["car_2"] = np.zeros(3, dtype=np.float32)
+    with pytest.raises(ValueError, match=r"agent 'car_2': action must have shape \(2,\), got shape \(3,\)"):
+        penv.step(actions)
+
+
 def test_an_interrupt_anywhere_is_one_line_and_exit_130(monkeypatch, capsys):
     import reach_cli.envs as envs_command
 
