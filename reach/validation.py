@@ -66,6 +66,21 @@ def positive_finite(name: str, value: Any) -> float:
     return out
 
 
+def finite_point(name: str, value: Any, dim: int) -> tuple[float, ...]:
+    """``value`` as a tuple of ``dim`` finite floats (a point: a goal, an obstacle's centre), from any
+    sequence of reals (tuple, list, 1-d array or tensor). A string, a wrong length or a non-finite or
+    non-real coordinate is refused with ``ValueError`` naming ``name`` and the value: a 3-tuple for a
+    2-D point would otherwise lose its third value, and a NaN would make every comparison with it false."""
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or not hasattr(value, "__getitem__"):
+        raise ValueError(f"{name} must be a sequence of {dim} real numbers, got {value!r}")
+    if len(value) != dim:
+        raise ValueError(f"{name} must have {dim} coordinates, got {len(value)}: {value!r}")
+    out = tuple(real_number(f"{name}[{i}]", value[i]) for i in range(dim))
+    if not all(math.isfinite(c) for c in out):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    return out
+
+
 def check_float(
     name: str,
     value: Any,

@@ -579,3 +579,23 @@ def test_verify_settings_refuse_bad_rollout_settings_by_name(field, value):
     with pytest.raises(ValueError, match=field):
         VerifySettings(**{field: value})
     VerifySettings(**{field: {"chunk_size": 7, "dt": 0.01, "horizon": 0.5, "integrator": "rk4"}[field]})
+
+
+@pytest.mark.parametrize(
+    ("keywords", "message"),
+    [
+        ({"goal": (float("nan"), 0.0)}, r"DubinsReachAvoid: goal must be finite"),
+        ({"goal": (0.7, 0.0, 0.3)}, r"DubinsReachAvoid: goal must have 2 coordinates, got 3"),
+        ({"goal": "ab"}, r"DubinsReachAvoid: goal must be a sequence of 2 real numbers, got 'ab'"),
+        ({"obstacle": (0.1, "x")}, r"DubinsReachAvoid: obstacle\[1\] must be a real number, got 'x'"),
+        ({"obstacle": (0.1, float("inf"))}, r"DubinsReachAvoid: obstacle must be finite"),
+    ],
+)
+def test_a_point_parameter_of_the_wrong_length_type_or_value_is_refused_by_name(keywords, message):
+    """A NaN goal made every state "in the goal" on the torch backend (hypot hides the NaN); a 3-tuple
+    lost its third value; 'ab' gave a float-conversion message."""
+    from reach.systems import DubinsReachAvoid
+
+    with pytest.raises(ValueError, match=message):
+        DubinsReachAvoid(**keywords)
+    assert DubinsReachAvoid(goal=np.array([0.5, 0.1])).goal == (0.5, 0.1)

@@ -21,7 +21,7 @@ from reach.systems.arrays import Backend, Column
 from reach.systems.base import ControlAffineSystem, InputMatrix
 from reach.systems.box import Box
 from reach.systems.deepreach_normalisation import DeepReachNormalisation
-from reach.validation import positive_finite
+from reach.validation import finite_point, positive_finite
 
 #: DeepReach's ``set_mode`` values and the kind each poses
 SET_MODES = {"reach": "reach", "avoid": "avoid"}
@@ -135,9 +135,9 @@ class DubinsReachAvoid(ControlAffineSystem):
         self.speed = positive_finite("DubinsReachAvoid: speed", speed)
         self.max_turn_rate = positive_finite("DubinsReachAvoid: max_turn_rate", max_turn_rate)
         self.wind = positive_finite("DubinsReachAvoid: wind", wind)
-        self.goal = (float(goal[0]), float(goal[1]))
+        self.goal = finite_point("DubinsReachAvoid: goal", goal, 2)
         self.goal_radius = positive_finite("DubinsReachAvoid: goal_radius", goal_radius)
-        self.obstacle = (float(obstacle[0]), float(obstacle[1]))
+        self.obstacle = finite_point("DubinsReachAvoid: obstacle", obstacle, 2)
         self.obstacle_radius = positive_finite("DubinsReachAvoid: obstacle_radius", obstacle_radius)
         self.horizon = positive_finite("DubinsReachAvoid: horizon", horizon)
         self.domain = ((-1.0, 1.0), (-1.0, 1.0), (-math.pi, math.pi))
