@@ -60,7 +60,7 @@ from reach.systems import DubinsReachAvoid
 from reach.systems.arrays import TORCH
 from reach.threads import apply_thread_policy
 from reach.value_function import ValueFunction
-from safety.filters.filter import SafetyFilter
+from safety.filters.base import SafetyFilter
 from safety.filters.settings import FilterSettings
 from safety.value_loading import load_value_function
 from safety.value_policies import OptimalPolicy

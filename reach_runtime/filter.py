@@ -106,7 +106,7 @@ class FilterMetadata:
 
 @dataclass(frozen=True)
 class FilterInfo:
-    """What the filter saw and did, per state (leading batch shape as given; see ``safety.filters.filter``)."""
+    """What the filter saw and did, per state (leading batch shape as given; see ``safety.filters.base``)."""
 
     value: np.ndarray
     gradient: np.ndarray

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 
 from reach.lazy import lazy_exports
 from reach.value_function import MinimumOf, value_and_gradient
-from safety.filters.filter import FilterInfo, SafetyFilter
+from safety.filters.base import FilterInfo, SafetyFilter
 from safety.filters.settings import FilterSettings
 from safety.value_loading import LoadedValueFunction, as_value_function, load_value_function
 from safety.value_policies import GreedyPolicy, OptimalPolicy, worst_case_disturbance
@@ -38,7 +38,7 @@ if TYPE_CHECKING:
     from safety.filters.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper, SafetyFilterWrapper
 
 #: names whose module loads Gymnasium and PettingZoo (the wrappers) or the ONNX export, imported on first
-#: use so that ``import safety.filters.filter`` (the CLI's start-up) stays light. (A name that equals its module's,
+#: use so that ``import safety.filters.base`` (the CLI's start-up) stays light. (A name that equals its module's,
 #: like ``rollout`` and ``verify``, must stay eager: importing the submodule would shadow it.)
 _LAZY = {
     "SafetyFilterParallelWrapper": "safety.filters.wrappers",

@@ -189,7 +189,7 @@ def test_a_disc_of_thrust_takes_actions_inside_the_disc_and_scales_the_rest_onto
 
     from reach.systems import RocketLanding
     from reach_envs.spaces import inputs_of_actions
-    from safety.filters.filter import project_inputs
+    from safety.filters.base import project_inputs
     from safety.value_policies import GreedyPolicy
     from training.network import NeuralValueFunction, ValueNetwork
 

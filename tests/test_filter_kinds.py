@@ -16,7 +16,7 @@ import torch
 
 from reach.systems.base import ControlAffineSystem
 from reach.systems.box import Box
-from safety.filters.filter import SafetyFilter
+from safety.filters.base import SafetyFilter
 from safety.filters.settings import REMAINING, FilterSettings
 from safety.filters.wrappers import _Adapter
 

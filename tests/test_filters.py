@@ -78,7 +78,7 @@ def test_lookahead_keeps_the_nominal_input_only_when_the_next_state_stays_safe(a
     assert kept.any() and info.intervened.any()
     assert torch.equal(u[kept], nominal[kept].to(u.dtype)) and torch.equal(u[~kept], info.applied[~kept])
     # where the nominal input was kept, V one step ahead under the worst-case d* stayed above 0
-    ahead = filt._ahead(x, nominal, system.optimal_disturbance(x, p))
+    ahead = filt.step_ahead(x, nominal, system.optimal_disturbance(x, p))
     assert (air3d_grid.value(ahead[kept], 1.1) > 0).all()
 
 
@@ -116,8 +116,8 @@ def test_the_lookahead_falls_back_to_the_centre_only_where_it_is_verified_and_u_
     x = torch.cat([found, x[(value > -0.002) & (value < 0.01)][:300]])
     _, _, u_star, d_star = filt.policy.evaluate(x, 1.1)
     applied, info = filt(x, 1.1, -u_star)
-    star_ok = filt._backup_holds(x, 1.1, u_star, d_star)
-    centre_ok = filt._backup_holds(x, 1.1, torch.zeros_like(u_star), d_star)
+    star_ok = filt.backup_holds(x, 1.1, u_star, d_star)
+    centre_ok = filt.backup_holds(x, 1.1, torch.zeros_like(u_star), d_star)
     takes_centre = info.intervened & ~star_ok & centre_ok
     assert bool(takes_centre[:2].all()) and bool(info.intervened.any())
     expected = torch.where(takes_centre.unsqueeze(-1), torch.zeros_like(u_star), u_star)

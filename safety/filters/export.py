@@ -7,7 +7,7 @@ needs to check its inputs and everything a reader needs to know what it holds (t
 parameters, the settings in force, ``dt`` and the integrator, the source and its fingerprint).
 
 **One implementation.** The graph is not a second filter written for ONNX: it is
-:meth:`safety.filters.filter.SafetyFilter.decide` itself, traced by ``make_fx`` into ATen operations
+:meth:`safety.filters.base.SafetyFilter.decide` itself, traced by ``make_fx`` into ATen operations
 (autograd of the margins included) and converted by torch's ONNX exporter. While it is traced,
 checks that would raise record into an ``untrusted`` output instead, and value-dependent shortcuts
 compute every row (:mod:`safety.tracing`): the traced decision is the eager one.
@@ -40,7 +40,7 @@ from reach.systems.base import ControlAffineSystem
 from reach.systems.box import Ball
 from reach.validation import check_output_path
 from reach.value_function import MinimumOf, ValueFunction, time_range
-from safety.filters.filter import SafetyFilter
+from safety.filters.base import SafetyFilter
 from safety.filters.settings import REMAINING, FilterSettings, make_filter_settings, settings_for_system
 from safety.tracing import recording_trust
 from safety.value_loading import as_value_function

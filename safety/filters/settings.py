@@ -20,13 +20,13 @@ from typing import Any
 from reach.validation import check_float
 from safety.value_policies import check_policy
 
-#: the filter kinds :class:`~safety.filters.filter.SafetyFilter` offers
+#: the filter kinds :class:`~safety.filters.base.SafetyFilter` offers
 KINDS = ("switch", "lookahead", "smooth")
 
-#: the disturbance paths the lookahead can check (see :mod:`safety.filters.filter`)
+#: the disturbance paths the lookahead can check (see :mod:`safety.filters.lookahead`)
 LOOKAHEAD_DISTURBANCES = ("robust", "model")
 
-#: the backup input each kind uses unless told otherwise (see :mod:`safety.filters.filter`)
+#: the backup input each kind uses unless told otherwise (see :mod:`safety.filters.base` and each kind's module)
 DEFAULT_POLICIES = {"switch": "greedy", "lookahead": "gradient", "smooth": "gradient"}
 
 #: what a filter does at a state outside the value function's domain (see :class:`FilterSettings`)
@@ -43,7 +43,7 @@ MAX_BACKUP_STEPS = 10_000
 
 @dataclass(frozen=True)
 class FilterSettings:
-    """Which filter to run and how (see :mod:`safety.filters.filter` and :mod:`safety.filters.wrappers`).
+    """Which filter to run and how (see :mod:`safety.filters.base` and :mod:`safety.filters.wrappers`).
 
     Attributes:
         kind: ``"switch"``, ``"lookahead"`` or ``"smooth"``.
@@ -54,7 +54,7 @@ class FilterSettings:
         time_to_go: where the env adapters evaluate ``V``: ``None`` at the system's horizon (avoid;
             for reach kinds ``None`` means ``"remaining"``: the task's deadline counts down), a
             number >= 0 (avoid only), or ``"remaining"`` (the time left in the episode). A bare
-            :class:`~safety.filters.filter.SafetyFilter` is given ``t`` by its caller and ignores it.
+            :class:`~safety.filters.base.SafetyFilter` is given ``t`` by its caller and ignores it.
         gamma: the smooth filter's barrier rate (1/s, finite, >= 0; 0 forbids any decrease of ``V``).
         backup_horizon: how long (s) the lookahead rolls the backup policy after the nominal step
             (finite, >= 0; ``None``: the system's horizon; 0: the nominal step alone); at most
@@ -114,7 +114,7 @@ class FilterSettings:
     def threshold_for(self, system: Any, dt: float | None = None) -> float:
         """The threshold to filter at: :attr:`threshold`, else the default rule for a filter that
         acts every ``dt`` seconds (:func:`default_threshold`), else 0 (no control period given: a
-        bare :class:`~safety.filters.filter.SafetyFilter` takes the boundary itself)."""
+        bare :class:`~safety.filters.base.SafetyFilter` takes the boundary itself)."""
         if self.threshold is not None:
             return float(self.threshold)
         return 0.0 if dt is None else default_threshold(system, dt, self.kind)
@@ -160,10 +160,10 @@ def settings_for_system(settings: FilterSettings, system: Any) -> FilterSettings
     what that kind cannot use, naming it. Avoid problems take every setting as it is.
 
     Reach kinds (``"reach"``, ``"reach-avoid"``: the control minimises ``V``, see
-    :mod:`safety.filters.filter`) back up with the gradient's ``u*``: ``policy=None`` resolves to
+    :mod:`safety.filters.base`) back up with the gradient's ``u*``: ``policy=None`` resolves to
     ``"gradient"``, and ``"greedy"`` is refused (:class:`~safety.value_policies.GreedyPolicy` maximises
     ``min(V, l)``, the avoid rule). They refuse the smooth kind (its barrier condition holds the
-    time-to-go fixed, which would certify loitering past the deadline: :mod:`safety.filters.filter`) and a
+    time-to-go fixed, which would certify loitering past the deadline: :mod:`safety.filters.smooth`) and a
     fixed ``time_to_go`` (the task has a deadline: the time-to-go must count down with the episode).
     """
     problem = system.problem

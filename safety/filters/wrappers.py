@@ -1,6 +1,6 @@
 """The safety filter as environment wrappers: Gymnasium, Gymnasium vector, PettingZoo parallel.
 
-Each adapter reads the environment's exact (float64) state, asks :class:`~safety.filters.filter.SafetyFilter`
+Each adapter reads the environment's exact (float64) state, asks :class:`~safety.filters.base.SafetyFilter`
 for the input to apply, and steps the wrapped environment with it. Actions stay in the
 environments' normalised units ([-1, 1] per turn rate): a kept action passes through unchanged and
 a replaced one is ``u*`` normalised (a box corner, so exactly +-1, or 0 on a tie).
@@ -10,31 +10,29 @@ value function was trained for; a number fixes another horizon; ``"remaining"`` 
 in the episode (``horizon - elapsed``, floored at 0). Reach kinds (``"reach"``, ``"reach-avoid"``)
 have a deadline, the end of the episode: ``None`` means ``"remaining"`` there, so the time-to-go
 counts down every step, a fixed number is refused, and once it has run out the filter applies
-``u*`` (it can certify nothing; :mod:`safety.filters.filter`).
+``u*`` (it can certify nothing; :mod:`safety.filters.base`).
 
 Settings: the filter's options are one :class:`~safety.filters.settings.FilterSettings`, given whole
 (``SafetyFilterWrapper(env, vf, settings=FilterSettings(kind="lookahead"))``) or field by field as
 keywords (``SafetyFilterWrapper(env, vf, kind="lookahead")``); its defaults are the ones below.
 
-Filters: ``kind="switch"`` (default), ``"lookahead"`` (predicts one env step with the env's ``dt``
-and integrator, then ``backup_horizon`` seconds of the backup policy, default the system's horizon,
-along the ``backup_disturbance`` paths, default ``"robust"``)
-or ``"smooth"`` (``gamma``: the barrier rate); see :mod:`safety.filters.filter`.
+Filters: ``kind="switch"`` (default, :mod:`safety.filters.switch`), ``"lookahead"`` (predicts one env
+step with the env's ``dt`` and integrator, then ``backup_horizon`` seconds of the backup policy,
+default the system's horizon, along the ``backup_disturbance`` paths, default ``"robust"``;
+:mod:`safety.filters.lookahead`) or ``"smooth"`` (``gamma``: the barrier rate; :mod:`safety.filters.smooth`).
 
 Backup input: ``policy="greedy"`` applies :class:`~safety.value_policies.GreedyPolicy`'s input where a
 filter overrides the nominal input, ``"gradient"`` the gradient's ``u*``; ``None`` (default) takes
-the kind's default, greedy for the switch, gradient for the lookahead and the smooth filter (see
-:mod:`safety.filters.filter`).
+the kind's default, greedy for the switch, gradient for the lookahead and the smooth filter (each
+kind's module says why).
 
 Threshold: a switch or smooth filter that acts once per environment step (zero-order hold) lets
 ``V`` fall by up to about ``|dl/dt|_max * dt`` before it can react, so their default threshold
 (``threshold=None``) is ``2 * margin_rate_bound * dt`` (0.06 for Air3D at dt = 0.02; systems that
 declare no bound use a rate sampled from their own physics, :meth:`margin_rate_estimate`).
-With threshold 0 and a worst-case pursuer, the Air3D grid switch filter still lets most attacked
-episodes collide: the state rides the BRT boundary and slips in between decisions. The lookahead
-filter checks the state after the step and a rollout of the backup policy after it, so its default
-threshold is 0 (on Air3D, 1,000 attacked episodes: no collision with the grid truth or the
-10-minute network).
+At threshold 0 a switch filter lets a state ride the BRT boundary and slip in between decisions.
+The lookahead filter checks the state after the step and a rollout of the backup policy after it,
+so its default threshold is 0 (measured, each kind at each threshold: docs/results/filters.md).
 
 Certificate: ``certificate=CERT`` (a :class:`~safety.formal.certificate.Certificate` or its ``.npz`` file,
 :mod:`safety.formal.verifier`) filters with :class:`~safety.formal.certified_filter.CertifiedFilter` instead: inside
@@ -47,7 +45,9 @@ The filter settings do not apply to it, and are refused beside it. ``info`` then
 ``filter_certified``: whether the pre-step state lay in the certified set.
 
 ``info`` gains ``filter_value`` (``V`` at the pre-step state), ``filter_intervened``,
-``nominal_action`` and ``applied_action`` (normalised units).
+``nominal_action`` and ``applied_action`` (normalised units); the vector wrapper's also
+``filter_infeasible`` (the smooth filter's, else None). :func:`filter_step_info` builds the
+``filter_*`` entries of every wrapper from the filter's info.
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from reach.value_function import ValueFunction, check_time_coverage
 from reach_envs.spaces import inputs_of_actions
-from safety.filters.filter import FilterInfo, SafetyFilter, require_served_kind
+from safety.filters.base import FilterInfo, SafetyFilter, require_served_kind
 from safety.filters.settings import DEFAULT_GAMMA, REMAINING, FilterSettings, default_threshold, make_filter_settings
 from safety.value_loading import as_value_function
 from training import pretrained
@@ -74,7 +74,28 @@ __all__ = [
     "SafetyFilterVectorWrapper",
     "SafetyFilterWrapper",
     "default_threshold",
+    "filter_step_info",
 ]
+
+
+def filter_step_info(info: Any, batched: bool = False) -> dict[str, Any]:
+    """The ``filter_*`` entries of a wrapper's step ``info``, from the filter's info (a
+    :class:`FilterInfo`, or a certificate's :class:`~safety.formal.certified_filter.CertifiedInfo`):
+    ``filter_value`` (``V`` at the pre-step state), ``filter_intervened``, and ``filter_certified``
+    where the filter is a certificate's. One state (``batched=False``) as Python numbers; a batch
+    (the vector wrapper) as arrays, with ``filter_infeasible`` too (the smooth filter's, else None)."""
+    if batched:
+        infeasible = getattr(info, "infeasible", None)
+        entries = {
+            "filter_value": info.value.numpy(),
+            "filter_intervened": info.intervened.numpy(),
+            "filter_infeasible": None if infeasible is None else infeasible.numpy(),
+        }
+    else:
+        entries = {"filter_value": float(info.value), "filter_intervened": bool(info.intervened)}
+    if hasattr(info, "certified"):
+        entries["filter_certified"] = info.certified.numpy() if batched else bool(info.certified)
+    return entries
 
 
 class _UnitAdapter:
@@ -299,14 +320,7 @@ class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordCons
             raise ValueError(f"action must have shape {self.action_space.shape}, got {a.shape}")
         applied, info = self._adapter.apply(base.state, base.time, np.asarray(action))
         obs, reward, terminated, truncated, step_info = self.env.step(applied)
-        step_info.update(
-            filter_value=float(info.value),
-            filter_intervened=bool(info.intervened),
-            nominal_action=np.asarray(action),
-            applied_action=applied,
-        )
-        if hasattr(info, "certified"):
-            step_info["filter_certified"] = bool(info.certified)
+        step_info.update(filter_step_info(info), nominal_action=np.asarray(action), applied_action=applied)
         return obs, reward, terminated, truncated, step_info
 
 
@@ -322,14 +336,8 @@ class SafetyFilterVectorWrapper(_FilterAdapterMixin, VectorWrapper):
         obs, reward, terminated, truncated, step_info = self.env.step(applied)
         step_info = dict(step_info)
         step_info.update(
-            filter_value=info.value.numpy(),
-            filter_intervened=info.intervened.numpy(),
-            filter_infeasible=None if getattr(info, "infeasible", None) is None else info.infeasible.numpy(),
-            nominal_action=np.asarray(actions),
-            applied_action=applied,
+            filter_step_info(info, batched=True), nominal_action=np.asarray(actions), applied_action=applied
         )
-        if hasattr(info, "certified"):
-            step_info["filter_certified"] = info.certified.numpy()
         return obs, reward, terminated, truncated, step_info
 
 
@@ -353,13 +361,13 @@ class SafetyFilterParallelWrapper(_FilterAdapterMixin, BaseParallelWrapper):
         applied, info = self._adapter.apply(base.full_state, base.elapsed, joint)
         filtered = {agent: applied[list(base.control_indices(agent))].astype(np.float32) for agent in actions}
         obs, rewards, terminations, truncations, infos = self.env.step(filtered)
+        shared = filter_step_info(info)  # the joint input's verdict, the same for every agent
         for agent in infos:
             k = list(base.control_indices(agent))
             one = len(k) == 1  # a car's turn rate reads as a number, an agent of several inputs as an array
             infos[agent] = {
                 **infos[agent],
-                "filter_value": float(info.value),
-                "filter_intervened": bool(info.intervened),
+                **shared,
                 "nominal_action": float(joint[k[0]]) if one else joint[k].copy(),
                 "applied_action": float(applied[k[0]]) if one else applied[k].copy(),
             }
