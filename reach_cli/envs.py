@@ -6,6 +6,7 @@ import argparse
 from typing import Any
 
 from reach_cli.options import add_subparser
+from training import pretrained
 
 
 def add_parser(sub: Any) -> None:
@@ -17,15 +18,25 @@ def _agents(agents: dict[str, tuple[int, ...]] | None) -> str:
     return str(len(agents)) if agents else "-"
 
 
+def _model(env_id: str, scene: Any) -> str:
+    """The shipped model a filter on ``env_id`` uses by default, and whether it passes the trust bar."""
+    found = pretrained.card_for_env(env_id, scene.system)
+    if found is None:
+        return "model=- (give a value function)"
+    return f"model={found.name} ({'trusted' if found.verdict.passes else 'fails the trust bar'})"
+
+
 def _line(env_id: str, source: str, scene: Any, agents: dict[str, tuple[int, ...]] | None) -> str:
-    """One environment: its scene or system, the system's kind and sizes, disturbance, step and horizon."""
+    """One environment: its scene or system, the system's kind and sizes, disturbance, step and horizon,
+    and the shipped model its filter uses by default with that model's verdict."""
     s = scene.system
     d = scene.disturbance
     disturbance = "none" if d is None else (d if isinstance(d, str) else "custom")
     state = f"{s.state_dim}D"
     return (
         f"  {env_id:<28} {source:<31} kind={s.kind:<12} state={state:<4} action={s.control_dim} "
-        f"agents={_agents(agents)} disturbance={disturbance} dt={scene.dt:g} horizon={scene.episode_horizon:g}"
+        f"agents={_agents(agents)} disturbance={disturbance} dt={scene.dt:g} horizon={scene.episode_horizon:g} "
+        f"{_model(env_id, scene)}"
     )
 
 
@@ -35,11 +46,13 @@ def run(args: argparse.Namespace) -> int:
     from reach_envs.agents import agent_inputs
     from reach_envs.scenes import SCENES, env_scene
 
-    print("Gymnasium environments with a shipped value network (named scenes):")
+    print(
+        "Gymnasium environments (model: the shipped value network a filter uses when given none; one that "
+        "fails the trust bar needs allow_untrusted=True; reach pretrained shows its figures):"
+    )
     for env_id, scene_name in reach_envs.ENV_SCENES.items():
         scene = SCENES[scene_name]()
         print(_line(env_id, f"scene={scene_name}", scene, agent_inputs(scene.system)))
-    print("Gymnasium environments of the other built-in systems (no value network shipped yet):")
     teams = []
     for env_id, fields in reach_envs.SYSTEM_ENVS.items():
         scene = env_scene(**fields)

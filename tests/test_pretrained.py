@@ -220,3 +220,40 @@ def test_maintainers_record_another_evaluation_in_a_card(tmp_path, monkeypatch) 
     with pytest.raises(SystemExit) as refused:
         make_pretrained.main()
     assert refused.value.code == 2
+
+
+def test_every_card_carries_a_verdict_computed_from_its_figures():
+    """The verdict is recomputed from the card's figures, never read: change a figure and it follows."""
+    import dataclasses
+
+    from training.pretrained.verdict import MAX_WRONG_CLAIMS, trust_verdict
+
+    for c in pretrained.cards():
+        verdict = c.verdict
+        assert verdict.passes == (not verdict.failures), c.name
+        assert verdict.line().startswith("passes" if verdict.passes else "fails (")
+    air3d = pretrained.card("air3d")
+    assert air3d.verdict.passes and "0.905 of the box" in air3d.verdict.scenario
+    worse = dict(air3d.evaluation, metrics={**air3d.metrics, "false_safe_rate": 2 * MAX_WRONG_CLAIMS})
+    failed = trust_verdict(dataclasses.replace(air3d, evaluation=worse), "avoid")
+    assert not failed.passes and failed.failures == ("wrong claims 0.1 % > 0.05 %",)
+    fewer = dict(air3d.evaluation, metrics={**air3d.metrics, "samples": 10_000})
+    assert "10,000 states < 100,000" in trust_verdict(dataclasses.replace(air3d, evaluation=fewer), "avoid").failures
+    no_set = dict(air3d.evaluation, metrics={**air3d.metrics, "scenario_volume": float("nan")})
+    assert "no scenario set" in trust_verdict(dataclasses.replace(air3d, evaluation=no_set), "avoid").failures
+    quad = pretrained.card("quadrotor").verdict
+    assert not quad.passes and "wrong claims 4.54 % > 0.05 %" in quad.failures and "no scenario set" in quad.failures
+    # the 9D filter's default is the capped model under the greedy input: that evaluation is judged
+    assert "greedy policy" in pretrained.card("multivehicle9d").verdict.evaluation
+
+
+def test_the_listings_show_each_models_verdict(capsys):
+    from reach_cli import main
+
+    assert main(["pretrained", "quadrotor", "air3d"]) == 0
+    out = capsys.readouterr().out
+    assert "trust bar: fails (wrong claims 4.54 % > 0.05 %" in out and "trust bar: passes" in out
+    assert main(["envs"]) == 0
+    out = capsys.readouterr().out
+    assert "Quadrotor-v0" in out and "model=quadrotor (fails the trust bar)" in out
+    assert "model=air3d (trusted)" in out and "yet" not in out

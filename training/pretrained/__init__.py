@@ -32,6 +32,7 @@ from typing import Any
 from reach.json_files import read_json
 from reach.result_columns import current_names
 from reach.systems import make_system
+from training.pretrained.verdict import Verdict, trust_verdict
 
 #: a source naming a shipped model: ``"pretrained:air3d"``
 PREFIX = "pretrained:"
@@ -77,6 +78,12 @@ class ModelCard:
         return {**asdict(self), "env_ids": list(self.env_ids), "also_evaluated": list(self.also_evaluated)}
 
     @property
+    def verdict(self) -> Verdict:
+        """Whether this model meets its kind's trust bar, computed from the figures above
+        (:func:`~training.pretrained.verdict.trust_verdict`)."""
+        return trust_verdict(self, make_system(self.system).kind)
+
+    @property
     def metrics(self) -> dict[str, Any]:
         """The ``reach evaluate`` row the card records (empty before evaluation)."""
         return dict(self.evaluation.get("metrics", {}))
@@ -85,6 +92,7 @@ class ModelCard:
         """A few lines for ``reach pretrained``: what, how trained, how it scored."""
         t, e, m = self.training, self.evaluation, self.metrics
         lines = [f"{PREFIX}{self.name}  ({self.system}; envs: {', '.join(self.env_ids) or '-'})", f"  {self.summary}"]
+        lines.append(f"  trust bar: {self.verdict.line()}")
         if t and self.format == "grid":
             shape = "x".join(str(n) for n in t.get("grid", ())) or "?"
             lines.append(f"  solved: on a {shape} grid, {t.get('hardware', '?')}")
@@ -197,25 +205,52 @@ def checkpoint_path(source: str) -> Path:
     return path
 
 
-def for_env(env_id: str | None, system: Any) -> str:
-    """The source a filter on env ``env_id`` uses when given no value function: ``"pretrained:NAME"``,
-    or the card's ``filter_source`` where it names one (``"cap:pretrained:multivehicle9d,..."``).
-
-    A card listing ``env_id`` wins; otherwise a model trained for a system of the same physics as
-    ``system`` (:meth:`~reach.systems.base.ControlAffineSystem.same_physics`). None raises
-    ``ValueError`` naming the env and the shipped models."""
+def card_for_env(env_id: str | None, system: Any) -> ModelCard | None:
+    """The card of the model a filter on env ``env_id`` uses when given no value function: a card
+    listing ``env_id`` wins; otherwise a model trained for a system of the same physics as ``system``
+    (:meth:`~reach.systems.base.ControlAffineSystem.same_physics`); None where no model ships."""
     all_cards = cards()
     for c in all_cards:
         if env_id is not None and env_id in c.env_ids:
-            return c.filter_source or PREFIX + c.name
+            return c
     wanted = make_system(system)
     for c in all_cards:
         if wanted.same_physics(make_system(c.system)):
-            return c.filter_source or PREFIX + c.name
+            return c
+    return None
+
+
+def for_env(env_id: str | None, system: Any, allow_untrusted: bool = False) -> str:
+    """The source a filter on env ``env_id`` uses when given no value function: ``"pretrained:NAME"``,
+    or the card's ``filter_source`` where it names one (``"cap:pretrained:multivehicle9d,..."``).
+
+    Nothing picks an untrusted model: where the card's :attr:`~ModelCard.verdict` fails the trust bar,
+    ``ValueError`` names its figures and the opt-in, unless ``allow_untrusted``. No shipped model
+    raises ``ValueError`` naming the env and the shipped models."""
+    if not isinstance(allow_untrusted, bool):
+        raise ValueError(f"allow_untrusted must be True or False, got {allow_untrusted!r}")
+    found = card_for_env(env_id, system)
+    if found is not None:
+        return found.filter_source or PREFIX + found.name
+    all_cards = cards()
+    wanted = make_system(system)
     raise ValueError(
         f"no pretrained value function for env {env_id or '(no id)'} ({wanted.name}); shipped: "
         f"{', '.join(f'{c.name} ({c.system})' for c in all_cards) or 'none'}; pass a value function"
     )
 
 
-__all__ = ["DIRECTORY", "PREFIX", "ModelCard", "card", "cards", "checkpoint_path", "for_env", "is_pretrained", "names"]
+__all__ = [
+    "DIRECTORY",
+    "PREFIX",
+    "ModelCard",
+    "Verdict",
+    "card",
+    "card_for_env",
+    "cards",
+    "checkpoint_path",
+    "for_env",
+    "is_pretrained",
+    "names",
+    "trust_verdict",
+]
