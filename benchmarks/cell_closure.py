@@ -4,7 +4,7 @@ Run: ``python benchmarks/cell_closure.py [--cells 64 64 64] [--escape-margin 0.7
 (``--closure-scale 4 --escape-margin 3.75``: close over the box widened four times; ``--out CERT``
 writes the certificate, which ``reach certify pretrained:air3d --check CERT`` re-verifies)
 
-The certified set of :func:`safety.formal.certificate.certified_set` is a union of boxes, each with one
+The certified set of :func:`safety.formal.closure.certified_set` is a union of boxes, each with one
 backup input, whose next states land in the union (or in the escape set ``E``). This study asks
 what such a set can be with no help from a value function: every cell of a uniform grid over the
 state box is a candidate (none is marked proven, so no next state may lean on ``V >= c``), each
@@ -25,16 +25,10 @@ from pathlib import Path
 
 import torch
 
-from safety.formal.certificate import _close, _closure_cover, certified_set, save_certificate, volume_share
-from safety.formal.verifier import (
-    ESCAPE,
-    UNKNOWN,
-    CertificationResult,
-    CertifySettings,
-    _candidates,
-    _network,
-    _Verifier,
-)
+from safety.formal.certificate import save_certificate, volume_share
+from safety.formal.closure import certified_set, closure_cover, closure_rows
+from safety.formal.settings import ESCAPE, UNKNOWN, CertificationResult, CertifySettings
+from safety.formal.verifier import Verifier, candidate_inputs, network_of
 from safety.value_loading import load_value_function
 
 
@@ -58,7 +52,7 @@ def main() -> None:
     parser.add_argument("--refinements", type=int, default=0, help="closure_refinements: cut at the set's edge")
     parser.add_argument("--out", type=Path, default=None, help="write the certificate here (.npz)")
     args = parser.parse_args()
-    network = _network(load_value_function(args.source).value_function)
+    network = network_of(load_value_function(args.source).value_function)
     domain = network.system.domain_tensor(torch.float64, "cpu")
     if len(args.cells) != len(domain) or any(n < 1 or n & (n - 1) for n in args.cells):
         parser.error(f"--cells needs {len(domain)} powers of two, got {args.cells}")
@@ -68,12 +62,12 @@ def main() -> None:
         closure_relative_width=1 / min(args.cells), closure_refinements=args.refinements,
     )  # fmt: skip
     lo, hi = uniform_cover(domain, args.cells)
-    verifier = _Verifier(network, settings, torch.device("cpu"), closure=True)
+    verifier = Verifier(network, settings, torch.device("cpu"), closure=True)
     status = torch.where(verifier.in_escape(lo, hi), torch.tensor(ESCAPE), torch.tensor(UNKNOWN))
     result = CertificationResult(
-        settings, lo, hi, status, torch.full((len(lo),), -1, dtype=torch.long), _candidates(network)
+        settings, lo, hi, status, torch.full((len(lo),), -1, dtype=torch.long), candidate_inputs(network)
     )
-    wide, grid = _closure_cover(result, verifier)  # the closure's cover (the network's box, or more)
+    wide, grid = closure_cover(result, verifier)  # the closure's cover (the network's box, or more)
     lo, hi, status = wide.lo, wide.hi, wide.status
     domain = verifier.domain
     band = verifier.in_band(lo, hi) & (status != ESCAPE)
@@ -92,9 +86,9 @@ def main() -> None:
     def share(box_lo: torch.Tensor, box_hi: torch.Tensor) -> float:
         return volume_share(box_lo, box_hi, verifier.network_domain)  # of the network's box
 
-    e_share = share(certificate.escape_lo, certificate.escape_hi)
+    e_share = share(certificate.escape.lo, certificate.escape.hi)
     print(
-        f"certificate: kept {share(certificate.kept_lo, certificate.kept_hi):.4f} of the network's box, "
+        f"certificate: kept {share(certificate.kept.lo, certificate.kept.hi):.4f} of the network's box, "
         f"E {'held' if held else 'did not hold'} (+{e_share:.4f}), {len(rounds)} rounds, "
         f"{time.perf_counter() - start:.1f} s"
     )
@@ -102,7 +96,7 @@ def main() -> None:
         print("E held: the certificate is the closure with E assumed")
         return
     start = time.perf_counter()
-    assumed = _close(verifier, grid, wide, None, torch.zeros(len(lo), dtype=torch.bool))
+    assumed = closure_rows(verifier, grid, wide, None, torch.zeros(len(lo), dtype=torch.bool))
     assert assumed is not None
     rows = assumed[0]
     kept_assumed = share(lo[rows], hi[rows])

@@ -6,7 +6,7 @@ Usage: ``python benchmarks/certify_study.py [--source pretrained:air3d] [--level
 
 Each level runs the verifier (``safety.formal.verifier.certify``) from a fresh cover of the box until it
 finishes or its time runs out; what is left counts as unknown. ``certified`` is yes only when every
-box is outside the set or proven. Then ``safety.formal.certificate.certified_set`` keeps the largest closed
+box is outside the set or proven. Then ``safety.formal.closure.certified_set`` keeps the largest closed
 union of the cover's safe boxes (cut down to ``--closure-width`` first, where given): ``kept`` is
 its share of the box (the certified set is their union, with ``E`` where it holds), and with
 ``--out-dir`` its certificate is written there (the closure holds the boxes sparsely,
@@ -32,32 +32,34 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import torch
 
-from safety.formal.certificate import _close, _closure_cover, _fails, _next_boxes, certified_set, save_certificate
-from safety.formal.verifier import REFUTED, UNKNOWN, CertificationResult, CertifySettings, _network, _Verifier, certify
+from safety.formal.certificate import save_certificate
+from safety.formal.closure import any_by_row, certified_set, closure_cover, closure_rows
+from safety.formal.settings import REFUTED, UNKNOWN, CertificationResult, CertifySettings
+from safety.formal.verifier import Verifier, certify, network_of
 from safety.value_loading import load_value_function
 
 
 def leaving_domain(network: object, result: CertificationResult) -> tuple[float, float]:
     """The undecided (refuted or unknown) boxes' share of the state box, and the share of those from
     which every candidate input takes some next state out of the domain in one step."""
-    verifier = _Verifier(_network(network), result.settings, torch.device("cpu"))
+    verifier = Verifier(network_of(network), result.settings, torch.device("cpu"))
     undecided = ((result.status == UNKNOWN) | (result.status == REFUTED)).nonzero().squeeze(-1)
     lo, hi = result.lo[undecided], result.hi[undecided]
     volume = ((hi - lo) / verifier.span).prod(-1)
     leaves = torch.ones(len(undecided), dtype=torch.bool)
     for u in verifier.candidates:
-        n_lo, n_hi, owner = _next_boxes(verifier, lo, hi, u.expand(len(lo), -1))
-        leaves &= _fails(owner, ~verifier.in_domain(n_lo, n_hi), len(lo))
+        n_lo, n_hi, piece = verifier.next_boxes(lo, hi, u.expand(len(lo), -1))
+        leaves &= any_by_row(piece // len(verifier.d_lo), ~verifier.in_domain(n_lo, n_hi), len(lo))
     return float(volume.sum()), float(volume[leaves].sum())
 
 
 def escape_assumed(network: object, result: CertificationResult) -> list[dict]:
     """The closure's rounds with the escape set assumed even where a box of its band drops (which
     makes ``E`` unsound): how much of the set the level set's band alone leaves."""
-    verifier = _Verifier(_network(network), result.settings, torch.device("cpu"), closure=True)
-    result, grid = _closure_cover(result, verifier)
+    verifier = Verifier(network_of(network), result.settings, torch.device("cpu"), closure=True)
+    result, grid = closure_cover(result, verifier)
     rounds: list[dict] = []
-    _close(verifier, grid, result, rounds, torch.zeros(len(result.status), dtype=torch.bool))
+    closure_rows(verifier, grid, result, rounds, torch.zeros(len(result.status), dtype=torch.bool))
     return rounds
 
 
@@ -126,7 +128,7 @@ def main() -> None:
         closure = f"{time.perf_counter() - start:.1f}"
         kept = f"{certificate.kept_volume_share(network.system.domain_tensor()):.4f}"
         if certificate.settings.escape_margin is not None:
-            kept += f" + E ({len(certificate.escape_lo)} boxes)"
+            kept += f" + E ({len(certificate.escape)} boxes)"
         if args.out_dir is not None:
             save_certificate(args.out_dir / f"level-{level:g}.npz", certificate)
         print(

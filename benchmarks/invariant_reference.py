@@ -27,9 +27,9 @@ import torch
 
 from groundtruth import GridSolution, solve
 from reach.systems import Air3D
-from safety.formal.certificate import _Grid, load_certificate
-from safety.formal.cover import DyadicCover
-from safety.formal.verifier import closure_domain
+from safety.formal.certificate import load_certificate
+from safety.formal.cover import CellGrid, DyadicCover
+from safety.formal.settings import closure_domain
 
 
 def certified_mask(path: Path, x: torch.Tensor) -> torch.Tensor:
@@ -37,8 +37,9 @@ def certified_mask(path: Path, x: torch.Tensor) -> torch.Tensor:
     certificate = load_certificate(path)
     system = Air3D()
     domain = closure_domain(system, certificate.settings.closure_scale)
-    grid = _Grid(domain, certificate.resolution, *certificate.every_box())
-    cover = DyadicCover(*grid.cells(certificate.kept_lo, certificate.kept_hi, exact=True), grid.resolution)
+    every = certificate.every_box()
+    grid = CellGrid(domain, certificate.resolution, every.lo, every.hi)
+    cover = DyadicCover(*grid.cells(certificate.kept.lo, certificate.kept.hi, exact=True), grid.resolution)
     cells = ((x - domain[:, 0]) / grid.span * grid.resolution).floor().long().clamp(0, grid.resolution - 1)
     inside = cover.owner(cells) >= 0
     if certificate.settings.escape_margin is not None:

@@ -1,7 +1,7 @@
 """``reach certify``: a formally certified safe set of a value network, and the check of a certificate file.
 
-Wiring only: the options become a :class:`~safety.formal.verifier.CertifySettings` (options left out fall back
-to its defaults); :func:`~safety.formal.verifier.certify` proves boxes, :func:`~safety.formal.certificate.certified_set`
+Wiring only: the options become a :class:`~safety.formal.settings.CertifySettings` (options left out fall back
+to its defaults); :func:`~safety.formal.verifier.certify` proves boxes, :func:`~safety.formal.closure.certified_set`
 keeps the largest closed union of them, and the file is written atomically. ``--check CERT`` re-verifies
 a file for the value function named, from the file alone.
 """
@@ -21,7 +21,7 @@ from reach.validation import (
     unit_interval_arg,
 )
 from reach_cli.options import add_subparser, default
-from safety.formal.verifier import CertifySettings
+from safety.formal.settings import CertifySettings
 
 #: (option, CertifySettings field, argparse keywords, help) of the verifier's knobs
 CERTIFY_OPTIONS = (
@@ -99,7 +99,9 @@ def add_parser(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     # lazy: the verifier's stack only when this command runs
-    from safety.formal.certificate import certified_set, check_certificate, save_certificate
+    from safety.formal.certificate import save_certificate
+    from safety.formal.checker import check_certificate
+    from safety.formal.closure import certified_set
     from safety.formal.verifier import certify
     from safety.value_loading import load_value_function
 
@@ -110,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
         certificate = check_certificate(args.check, value_function, args.device)
         s = certificate.settings
         print(
-            f"{args.check}: holds for {args.source}: {len(certificate.kept_lo)} boxes certified at level {s.level:g}, "
+            f"{args.check}: holds for {args.source}: {len(certificate.kept)} boxes certified at level {s.level:g}, "
             f"T = {s.time_to_go:g}, dt = {s.dt:g} ({s.integrator})"
         )
         return 0
@@ -146,10 +148,10 @@ def run(args: argparse.Namespace) -> int:
         escape = " (the escape set did not hold: a box of the band below it was not kept; written without it)"
     beyond = certificate.kept_beyond(domain)
     print(
-        f"wrote {path}: {len(certificate.kept_lo)} boxes, {share:.4f} of the state box"
+        f"wrote {path}: {len(certificate.kept)} boxes, {share:.4f} of the state box"
         + (f" (and {beyond} of the boxes beyond it)" if beyond else "")
         + ", "
         f"certified invariant and safe where V >= {args.level:g}{escape}"
         + ("" if result.certified else " (the rest of {V >= c} is not certified)")
     )
-    return 0 if len(certificate.kept_lo) else EXIT_PARTIAL
+    return 0 if len(certificate.kept) else EXIT_PARTIAL

@@ -20,8 +20,11 @@ from reach.integrators import make_stepper
 from reach.systems import Air3D, ControlAffineSystem
 from reach.systems.arrays import TORCH
 from reach.systems.box import Box
-from safety.formal.certificate import certified_set, check_certificate, save_certificate
-from safety.formal.verifier import OUTSIDE, PROVEN, REFUTED, UNKNOWN, CertifySettings, certify
+from safety.formal.certificate import save_certificate
+from safety.formal.checker import check_certificate
+from safety.formal.closure import certified_set
+from safety.formal.settings import OUTSIDE, PROVEN, REFUTED, UNKNOWN, CertifySettings
+from safety.formal.verifier import certify
 from training.network import Encoding, ValueNetwork
 
 
@@ -192,9 +195,9 @@ def test_a_box_about_to_drop_out_takes_another_input_that_keeps_it(torus_network
     certificate = certified_set(torus_network, punched)
     first = {tuple(lo.tolist()): u for lo, u in zip(torus_result.lo, torus_result.candidates[torus_result.backup])}
     switched = sum(
-        not torch.equal(first[tuple(lo.tolist())], u) for lo, u in zip(certificate.kept_lo, certificate.inputs)
+        not torch.equal(first[tuple(lo.tolist())], u) for lo, u in zip(certificate.kept.lo, certificate.inputs)
     )
-    assert switched > 0 and len(certificate.kept_lo) > 0
+    assert switched > 0 and len(certificate.kept.lo) > 0
     check_certificate(save_certificate(tmp_path / "punched.npz", certificate), torus_network)
 
 
@@ -206,19 +209,19 @@ def test_the_certified_set_is_closed_and_its_file_checks(
     torus when this was written, every box but those meeting the disc), its file re-verifies from
     the file alone, and a changed model, level or box, or junk, is refused naming why; the same when
     the checker bounds the network a few boxes at a time."""
-    monkeypatch.setattr("safety.formal.certificate.CHECK_CHUNK", chunk)
+    monkeypatch.setattr("safety.formal.checker.CHECK_CHUNK", chunk)
     certificate = torus_certificate
     domain = Torus().domain_tensor(torch.float64, "cpu")
     assert certificate.kept_volume_share(domain) > 0.5
     path = save_certificate(tmp_path / "torus.npz", certificate)
     checked = check_certificate(path, torus_network)
-    assert torch.equal(checked.kept_lo, certificate.kept_lo) and checked.resolution == certificate.resolution
+    assert torch.equal(checked.kept.lo, certificate.kept.lo) and checked.resolution == certificate.resolution
     # every state of a kept box (whatever V says) is safe and steps, under its box's input and any
     # disturbance, to a state that is again in a kept box
     net = copy.deepcopy(torus_network).double()
     step = make_stepper(net.system, TORUS.dt, TORUS.integrator, TORCH)
     g = torch.Generator().manual_seed(2)
-    lo, hi = certificate.kept_lo.repeat(8, 1), certificate.kept_hi.repeat(8, 1)
+    lo, hi = certificate.kept.lo.repeat(8, 1), certificate.kept.hi.repeat(8, 1)
     x = lo + (hi - lo) * torch.rand(lo.shape, generator=g, dtype=torch.float64)
     d = -0.3 + 0.6 * torch.rand(x.shape, generator=g, dtype=torch.float64)
     u = certificate.inputs.repeat(8, 1)
@@ -226,7 +229,7 @@ def test_the_certified_set_is_closed_and_its_file_checks(
     with torch.no_grad():
         assert bool((net.system.failure_margin(x) > 0).all())
         nxt = net.system.wrap(TORCH.stack(step(TORCH.unbind(x), TORCH.unbind(u), TORCH.unbind(d))))
-        kept_lo, kept_hi = certificate.kept_lo, certificate.kept_hi
+        kept_lo, kept_hi = certificate.kept.lo, certificate.kept.hi
         in_kept = ((nxt[:, None, :] >= kept_lo) & (nxt[:, None, :] <= kept_hi)).all(-1).any(-1)
         below = net(x, t) < TORUS.level
     assert bool(in_kept.all())
@@ -265,7 +268,7 @@ def test_boxes_cut_finer_before_the_closure_keep_at_least_as_much(torus_network,
     (from 0.891 to 0.910 of the torus when this was written), the parts tile what the boxes did, and the file checks."""
     from dataclasses import replace
 
-    from safety.formal.certificate import _refined
+    from safety.formal.closure import _refined
 
     domain = Torus().domain_tensor(torch.float64, "cpu")
     fine = replace(torus_result, settings=replace(TORUS, closure_relative_width=1 / 64))
@@ -277,7 +280,7 @@ def test_boxes_cut_finer_before_the_closure_keep_at_least_as_much(torus_network,
     coarse = certified_set(torus_network, torus_result)
     refined = certified_set(torus_network, fine)
     assert refined.kept_volume_share(domain) >= coarse.kept_volume_share(domain)
-    assert len(refined.kept_lo) > len(coarse.kept_lo)
+    assert len(refined.kept.lo) > len(coarse.kept.lo)
     check_certificate(save_certificate(tmp_path / "fine.npz", refined), torus_network)
     with pytest.raises(ValueError, match="closure_relative_width"):
         CertifySettings(level=0.3, time_to_go=1.0, dt=0.05, closure_relative_width=0.0)
@@ -299,11 +302,11 @@ def test_refinements_at_the_sets_edge_keep_more_and_the_file_checks(torus_networ
         settings = replace(coarse, closure_refinements=refinements)
         certificate = certified_set(torus_network, replace(result, settings=settings))
         shares.append(certificate.kept_volume_share(domain))
-        widths = (certificate.kept_hi - certificate.kept_lo) / (domain[:, 1] - domain[:, 0])
+        widths = (certificate.kept.hi - certificate.kept.lo) / (domain[:, 1] - domain[:, 0])
         assert float(widths.min()) == pytest.approx(1 / 8 / 2**refinements)
         if previous is not None:  # every box kept before is kept again, whole, with its input
-            before = {tuple(lo.tolist()) + tuple(u.tolist()) for lo, u in zip(previous.kept_lo, previous.inputs)}
-            now = {tuple(lo.tolist()) + tuple(u.tolist()) for lo, u in zip(certificate.kept_lo, certificate.inputs)}
+            before = {tuple(lo.tolist()) + tuple(u.tolist()) for lo, u in zip(previous.kept.lo, previous.inputs)}
+            now = {tuple(lo.tolist()) + tuple(u.tolist()) for lo, u in zip(certificate.kept.lo, certificate.inputs)}
             assert before <= now
         previous = certificate
     assert shares[0] < shares[1] < shares[2], shares
@@ -318,13 +321,13 @@ def test_a_piece_on_a_box_face_needs_only_the_cell_on_its_side():
     """The closure's cells come from the boxes' own corners: a next-state piece that ends exactly on a
     face (a face the step leaves in place) needs only the cell on its side, one that pokes an ulp
     beyond needs the next cell too, and boxes whose corners disagree on an edge are refused."""
-    from safety.formal.certificate import _Grid
+    from safety.formal.cover import CellGrid
 
     domain = torch.tensor([[-math.pi, math.pi]], dtype=torch.float64)
     third = torch.tensor([[-math.pi / 2]], dtype=torch.float64)  # an edge whose float is not (k / R) exact
     lo = torch.tensor([[-math.pi], [-math.pi / 2], [0.0], [math.pi / 2]], dtype=torch.float64)
     hi = torch.tensor([[-math.pi / 2], [0.0], [math.pi / 2], [math.pi]], dtype=torch.float64)
-    grid = _Grid(domain, 4, lo, hi)
+    grid = CellGrid(domain, 4, lo, hi)
     a, b = grid.cells(third - 0.1, third, exact=False)
     assert (int(a), int(b)) == (0, 1)
     a, b = grid.cells(third - 0.1, torch.nextafter(third, torch.tensor(math.inf, dtype=torch.float64)), exact=False)
@@ -334,7 +337,7 @@ def test_a_piece_on_a_box_face_needs_only_the_cell_on_its_side():
     bent = hi.clone()
     bent[0, 0] = torch.nextafter(bent[0, 0], torch.tensor(0.0, dtype=torch.float64))
     with pytest.raises(ValueError, match="corners on one cell edge differ"):
-        _Grid(domain, 4, lo, bent)
+        CellGrid(domain, 4, lo, bent)
 
 
 def test_the_command_line_certifies_and_checks_in_one_line_errors(network, tmp_path, capsys):
@@ -399,7 +402,7 @@ def test_the_certified_filter_keeps_every_trajectory_safe(torus_network, torus_c
         assert bool((system.failure_margin(x) > 0).all())
     assert interventions > 0
     # from the kept state nearest the disc (just inside its box), full speed straight at the disc
-    lo, hi = torus_certificate.kept_lo, torus_certificate.kept_hi
+    lo, hi = torus_certificate.kept.lo, torus_certificate.kept.hi
     near = (lo + hi) / 2 + 0.98 * (torch.zeros(2, dtype=torch.float64).clamp(lo, hi) - (lo + hi) / 2)
     nearest = near[system.failure_margin(near).argmin()][None]
     toward = -nearest / nearest.norm(dim=-1, keepdim=True)

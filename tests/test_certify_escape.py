@@ -23,9 +23,12 @@ from reach.integrators import make_stepper
 from reach.systems import Air3D, ControlAffineSystem, Dubins3D
 from reach.systems.arrays import TORCH
 from reach.systems.box import Box
-from safety.formal.certificate import certified_set, check_certificate, save_certificate
+from safety.formal.certificate import save_certificate
 from safety.formal.certified_filter import CertifiedFilter
-from safety.formal.verifier import ESCAPE, CertifySettings, _Verifier, certify, escape_rule, value_bounds
+from safety.formal.checker import check_certificate
+from safety.formal.closure import certified_set, closure_cover, closure_rows
+from safety.formal.settings import ESCAPE, CertifySettings, escape_rule
+from safety.formal.verifier import Verifier, certify, value_bounds
 from training.network import ValueNetwork
 
 PUSH, GUST, RADIUS = 0.1, 0.05, 0.25
@@ -100,7 +103,7 @@ def with_escape(outflow):
 def test_without_an_escape_set_the_flow_leaves_nothing_certified(outflow):
     result = certify(outflow, CertifySettings(**BASE))
     certificate = certified_set(outflow, result)
-    assert len(certificate.kept_lo) == 0
+    assert len(certificate.kept.lo) == 0
 
 
 def test_with_one_most_of_the_box_is_certified_and_its_file_checks(outflow, with_escape, tmp_path):
@@ -110,7 +113,7 @@ def test_with_one_most_of_the_box_is_certified_and_its_file_checks(outflow, with
     assert shares["escape"] > 0.1 and result.band_open == 0
     assert certificate.settings.escape_margin == 0.6  # E held
     kept = certificate.kept_volume_share(domain)
-    escape = float(((certificate.escape_hi - certificate.escape_lo) / 2.0).prod(-1).sum())
+    escape = float(((certificate.escape.hi - certificate.escape.lo) / 2.0).prod(-1).sum())
     assert kept > 0.2 and kept + escape > 0.6, (kept, escape)
     path = save_certificate(tmp_path / "outflow.npz", certificate)
     check_certificate(path, outflow)
@@ -120,7 +123,7 @@ def in_certified_set(certificate, system, x: torch.Tensor) -> torch.Tensor:
     """``(kept boxes) ∪ E`` at states ``x``, evaluated directly."""
     margin = system.failure_margin(x)
     beyond = ((x < -1.0) | (x > 1.0)).any(-1)
-    lo, hi = certificate.kept_lo, certificate.kept_hi
+    lo, hi = certificate.kept.lo, certificate.kept.hi
     in_kept = ((x[:, None, :] >= lo) & (x[:, None, :] <= hi)).all(-1).any(-1)
     return beyond | (margin >= certificate.settings.escape_margin) | in_kept
 
@@ -298,8 +301,8 @@ def test_boxes_of_the_band_are_split_finer_until_they_hold_only_states_of_the_se
     assert result.band_open > 0 and not result.certified
     certificate = certified_set(outflow, result)
     assert certificate.settings.escape_margin == 0.6
-    lo, hi = certificate.kept_lo, certificate.kept_hi
-    band = _Verifier(outflow, certificate.settings, torch.device("cpu")).in_band(lo, hi)
+    lo, hi = certificate.kept.lo, certificate.kept.hi
+    band = Verifier(outflow, certificate.settings, torch.device("cpu")).in_band(lo, hi)
     below = value_bounds(copy.deepcopy(outflow).double(), lo[band], hi[band], 1.0).lo < 0.5
     assert bool(below.any())  # kept band boxes that hold states of V < c
     check_certificate(save_certificate(tmp_path / "coarse.npz", certificate), outflow)
@@ -308,7 +311,7 @@ def test_boxes_of_the_band_are_split_finer_until_they_hold_only_states_of_the_se
     widths = ((fine.hi - fine.lo) / 2.0).amax(-1)
     assert float(widths.min()) < 1 / 8 and float(widths.max()) == 1 / 8
     certificate = certified_set(outflow, fine)
-    assert certificate.settings.escape_margin == 0.6 and len(certificate.kept_lo) > 0
+    assert certificate.settings.escape_margin == 0.6 and len(certificate.kept.lo) > 0
 
 
 def test_an_escape_set_whose_band_cannot_be_kept_is_dropped(outflow, tmp_path):
@@ -317,8 +320,8 @@ def test_an_escape_set_whose_band_cannot_be_kept_is_dropped(outflow, tmp_path):
     so (the flow carries every state out of the box, so nothing is kept)."""
     result = certify(outflow, CertifySettings(**BASE, escape_margin=0.005))
     without = certified_set(outflow, result)
-    assert without.settings.escape_margin is None and len(without.escape_lo) == 0
-    assert len(without.kept_lo) == 0
+    assert without.settings.escape_margin is None and len(without.escape.lo) == 0
+    assert len(without.kept.lo) == 0
     check_certificate(save_certificate(tmp_path / "without.npz", without), outflow)
 
 
@@ -328,22 +331,20 @@ def test_after_a_refinement_e_holds_only_while_every_box_of_its_band_can_stay(ou
     assumed; with every band box staying, it is."""
     from dataclasses import replace
 
-    from safety.formal.certificate import _close, _closure_cover
-
     result, _ = with_escape
-    verifier = _Verifier(outflow, result.settings, torch.device("cpu"), closure=True)
-    cover, grid = _closure_cover(result, verifier)
+    verifier = Verifier(outflow, result.settings, torch.device("cpu"), closure=True)
+    cover, grid = closure_cover(result, verifier)
     cover = replace(cover, backup=cover.backup.clone())  # the module's fixture stays as it was
     band = verifier.in_band(cover.lo, cover.hi) & (cover.status != ESCAPE)
     assert bool(band.any())
     nothing = torch.zeros(len(band), dtype=torch.bool)
-    assert _close(verifier, grid, cover, None, band, (nothing, nothing)) is None
-    closed = _close(verifier, grid, cover, None, band, None)
+    assert closure_rows(verifier, grid, cover, None, band, (nothing, nothing)) is None
+    closed = closure_rows(verifier, grid, cover, None, band, None)
     assert closed is not None
     stay = torch.zeros(len(band), dtype=torch.bool)
     stay[closed[0]] = True
     cover.backup[closed[0]] = closed[1]
-    again = _close(verifier, grid, cover, None, band, (stay, nothing))
+    again = closure_rows(verifier, grid, cover, None, band, (stay, nothing))
     assert again is not None and set(again[0].tolist()) == set(closed[0].tolist())
 
 
@@ -367,11 +368,11 @@ def test_a_closure_over_a_wider_box_keeps_boxes_beyond_the_networks(outflow, tmp
     wide = {**BASE, "closure_scale": 2, "closure_relative_width": 1 / 16}
     certificate = certified_set(outflow, certify(outflow, CertifySettings(**wide, escape_margin=1.7)))
     assert certificate.settings.escape_margin == 1.7
-    assert bool(((certificate.kept_lo < -1) | (certificate.kept_hi > 1)).any(-1).any())
-    assert float(certificate.kept_hi.abs().max()) == 2.0
+    assert bool(((certificate.kept.lo < -1) | (certificate.kept.hi > 1)).any(-1).any())
+    assert float(certificate.kept.hi.abs().max()) == 2.0
     domain = Outflow().domain_tensor(torch.float64, "cpu")
-    inner = ~((certificate.kept_lo < -1) | (certificate.kept_hi > 1)).any(-1)
-    share = float(((certificate.kept_hi - certificate.kept_lo)[inner] / 2.0).prod(-1).sum())
+    inner = ~((certificate.kept.lo < -1) | (certificate.kept.hi > 1)).any(-1)
+    share = float(((certificate.kept.hi - certificate.kept.lo)[inner] / 2.0).prod(-1).sum())
     assert certificate.kept_volume_share(domain) == pytest.approx(share) and share <= 1.0  # the box's share only
     assert certificate.kept_beyond(domain) == int((~inner).sum()) > 0
     check_certificate(save_certificate(tmp_path / "wide.npz", certificate), outflow)

@@ -93,7 +93,7 @@ def test_interval_physics_contains_every_sampled_value(name, seed, log_half_widt
     exact = TORCH.stack(system.xdot_columns(x_cols, u_t, d_cols, TORCH))
     assert _contains(xdot, exact), "xdot"
     for margin in _margins(system):
-        assert _contains(Interval._of(margin(x_box, INTERVAL)), margin(x_cols, TORCH)), margin.__name__
+        assert _contains(Interval.of(margin(x_box, INTERVAL)), margin(x_cols, TORCH)), margin.__name__
     for integrator in ("euler", "rk4"):
         step = make_stepper(system, 0.05, integrator, INTERVAL)(x_box, u_cols, d_box)
         exact = TORCH.stack(make_stepper(system, 0.05, integrator, TORCH)(x_cols, u_t, d_cols))

@@ -14,14 +14,12 @@ map, :meth:`training.network.ValueNetwork.raw`) over many boxes at once, batched
   layers with interval derivatives). As a box shrinks its width tends to the network's own range,
   where IBP's stays a constant factor above it; it is intersected with IBP's, so never looser.
 
-**How tight, measured** (``python benchmarks/bound_tightness.py``: the median over 64 random boxes
-of a bound's width over the linearised range ``2 sum |do/dz_i| r_i`` at the box's centre). On
-random sine networks IBP stays 65-74x above it on small boxes and the mean-value form reaches
-3-4x. On the trained networks the weights are larger and the overestimation far worse: IBP
-1,100-15,000x at half-widths of 1e-3 to 1e-5 of the span, the mean-value form 180x (9D) and
-740x (Air3D) only at 1e-5. Neither is tight enough to certify a trained sine network by branch and
-bound at a useful box count; :mod:`safety.formal.linear_bounds` (linear relaxations carried back through
-the layers) is, within 1.2x of the range from 1e-3 of the span down.
+**How tight**: ``python benchmarks/bound_tightness.py`` compares each bound's width with the
+linearised range ``2 sum |do/dz_i| r_i`` at a box's centre (measured: docs/results/certificates.md).
+IBP stays a constant factor above that range as a box shrinks, the mean-value form tends to it; on
+trained networks, whose weights are larger, neither is tight enough to certify a sine network by
+branch and bound at a useful box count, and :mod:`safety.formal.linear_bounds` (linear relaxations
+carried back through the layers) is.
 
 Both compute in float64 and widen each step outward by an a-priori bound of its own rounding
 error (a dot product of ``n`` terms errs by at most ``(n + 2) u sum |w_i h_i|``, ``u = 2**-53``;
@@ -113,7 +111,10 @@ def on_network_device(function: Callable[..., Any]) -> Callable[..., Any]:
     return wrapped
 
 
-def _check_box(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi) -> tuple[torch.Tensor, ...]:
+def check_box(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi) -> tuple[torch.Tensor, ...]:
+    """Boxes of states and times as float64 tensors on the network's device (times expanded to one per
+    box), refused naming the problem unless the state corners are two ``(B, n)`` tensors, every corner
+    and time is finite, and no lower corner lies above its upper one."""
     n = network.system.state_dim
     device = next(network.parameters()).device
     x_lo, x_hi = (torch.as_tensor(v, dtype=torch.float64).to(device) for v in (x_lo, x_hi))
@@ -135,7 +136,7 @@ def _check_box(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi) -> tuple[torch.Ten
 def interval_bounds(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi) -> Interval:
     """Sound bounds of ``network.raw(x, t)`` for every ``x`` in each box ``[x_lo, x_hi]`` (``(B, n)``)
     and ``t`` in ``[t_lo, t_hi]`` (scalars or ``(B,)``), by interval bound propagation (float64, CPU)."""
-    x_lo, x_hi, t_lo, t_hi = _check_box(network, x_lo, x_hi, t_lo, t_hi)
+    x_lo, x_hi, t_lo, t_hi = check_box(network, x_lo, x_hi, t_lo, t_hi)
     lo, hi = _propagate(network, *_encoding_interval(network, x_lo, x_hi, t_lo, t_hi))[0]
     return lo.squeeze(-1), hi.squeeze(-1)
 
@@ -191,7 +192,7 @@ def _matvec_interval(weight: torch.Tensor, g: Interval) -> Interval:
 def gradient_bounds(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi) -> Interval:
     """Sound bounds of ``d network.raw / d(encoded input)`` over each box (backward through the layers
     with interval derivatives), shape ``(B, input_dim)``."""
-    x_lo, x_hi, t_lo, t_hi = _check_box(network, x_lo, x_hi, t_lo, t_hi)
+    x_lo, x_hi, t_lo, t_hi = check_box(network, x_lo, x_hi, t_lo, t_hi)
     return _encoded_gradient(network, *_encoding_interval(network, x_lo, x_hi, t_lo, t_hi))
 
 
@@ -209,7 +210,7 @@ def _encoded_gradient(network: ValueNetwork, lo: torch.Tensor, hi: torch.Tensor)
 @on_network_device
 def input_gradient_bounds(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi) -> tuple[Interval, Interval]:
     """Sound bounds of ``d network.raw / dt`` (``(B,)``) and ``d network.raw / dx`` (``(B, n)``) over each box."""
-    x_lo, x_hi, t_lo, t_hi = _check_box(network, x_lo, x_hi, t_lo, t_hi)
+    x_lo, x_hi, t_lo, t_hi = check_box(network, x_lo, x_hi, t_lo, t_hi)
     g = _encoded_gradient(network, *_encoding_interval(network, x_lo, x_hi, t_lo, t_hi))
     return _input_jacobian(network, g, x_lo, x_hi)
 
@@ -219,7 +220,7 @@ def mean_value_bounds(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi) -> Interval
     """Sound bounds of ``network.raw(x, t)`` over each box by the mean-value form around its centre,
     intersected with :func:`interval_bounds`. The gradient is taken with respect to ``(t, x)`` through
     the encoding (the headings' sin/cos by their interval derivatives)."""
-    x_lo, x_hi, t_lo, t_hi = _check_box(network, x_lo, x_hi, t_lo, t_hi)
+    x_lo, x_hi, t_lo, t_hi = check_box(network, x_lo, x_hi, t_lo, t_hi)
     enc_lo, enc_hi = _encoding_interval(network, x_lo, x_hi, t_lo, t_hi)
     ibp, _ = _propagate(network, enc_lo, enc_hi)
     g = _encoded_gradient(network, enc_lo, enc_hi)

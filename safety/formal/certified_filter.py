@@ -1,6 +1,6 @@
 """A safety filter that is safe for all time by proof: it keeps a certificate's set invariant.
 
-:mod:`safety.formal.certificate` certifies a set ``S``, the union of its kept boxes (and the escape set
+:mod:`safety.formal.closure` certifies a set ``S``, the union of a certificate's kept boxes (and the escape set
 ``E`` where it has one): from every state of ``S`` its box's backup input keeps the next state in
 ``S``, under every disturbance, and ``S`` never meets the failure set. :class:`CertifiedFilter` is
 the least restrictive filter that keeps ``S``:
@@ -17,7 +17,7 @@ the least restrictive filter that keeps ``S``:
 * a nominal input outside the control box is never kept (it is not an admissible input); a state that
   is not finite is refused with an error.
 
-Each decision bounds a few boxes (about a millisecond each on a CPU): a filter for a Python control
+Each decision bounds a few boxes (measured: docs/results/certificates.md): a filter for a Python control
 loop, not for the 1 kHz exported path of :mod:`safety.filters.export`.
 """
 
@@ -27,15 +27,10 @@ from dataclasses import dataclass
 
 import torch
 
-from safety.formal.certificate import (
-    Certificate,
-    _Grid,
-    check_provenance,
-    landing_verdicts,
-    load_certificate,
-    verify_certificate,
-)
-from safety.formal.verifier import _network, _Verifier
+from safety.formal.certificate import Certificate, load_certificate
+from safety.formal.checker import CertificateCells, check_provenance, landing_verdicts, verify_certificate
+from safety.formal.cover import CellGrid
+from safety.formal.verifier import Verifier, network_of
 from training.network import NeuralValueFunction, ValueNetwork
 
 __all__ = ["CertifiedFilter", "CertifiedInfo"]
@@ -55,7 +50,7 @@ class CertifiedInfo:
 class CertifiedFilter:
     """The filter of a certificate (a :class:`~safety.formal.certificate.Certificate` or its ``.npz`` path) for
     ``value_function``. ``verify=True`` (the default) re-verifies the certificate first
-    (:func:`~safety.formal.certificate.verify_certificate`); ``False`` checks only that it was made for this
+    (:func:`~safety.formal.checker.verify_certificate`); ``False`` checks only that it was made for this
     value function and system."""
 
     def __init__(
@@ -67,20 +62,21 @@ class CertifiedFilter:
         label = str(certificate) if not isinstance(certificate, Certificate) else "the certificate"
         if not isinstance(certificate, Certificate):
             certificate = load_certificate(certificate)
-        network = _network(value_function)
+        network = network_of(value_function)
         if verify:
             verify_certificate(certificate, network, label)
         else:
             check_provenance(certificate, network, label)
         self.certificate = certificate
         self.system = network.system
-        self._verifier = _Verifier(network, certificate.settings, torch.device("cpu"), closure=True)
+        self._verifier = Verifier(network, certificate.settings, torch.device("cpu"), closure=True)
         self._network64 = self._verifier.network
-        self._grid = _Grid(self._verifier.domain, certificate.resolution, *certificate.every_box())
-        # the kept boxes first, then the outside ones: a state's box below its number of kept boxes is
-        # the kept box that holds it, whose backup input applies
-        self._allowed = self._grid.cover(*certificate.allowed_boxes())
-        self._members = self._grid.cover(*certificate.member_boxes())
+        every = certificate.every_box()
+        # its allowed boxes: the kept boxes first, then the outside ones: a state's box below its
+        # number of kept boxes is the kept box that holds it, whose backup input applies
+        self._cells = CertificateCells.of(
+            certificate, CellGrid(self._verifier.domain, certificate.resolution, every.lo, every.hi)
+        )
 
     def __call__(self, x: torch.Tensor, u_nominal: torch.Tensor) -> tuple[torch.Tensor, CertifiedInfo]:
         """The applied inputs for states ``(B, n)`` (or ``(n,)``) and nominal inputs ``(B, m)`` (or ``(m,)``)."""
@@ -99,9 +95,10 @@ class CertifiedFilter:
         inside = ((x >= domain[:, 0]) & (x <= domain[:, 1])).all(-1)
         box = torch.full((len(x),), -1, dtype=torch.long)
         if bool(inside.any()):
-            a, _ = self._grid.cells(x[inside], x[inside], exact=False)
-            owner = self._allowed.owner(a.clamp(max=self._grid.resolution - 1))
-            box[inside] = torch.where(owner < len(self.certificate.kept_lo), owner, -1)
+            grid = self._cells.grid
+            a, _ = grid.cells(x[inside], x[inside], exact=False)
+            owner = self._cells.allowed.owner(a.clamp(max=grid.resolution - 1))
+            box[inside] = torch.where(owner < len(self.certificate.kept), owner, -1)
         in_box = inside & (box >= 0)
         escape = self._verifier.escape
         # in E (beyond the domain, or l >= m) every admissible input keeps the set
@@ -129,7 +126,7 @@ class CertifiedFilter:
         rule (module docstring) on the point box of each state, under every disturbance piece."""
         verifier = self._verifier
         land = landing_verdicts(
-            verifier, self._grid, self._members, self._allowed, self.certificate.settings.level, x, x, u,
+            verifier, self._cells, self.certificate.settings.level, x, x, u,
             lambda n_lo, n_hi: verifier.value(n_lo, n_hi).lo,
         )  # fmt: skip
         held = torch.ones(len(x) * len(verifier.d_lo), dtype=torch.long)

@@ -15,7 +15,8 @@ The closure asks another question many times over: which box holds each cell a n
 :class:`DenseOwner` answers it from a dense table where the grid is small enough, and
 :class:`BrickOwner` where a cover is fine only in places (coarse cells, with dense bricks of cells
 where boxes are finer), both by lookups; :func:`owner_of` picks one (the sparse cover's ``owner``
-descends, and is the last resort).
+descends, and is the last resort), and :func:`boxes_met` lists the boxes each range of cells meets.
+:class:`CellGrid` maps box corners to cells: its edges are the boxes' own corner values.
 
 Sound for any boxes on the grid: "inside a box" is only recorded for a cube that is, and the cells a
 query range names are all examined down to single cells where needed. Keys are ``int64``, so the
@@ -29,7 +30,17 @@ import math
 
 import torch
 
-__all__ = ["BrickOwner", "DenseCover", "DenseOwner", "DyadicCover", "cells_in", "cover_of", "owner_of"]
+__all__ = [
+    "BrickOwner",
+    "CellGrid",
+    "DenseCover",
+    "DenseOwner",
+    "DyadicCover",
+    "boxes_met",
+    "cells_in",
+    "cover_of",
+    "owner_of",
+]
 
 #: the most aligned cubes one box may split into (a branch-and-bound box makes at most 2**n)
 MAX_CUBES_PER_BOX = 4096
@@ -353,3 +364,86 @@ def owner_of(a: torch.Tensor, b: torch.Tensor, resolution: int) -> DenseOwner | 
         return BrickOwner(a, b, resolution)
     except TooFineForBricksError:
         return DyadicCover(a, b, resolution)
+
+
+#: cells enumerated at once when finding the boxes that next-state pieces meet (:func:`boxes_met`)
+CELL_CHUNK = 1 << 22
+
+
+def boxes_met(
+    boxes: DenseOwner | BrickOwner | DyadicCover, n_a: torch.Tensor, n_b: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each box that each cell range ``[n_a, n_b)`` meets, once: ``(range, box)`` pairs (box -1 for a
+    cell no box holds), from the owner of every cell of the ranges."""
+    size = (n_b - n_a).prod(-1)
+    pairs_piece, pairs_box = [], []
+    start = 0
+    while start < len(n_a):
+        total = torch.cumsum(size[start:], 0)
+        stop = start + max(1, int(torch.searchsorted(total, torch.tensor(CELL_CHUNK), right=True)))
+        cells, row = cells_in(n_a[start:stop], n_b[start:stop])
+        key = torch.unique((row + start) * (2**31) + (boxes.owner(cells) + 1))
+        pairs_piece.append(key // (2**31))
+        pairs_box.append(key % (2**31) - 1)
+        start = stop
+    if not pairs_piece:
+        return torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long)
+    return torch.cat(pairs_piece), torch.cat(pairs_box)
+
+
+class CellGrid:
+    """The cell grid of a cover of boxes, ``resolution`` cells a dimension over ``domain``: box corners
+    to integer cell ranges (:meth:`cells`), and covers of boxes (:meth:`cover`). The closure
+    (:mod:`safety.formal.closure`), the checker (:mod:`safety.formal.checker`) and the certified
+    filter all look boxes up on it.
+
+    Cell edges are the boxes' own corner values (``lo``, ``hi``: every box of the cover), so a
+    next-state piece whose bound lies exactly on a box's face is placed in the cell on its side only:
+    a face the dynamics leave in place (a heading that the pursuer's turn only matches) does not
+    spill into the neighbouring cell. An edge that no box has a corner on separates two cells of the
+    same box wherever it runs, so its value (the even division of the span) cannot change an answer."""
+
+    def __init__(
+        self, domain: torch.Tensor, resolution: int, lo: torch.Tensor | None = None, hi: torch.Tensor | None = None
+    ) -> None:
+        self.domain, self.resolution, self.n = domain, resolution, domain.shape[0]
+        self.span = domain[:, 1] - domain[:, 0]
+        steps = torch.arange(resolution + 1, dtype=torch.float64)
+        self.edges = (domain[:, :1] + self.span[:, None] * steps / resolution).cpu()
+        self.edges[:, 0], self.edges[:, -1] = domain[:, 0].cpu(), domain[:, 1].cpu()
+        if lo is not None and hi is not None and len(lo):
+            self._pin(torch.cat([lo, hi]).cpu())
+
+    def _pin(self, corners: torch.Tensor) -> None:
+        """Set each edge to the value of the box corners on it; refuse corners that disagree."""
+        index, _ = self.cells(corners, corners, exact=True)
+        for d in range(self.n):
+            low = self.edges[d].scatter_reduce(0, index[:, d], corners[:, d], "amin", include_self=False)
+            high = self.edges[d].scatter_reduce(0, index[:, d], corners[:, d], "amax", include_self=False)
+            if not torch.equal(low, high):
+                raise ValueError("two boxes' corners on one cell edge differ: the boxes do not fit together")
+            self.edges[d] = low
+            if not bool((self.edges[d][1:] > self.edges[d][:-1]).all()):
+                raise ValueError("the boxes' corners are not in the order of the cell grid")
+
+    def cells(self, lo: torch.Tensor, hi: torch.Tensor, exact: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        """Cell ranges ``[a, b)`` per dimension: exact corners of grid boxes (``exact``, refused if off
+        the grid), or the fewest cells whose closed union holds a box of states."""
+        if exact:
+            a = (lo - self.domain[:, 0]) / self.span * self.resolution
+            b = (hi - self.domain[:, 0]) / self.span * self.resolution
+            ra, rb = torch.round(a), torch.round(b)
+            if bool(((a - ra).abs() > 1e-6).any() or ((b - rb).abs() > 1e-6).any()):
+                raise ValueError("a box's corners are not on the certificate's cell grid")
+            return ra.long().clamp(0, self.resolution), rb.long().clamp(0, self.resolution)
+        lo, hi = lo.cpu().contiguous(), hi.cpu().contiguous()
+        a = torch.stack(
+            [torch.searchsorted(self.edges[d], lo[:, d].contiguous(), right=True) for d in range(self.n)], -1
+        )
+        b = torch.stack([torch.searchsorted(self.edges[d], hi[:, d].contiguous()) for d in range(self.n)], -1)
+        a = (a - 1).clamp(0, self.resolution - 1)
+        return a, torch.maximum(b, a + 1).clamp(1, self.resolution)
+
+    def cover(self, lo: torch.Tensor, hi: torch.Tensor) -> DyadicCover:
+        """The grid boxes ``[lo, hi]`` as a sparse cover of cells."""
+        return DyadicCover(*self.cells(lo, hi, exact=True), self.resolution)

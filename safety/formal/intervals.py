@@ -158,11 +158,12 @@ class Interval:
 
     # ---------------------------------------------------------------- arithmetic
     @staticmethod
-    def _of(value: Any) -> Interval:
+    def of(value: Any) -> Interval:
+        """``value`` as an interval: itself if it is one, else the point interval of a number or tensor."""
         return value if isinstance(value, Interval) else Interval.point(value)
 
     def __add__(self, other: Any) -> Interval:
-        other = self._of(other)
+        other = self.of(other)
         return Interval(_sum_bounds(self.lo, other.lo)[0], _sum_bounds(self.hi, other.hi)[1])
 
     __radd__ = __add__
@@ -174,13 +175,13 @@ class Interval:
         return self
 
     def __sub__(self, other: Any) -> Interval:
-        return self + (-self._of(other))
+        return self + (-self.of(other))
 
     def __rsub__(self, other: Any) -> Interval:
-        return self._of(other) + (-self)
+        return self.of(other) + (-self)
 
     def __mul__(self, other: Any) -> Interval:
-        other = self._of(other)
+        other = self.of(other)
         pairs = ((self.lo, other.lo), (self.lo, other.hi), (self.hi, other.lo), (self.hi, other.hi))
         bounds = [_product_bounds(a, b) for a, b in pairs]
         lo = torch.stack(torch.broadcast_tensors(*[low for low, _ in bounds])).amin(0)
@@ -200,10 +201,10 @@ class Interval:
         return Interval(lo - _pad(lo), hi + _pad(hi))
 
     def __truediv__(self, other: Any) -> Interval:
-        return self * self._of(other).reciprocal()
+        return self * self.of(other).reciprocal()
 
     def __rtruediv__(self, other: Any) -> Interval:
-        return self._of(other) * self.reciprocal()
+        return self.of(other) * self.reciprocal()
 
     def __pow__(self, exponent: int) -> Interval:
         if not isinstance(exponent, int) or exponent < 0:
@@ -218,18 +219,18 @@ class Interval:
 
     # ---------------------------------------------------------------- comparisons
     def __gt__(self, other: Any) -> Uncertain:
-        other = self._of(other)
+        other = self.of(other)
         return Uncertain(self.lo > other.hi, self.hi > other.lo)
 
     def __ge__(self, other: Any) -> Uncertain:
-        other = self._of(other)
+        other = self.of(other)
         return Uncertain(self.lo >= other.hi, self.hi >= other.lo)
 
     def __lt__(self, other: Any) -> Uncertain:
-        return self._of(other) > self
+        return self.of(other) > self
 
     def __le__(self, other: Any) -> Uncertain:
-        return self._of(other) >= self
+        return self.of(other) >= self
 
 
 def _hull(a: Interval, b: Interval) -> Interval:
@@ -242,57 +243,53 @@ class IntervalBackend:
     name = "interval"
 
     @staticmethod
-    def _of(value: Any) -> Interval:
-        return Interval._of(value)
-
-    @staticmethod
     def cos(a: Any) -> Interval:
-        a = Interval._of(a)
+        a = Interval.of(a)
         return Interval(*cos_interval(a.lo, a.hi))
 
     @staticmethod
     def sin(a: Any) -> Interval:
-        a = Interval._of(a)
+        a = Interval.of(a)
         return Interval(*sin_interval(a.lo, a.hi))
 
     @staticmethod
     def sqrt(a: Any) -> Interval:
         """Monotone; a lower end below 0 (an enclosure of a non-negative quantity) is taken as 0."""
-        a = Interval._of(a)
+        a = Interval.of(a)
         lo, hi = torch.sqrt(a.lo.clamp(min=0.0)), torch.sqrt(a.hi.clamp(min=0.0))
         return Interval((lo - _pad(lo, FUNCTION_ULPS)).clamp(min=0.0), hi + _pad(hi, FUNCTION_ULPS))
 
     @staticmethod
     def abs(a: Any) -> Interval:
-        a = Interval._of(a)
+        a = Interval.of(a)
         straddles = (a.lo <= 0) & (a.hi >= 0)
         lo = torch.where(straddles, torch.zeros_like(a.lo), torch.minimum(a.lo.abs(), a.hi.abs()))
         return Interval(lo, torch.maximum(a.lo.abs(), a.hi.abs()))
 
     @staticmethod
     def sign(a: Any) -> Interval:
-        a = Interval._of(a)
+        a = Interval.of(a)
         return Interval(torch.sign(a.lo), torch.sign(a.hi))
 
     @staticmethod
     def minimum(a: Any, b: Any) -> Interval:
-        a, b = Interval._of(a), Interval._of(b)
+        a, b = Interval.of(a), Interval.of(b)
         return Interval(torch.minimum(a.lo, b.lo), torch.minimum(a.hi, b.hi))
 
     @staticmethod
     def maximum(a: Any, b: Any) -> Interval:
-        a, b = Interval._of(a), Interval._of(b)
+        a, b = Interval.of(a), Interval.of(b)
         return Interval(torch.maximum(a.lo, b.lo), torch.maximum(a.hi, b.hi))
 
     @staticmethod
     def clip(a: Any, lo: float, hi: float) -> Interval:
-        a = Interval._of(a)
+        a = Interval.of(a)
         return Interval(a.lo.clamp(lo, hi), a.hi.clamp(lo, hi))
 
     @staticmethod
     def where(condition: Uncertain | torch.Tensor | bool, a: Any, b: Any) -> Interval:
         """``a`` where the condition certainly holds, ``b`` where it certainly fails, else their hull."""
-        a, b = Interval._of(a), Interval._of(b)
+        a, b = Interval.of(a), Interval.of(b)
         if not isinstance(condition, Uncertain):
             certain = torch.as_tensor(condition)
             condition = Uncertain(certain, certain)
@@ -318,7 +315,7 @@ class IntervalBackend:
     def atan2(y: Any, x: Any) -> Interval:
         """The angle of a box of points: over a box that keeps off the origin and off the negative
         x-axis (the branch cut) its extremes are at corners; otherwise the whole ``[-pi, pi]``."""
-        y, x = Interval._of(y), Interval._of(x)
+        y, x = Interval.of(y), Interval.of(x)
         corners = torch.stack(
             torch.broadcast_tensors(
                 torch.atan2(y.lo, x.lo), torch.atan2(y.lo, x.hi), torch.atan2(y.hi, x.lo), torch.atan2(y.hi, x.hi)
@@ -334,7 +331,7 @@ class IntervalBackend:
     def wrap_angle(a: Any) -> Interval:
         """Into ``[-pi, pi)``: shifted by whole turns where the interval fits inside one branch,
         else the whole ``[-pi, pi]``."""
-        a = Interval._of(a)
+        a = Interval.of(a)
         turns = torch.round((0.5 * (a.lo + a.hi)) / _TWO_PI)
         lo, hi = a.lo - turns * _TWO_PI, a.hi - turns * _TWO_PI
         error = _pad(torch.maximum(lo.abs(), hi.abs()), 4.0)
@@ -348,14 +345,14 @@ class IntervalBackend:
 
     @staticmethod
     def stack(columns: Sequence[Any], like: Any = None) -> Interval:
-        parts = [Interval._of(c) for c in columns]
+        parts = [Interval.of(c) for c in columns]
         los = torch.broadcast_tensors(*[p.lo for p in parts])
         his = torch.broadcast_tensors(*[p.hi for p in parts])
         return Interval(torch.stack(los, -1), torch.stack(his, -1))
 
     @staticmethod
     def axpy(x: Any, h: float, k: Any) -> Interval:
-        return Interval._of(x) + h * Interval._of(k)
+        return Interval.of(x) + h * Interval.of(k)
 
 
 INTERVAL = IntervalBackend()

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from safety.formal.bounds import FUNCTION_ULPS, UNIT_ROUNDOFF, Interval, _check_box, interval_bounds, on_network_device
+from safety.formal.bounds import FUNCTION_ULPS, UNIT_ROUNDOFF, Interval, check_box, interval_bounds, on_network_device
 from training.network import Sine, ValueNetwork
 
 __all__ = ["INTERMEDIATE", "linear_bounds"]
@@ -248,7 +248,7 @@ def linear_bounds(network: ValueNetwork, x_lo, x_hi, t_lo, t_hi, intermediate: s
     (``"forward"``, ``O(layers width^2 d)`` for ``d`` inputs, :func:`_forward_pre_activations`)."""
     if intermediate not in INTERMEDIATE:
         raise ValueError(f"intermediate must be one of {INTERMEDIATE}, got {intermediate!r}")
-    x_lo, x_hi, t_lo, t_hi = _check_box(network, x_lo, x_hi, t_lo, t_hi)
+    x_lo, x_hi, t_lo, t_hi = check_box(network, x_lo, x_hi, t_lo, t_hi)
     inputs = (torch.cat([t_lo.unsqueeze(-1), x_lo], -1), torch.cat([t_hi.unsqueeze(-1), x_hi], -1))
     layers, output = _layers(network)
     batch = x_lo.shape[0]

@@ -38,31 +38,36 @@ proven is ``S_c ∪ E``: from ``E`` any admissible input keeps the state in it, 
 from __future__ import annotations
 
 import copy
-import inspect
 import itertools
 import math
 import os
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 
 import torch
 
-from reach.integrators import check_integrator, make_stepper
+from reach.integrators import make_stepper
 from reach.systems import ControlAffineSystem
 from reach.systems.arrays import TORCH
-from reach.validation import positive_finite
 from safety.formal.intervals import INTERVAL, Interval, IntervalBackend, box_columns
 from safety.formal.linear_bounds import linear_bounds
 from safety.formal.progress import SAVE_EVERY_S, VerifierProgress, load_progress, save_progress
+from safety.formal.settings import (
+    ESCAPE,
+    OUTSIDE,
+    PROVEN,
+    REFUTED,
+    UNKNOWN,
+    CertificationResult,
+    CertifySettings,
+    closure_domain,
+    escape_rule,
+)
 from training.checkpoint import network_digest
 from training.network import NeuralValueFunction, ValueNetwork
 
-__all__ = ["CertificationResult", "CertifySettings", "certify", "escape_rule", "value_bounds"]
-
-#: box statuses (``escape``: every state of the box is in the escape set, which needs no proof)
-OUTSIDE, PROVEN, REFUTED, UNKNOWN, ESCAPE = 0, 1, 2, 3, 4
-STATUS_NAMES = ("outside", "proven", "refuted", "unknown", "escape")
+__all__ = ["Verifier", "candidate_inputs", "certify", "margin_bounds", "network_of", "value_bounds"]
 
 
 class _Unwrapped(IntervalBackend):
@@ -99,165 +104,9 @@ def _wrap_boxes(lo: torch.Tensor, hi: torch.Tensor, periodic: list[int]) -> tupl
     return lo, hi, owner
 
 
-@dataclass(frozen=True)
-class CertifySettings:
-    """What a certificate proves and how hard the verifier tries (all checked at construction)."""
-
-    level: float  # c: the set is {V(x, T) >= c}
-    time_to_go: float  # T
-    dt: float
-    integrator: str = "euler"
-    #: each disturbance dimension is split into this many pieces, each piece proven on its own
-    #: (tighter bounds of the next states; the claim is the same: every disturbance)
-    disturbance_splits: int = 2
-    initial_splits: int = 8  # the first cover: this many boxes per dimension
-    min_relative_width: float = 1 / 256  # boxes narrower than this (share of the span) are not split
-    batch: int = 512  # boxes bounded at once
-    max_boxes: int = 2_000_000  # stop (unfinished, never "certified") past this many boxes handled
-    max_seconds: float | None = None  # ... or past this wall time
-    #: m: the states with failure margin ``l(x) >= m`` form the escape set ``E``, certified by the
-    #: system's own lemmas instead of the network (:func:`escape_rule`); ``None``: no escape set
-    escape_margin: float | None = None
-    #: boxes meeting the band below ``E`` are split down to this width (share of the span) to prove
-    #: ``V >= c`` on all of them, and (b); the band is thin, so finer there costs little (``None``: as the rest)
-    band_min_relative_width: float | None = None
-    #: before the closure (:func:`safety.formal.certificate.certified_set`), boxes wider than this (share of
-    #: the span) are cut into halves down to it, each with its own backup input: a coarse proven box
-    #: needs one input for all of it, which a neutral game's flow may not allow (``None``: as proven)
-    closure_relative_width: float | None = None
-    #: the closure (not the verifier) runs over the state box widened this many times about its
-    #: centre in every non-periodic dimension (a power of two), the escape set beyond the wide box;
-    #: boxes beyond the network's box are kept by where their next states land alone, never by the
-    #: network. Needs ``closure_relative_width`` (the wide box is covered by cells that wide)
-    closure_scale: int = 1
-    #: after the closure, the boxes not kept (but not all failure) near the kept set are cut into halves
-    #: along every dimension and the closure runs again, this many times: the cover grows fine only
-    #: near the set's edge (each time the finest boxes halve)
-    closure_refinements: int = 0
-    #: "near": within this many of the box's own widths of a kept box, in every dimension
-    closure_refine_reach: int = 8
-
-    def __post_init__(self) -> None:
-        if not math.isfinite(self.level):
-            raise ValueError(f"level must be finite, got {self.level!r}")
-        if self.escape_margin is not None:
-            positive_finite("escape_margin", self.escape_margin)
-        positive_finite("time_to_go", self.time_to_go)
-        positive_finite("dt", self.dt)
-        check_integrator(self.integrator)
-        for name in ("disturbance_splits", "initial_splits", "batch", "max_boxes"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
-        if self.max_seconds is not None:
-            positive_finite("max_seconds", self.max_seconds)
-        refinements = self.closure_refinements
-        if isinstance(refinements, bool) or not isinstance(refinements, int) or refinements < 0:
-            raise ValueError(f"closure_refinements must be an integer >= 0, got {refinements!r}")
-        reach = self.closure_refine_reach
-        if isinstance(reach, bool) or not isinstance(reach, int) or reach < 1:
-            raise ValueError(f"closure_refine_reach must be a positive integer, got {reach!r}")
-        scale = self.closure_scale
-        if isinstance(scale, bool) or not isinstance(scale, int) or scale < 1 or scale & (scale - 1):
-            raise ValueError(f"closure_scale must be a power of two (1, 2, 4, ...), got {scale!r}")
-        if scale > 1 and self.closure_relative_width is None:
-            raise ValueError("closure_scale above 1 needs closure_relative_width: the cells of the wide box")
-        for name in ("min_relative_width", "band_min_relative_width", "closure_relative_width"):
-            value = getattr(self, name)
-            if value is not None and not (isinstance(value, float | int) and 0 < value <= 1):
-                raise ValueError(f"{name} must lie in (0, 1], got {value!r}")
-
-
-@dataclass
-class CertificationResult:
-    """The verifier's boxes (corners ``lo``, ``hi``), each one's status and backup input index
-    (``-1`` where none), the candidate inputs, and what it cost. ``certified`` only when every box
-    is outside or proven and the run finished."""
-
-    settings: CertifySettings
-    lo: torch.Tensor
-    hi: torch.Tensor
-    status: torch.Tensor
-    backup: torch.Tensor
-    candidates: torch.Tensor
-    counterexamples: list[dict] = field(default_factory=list)
-    finished: bool = True
-    wall_time: float = 0.0
-    boxes_handled: int = 0
-
-    #: boxes of the band below the escape set not proven to hold only states of ``S_c`` (they undo ``E``)
-    band_open: int = 0
-
-    @property
-    def certified(self) -> bool:
-        decided = (self.status == OUTSIDE) | (self.status == PROVEN) | (self.status == ESCAPE)
-        return self.finished and self.band_open == 0 and bool(decided.all())
-
-    def volume_shares(self) -> dict[str, float]:
-        """Each status's share of the state box's volume."""
-        volume = (self.hi - self.lo).prod(-1)
-        total = float(volume.sum())
-        return {name: float(volume[self.status == k].sum()) / total for k, name in enumerate(STATUS_NAMES)}
-
-    def summary(self) -> dict:
-        return {
-            "certified": self.certified,
-            "finished": self.finished,
-            "boxes": len(self.status),
-            "boxes_handled": self.boxes_handled,
-            "band_open": self.band_open,
-            "wall_time_s": self.wall_time,
-            **{f"volume_{k}": v for k, v in self.volume_shares().items()},
-            "settings": asdict(self.settings),
-        }
-
-
-def escape_rule(system: ControlAffineSystem, settings: CertifySettings, scale: int = 1) -> tuple[float, float] | None:
-    """``(m, delta)`` of the escape set ``E = {x : l(x) >= m}``, or ``None`` where the settings ask for
-    none. Sound when (the system's declared lemmas) every state outside the domain has ``l >= m``
-    (:meth:`~reach.systems.base.ControlAffineSystem.margin_outside_domain`) and one step lowers ``l``
-    by at most ``delta`` from any state (:meth:`~reach.systems.base.ControlAffineSystem.margin_step_bound`):
-    then a next state that leaves the domain is in ``E``, and a step from ``E`` lands in ``E`` or in
-    the band ``m - delta <= l < m``, which lies inside the domain. ``scale``: the domain widened that
-    many times (the closure's, ``closure_scale``). Refused, naming why, otherwise."""
-    m = settings.escape_margin
-    if m is None:
-        return None
-    delta = system.margin_step_bound(settings.dt, settings.integrator)
-    if delta is None:
-        raise ValueError(
-            f"escape_margin: {system.name} declares no bound on how much one {settings.integrator} step lowers "
-            "its failure margin (margin_step_bound), so it has no escape set"
-        )
-    if scale != 1 and "scale" not in inspect.signature(system.margin_outside_domain).parameters:
-        raise ValueError(
-            f"closure_scale: {system.name}'s margin_outside_domain takes no scale, so no wider box has an escape set"
-        )
-    least = system.margin_outside_domain() if scale == 1 else system.margin_outside_domain(scale)
-    if least is None:
-        raise ValueError(
-            f"escape_margin: {system.name} declares no lower bound of its failure margin outside its domain "
-            "(margin_outside_domain), so it has no escape set"
-        )
-    if m > least:
-        raise ValueError(
-            f"escape_margin {m:g} is above {least:g}, the least failure margin outside {system.name}'s domain"
-            f"{'' if scale == 1 else f' widened {scale} times'}: "
-            "a state that leaves the domain might not be in the escape set"
-        )
-    return m, float(delta)
-
-
-def closure_domain(system: ControlAffineSystem, scale: int = 1, device: str | torch.device = "cpu") -> torch.Tensor:
-    """``(n, 2)`` the box a closure runs over: the system's domain widened ``scale`` times about its
-    centre in every non-periodic dimension (``CertifySettings.closure_scale``)."""
-    box = system.domain_tensor(torch.float64, device)
-    centre = box.mean(-1, keepdim=True)
-    periodic = torch.tensor([i in system.periodic_dims for i in range(system.state_dim)], device=box.device)
-    return torch.where(periodic[:, None], box, centre + scale * (box - centre))
-
-
-def _network(value_function: NeuralValueFunction | ValueNetwork) -> ValueNetwork:
+def network_of(value_function: NeuralValueFunction | ValueNetwork) -> ValueNetwork:
+    """The network of ``value_function`` (or the network itself), refused unless a proof covers it:
+    an avoid problem, with the ``exact``, ``diff`` or ``vanilla`` output parameterisation."""
     network = getattr(value_function, "network", value_function)
     if not isinstance(network, ValueNetwork):
         raise TypeError(f"certify takes a neural value function, got {type(value_function).__name__}")
@@ -273,7 +122,7 @@ def _network(value_function: NeuralValueFunction | ValueNetwork) -> ValueNetwork
 
 def margin_bounds(system: ControlAffineSystem, x_lo: torch.Tensor, x_hi: torch.Tensor) -> Interval:
     """Sound bounds of the failure margin ``l(x)`` over each box (the system's own code, on intervals)."""
-    return Interval._of(system.failure_margin_columns(box_columns(x_lo, x_hi), INTERVAL))
+    return Interval.of(system.failure_margin_columns(box_columns(x_lo, x_hi), INTERVAL))
 
 
 def value_bounds(network: ValueNetwork, x_lo: torch.Tensor, x_hi: torch.Tensor, t: float) -> Interval:
@@ -290,7 +139,7 @@ def value_bounds(network: ValueNetwork, x_lo: torch.Tensor, x_hi: torch.Tensor, 
     return offset + scale * Interval(o_lo, o_hi)
 
 
-def _candidates(network: ValueNetwork) -> torch.Tensor:
+def candidate_inputs(network: ValueNetwork) -> torch.Tensor:
     """The backup inputs tried on every box: the control box's vertices, then its centre."""
     box = network.system.control_bounds
     vertices = [list(v) for v in itertools.product(*zip(box.low, box.high))]
@@ -311,11 +160,18 @@ def _disturbance_pieces(network: ValueNetwork, splits: int) -> tuple[torch.Tenso
     return lo, hi
 
 
-class _Verifier:
-    """The bounds a proof needs. ``closure=True``: the closure's view, over the state box widened
-    ``closure_scale`` times (``domain``) with the escape set beyond it, the network bounded only
-    inside its own box (``network_domain``). The verifier's own view (``closure=False``) is the
-    network's box, with the escape set only where the closure's box is that box."""
+class Verifier:
+    """The bounds a proof needs, for one network and one proof's ``settings``, on ``device``: ``V``
+    over boxes (:meth:`value`), where each box's next states land (:meth:`next_boxes`,
+    :meth:`landing`), whether an input keeps a box in ``S_c`` (:meth:`keeps`, :meth:`invariant`), the
+    escape set's flags, and the branch and bound itself (:meth:`run`, what :func:`certify` runs). The
+    closure (:mod:`safety.formal.closure`), the checker (:mod:`safety.formal.checker`) and the
+    certified filter ask it the same questions, so all of them bound alike.
+
+    ``closure=True``: the closure's view, over the state box widened ``closure_scale`` times
+    (``domain``) with the escape set beyond it, the network bounded only inside its own box
+    (``network_domain``). The verifier's own view (``closure=False``) is the network's box, with the
+    escape set only where the closure's box is that box."""
 
     def __init__(
         self, network: ValueNetwork, settings: CertifySettings, device: torch.device, closure: bool = False
@@ -332,7 +188,7 @@ class _Verifier:
         self.span = self.domain[:, 1] - self.domain[:, 0]
         self.step = make_stepper(system, settings.dt, settings.integrator, _Unwrapped())
         self.point_step = make_stepper(system, settings.dt, settings.integrator, TORCH)
-        self.candidates = _candidates(network)
+        self.candidates = candidate_inputs(network)
         self.d_lo, self.d_hi = _disturbance_pieces(network, settings.disturbance_splits)
         self.escape = escape_rule(system, settings, scale) if closure or settings.closure_scale == 1 else None
 
@@ -342,9 +198,11 @@ class _Verifier:
         return (((n_lo >= box[:, 0]) & (n_hi <= box[:, 1])) | self.periodic.to(n_lo.device)).all(-1)
 
     def value(self, x_lo: torch.Tensor, x_hi: torch.Tensor) -> Interval:
+        """Sound bounds of ``V(x, T)`` over each box (:func:`value_bounds`)."""
         return value_bounds(self.network, x_lo, x_hi, self.settings.time_to_go)
 
     def point_value(self, x: torch.Tensor) -> torch.Tensor:
+        """``V(x, T)`` at states ``x`` (float64 evaluation, no bound)."""
         t = torch.full(x.shape[:-1], self.settings.time_to_go, dtype=torch.float64)
         with torch.no_grad():
             return self.network(x, t)
@@ -602,7 +460,7 @@ def certify(
     there as it goes and when it stops, and a run started again with the same file continues from
     it; a file made for another value function, system or proof is refused, naming the difference.
     The result's ``wall_time`` and ``boxes_handled`` then count every run."""
-    network = _network(value_function)
+    network = network_of(value_function)
     escape_rule(network.system, settings, settings.closure_scale)  # refused before any box is bounded
     if settings.time_to_go > network.system.horizon:
         raise ValueError(
@@ -619,4 +477,4 @@ def certify(
             save_progress(resume, snapshot, *provenance)
 
     with torch.device(device):
-        return _Verifier(network, settings, torch.device(device)).run(progress, state, save)
+        return Verifier(network, settings, torch.device(device)).run(progress, state, save)
