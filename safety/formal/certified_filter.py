@@ -1,8 +1,8 @@
 """A safety filter that is safe for all time by proof: it keeps a certificate's set invariant.
 
-:mod:`safety.formal.closure` certifies a set ``S``, the union of a certificate's kept boxes (and the escape set
-``E`` where it has one): from every state of ``S`` its box's backup input keeps the next state in
-``S``, under every disturbance, and ``S`` never meets the failure set. :class:`CertifiedFilter` is
+:mod:`safety.formal.closure` certifies a set ``S``, the union of a certificate's kept boxes (and the
+escape set ``E`` where it has one): from every state of ``S`` its box's backup input keeps the next
+state in ``S``, under every disturbance, and ``S`` never meets the failure set. :class:`CertifiedFilter` is
 the least restrictive filter that keeps ``S``:
 
 * at a state of ``S`` it keeps the nominal input when it is proven, for this state and every
