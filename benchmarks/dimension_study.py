@@ -43,7 +43,7 @@ def _snapshots(run: Path) -> list[Path]:
 
 def score(args: argparse.Namespace) -> int:
     from safety.verification.verify import VerifySettings
-    from studies.batch_verification import evaluate_many
+    from studies.batch_verification import SourceLoading, evaluate_many
 
     settings = VerifySettings(samples=args.samples, scenario_samples=0, robust_samples=0, seed=args.seed)
     for cars, system, run in FLEETS:
@@ -55,7 +55,12 @@ def score(args: argparse.Namespace) -> int:
             continue
         out = ROOT / OUT / f"{system}.csv"
         rows = evaluate_many(
-            [str(p) for p in snapshots], out, settings, system=system, pairwise=args.pairwise, device=args.device
+            [str(p) for p in snapshots],
+            out,
+            settings,
+            loading=SourceLoading(system=system),
+            pairwise=args.pairwise,
+            device=args.device,
         )
         print(f"{cars} cars: {len(rows)} snapshots scored into {out.relative_to(ROOT)}")
     return 0

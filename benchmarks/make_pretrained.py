@@ -172,7 +172,7 @@ def filter_source(args: argparse.Namespace) -> int:
 
 def evaluate(args: argparse.Namespace) -> int:
     from safety.verification.verify import VerifySettings
-    from studies.batch_verification import evaluate_many
+    from studies.batch_verification import SourceLoading, evaluate_many
 
     card = pretrained.card(args.name)
     source = pretrained.PREFIX + args.name
@@ -203,7 +203,7 @@ def evaluate(args: argparse.Namespace) -> int:
             [source],
             out,
             settings,
-            system=card.system,
+            loading=SourceLoading(system=card.system),
             ground_truth=args.ground_truth,
             pairwise=args.pairwise,
             device=args.device,

@@ -11,10 +11,10 @@ from training.config import parse_duration
 
 
 def add_parser(sub: Any) -> None:
-    from studies.demo import run_demo  # lazy: keeps `import reach_cli` light
+    from studies.demo import DemoSettings, run_demo  # lazy: keeps `import reach_cli` light
 
     def d(name: str) -> Any:
-        return signature_default(run_demo, name)
+        return signature_default(run_demo if name == "out" else DemoSettings, name)
 
     p = add_subparser(sub, "demo", help="Air3D end to end: ground truth, training, verification, filter, report")
     p.add_argument("--out", default=None, help=f"report directory (an interrupted demo resumes) (default: {d('out')})")
@@ -35,10 +35,9 @@ def add_parser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from studies.demo import run_demo  # lazy: keeps `import reach_cli` light
+    from studies.demo import DemoSettings, run_demo  # lazy: keeps `import reach_cli` light
 
     options: dict[str, Any] = {
-        "out": args.out,
         "grid": args.grid,
         "samples": args.samples,
         "episodes": args.episodes,
@@ -48,7 +47,9 @@ def run(args: argparse.Namespace) -> int:
     options = {k: v for k, v in options.items() if v is not None}
     if "grid" in options:
         check_int("--grid", options["grid"], 5)
-    check_output_dir(options.get("out", signature_default(run_demo, "out")), "--out")
-    report = run_demo(**options)
+    settings = DemoSettings(**options)  # an option left out keeps DemoSettings' default
+    out = args.out if args.out is not None else signature_default(run_demo, "out")
+    check_output_dir(out, "--out")
+    report = run_demo(out, settings)
     print(f"report: {report}")
     return 0

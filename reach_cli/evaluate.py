@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
     # lazy: this command's stack only when it runs
     from safety.verification.rollout import default_chunk_size
     from safety.verification.sharding import make_backend
-    from studies.batch_verification import evaluate_many, markdown_table, report_failures
+    from studies.batch_verification import SourceLoading, evaluate_many, markdown_table, report_failures
     from studies.plots import plot_violation_bars
 
     given = {field: getattr(args, field) for _, field, _, _ in VERIFY_OPTIONS if getattr(args, field) is not None}
@@ -138,9 +138,7 @@ def run(args: argparse.Namespace) -> int:
             args.sources,
             out,
             settings,
-            system=args.system,
-            format=args.format,
-            layout=args.layout,
+            loading=SourceLoading(system=args.system, format=args.format, layout=args.layout),
             ground_truth=args.ground_truth,
             gt_time=args.gt_time,
             pairwise=args.pairwise,

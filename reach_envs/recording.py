@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -11,6 +12,7 @@ import gymnasium as gym
 import numpy as np
 
 from reach.atomic import atomic_path
+from reach.validation import check_int
 
 
 def save_gif(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float = 25.0) -> Path:
@@ -32,6 +34,21 @@ def save_gif(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float =
 Policy = Callable[[np.ndarray], Any]
 
 
+@dataclass(frozen=True)
+class RecordingSettings:
+    """How much of the episodes a recording keeps: ``max_steps`` per episode (None: until every
+    panel has ended) and every ``every``-th frame (the GIF then plays at the env's ``render_fps``
+    divided by ``every``, so it lasts as long as the episode). Checked when made."""
+
+    max_steps: int | None = None
+    every: int = 1
+
+    def __post_init__(self) -> None:
+        if self.max_steps is not None:
+            object.__setattr__(self, "max_steps", check_int("max_steps", self.max_steps, 0))
+        object.__setattr__(self, "every", check_int("every", self.every, 1))
+
+
 def record_episode(
     env: gym.Env,
     path: str | os.PathLike,
@@ -45,7 +62,7 @@ def record_episode(
     ``policy(obs) -> action`` drives the agent (default: zero action, i.e. go straight). Every
     ``every``-th frame is kept. Returns a summary: path, steps, whether it collided, total reward.
     """
-    return record_panels([env], path, [policy], [seed], max_steps=max_steps, every=every)
+    return record_panels([env], path, [policy], [seed], settings=RecordingSettings(max_steps, every))
 
 
 def record_panels(
@@ -54,8 +71,7 @@ def record_panels(
     policies: Sequence[Policy | None],
     seeds: Sequence[int | None],
     options: Sequence[dict[str, Any] | None] | None = None,
-    max_steps: int | None = None,
-    every: int = 1,
+    settings: RecordingSettings | None = None,
     caption: Callable[[int, dict[str, Any] | None], str] | None = None,
     on_reset: Callable[[int], None] | None = None,
 ) -> dict[str, Any]:
@@ -63,13 +79,17 @@ def record_panels(
 
     For each seed in ``seeds`` (episode ``k``), every env is reset with that seed (and
     ``options[k]``), ``on_reset(k)`` is called (to reset a task), and the envs are stepped together
-    with their ``policies`` (None: zero action) until all have ended; an env that ended shows its
-    last frame. ``caption(j, info)``, if given, writes a header over panel ``j`` from its last step
-    info. Returns the path, steps (of the longest panel, summed over episodes), whether any panel
-    collided, the first panel's total reward, and the frame count.
+    with their ``policies`` (None: zero action) until all have ended or ``settings.max_steps``
+    steps have run (:class:`RecordingSettings`, default: no limit, every frame); an env that ended
+    shows its last frame. ``caption(j, info)``, if given, writes a header over panel ``j`` from its
+    last step info. Returns the path, steps (of the longest panel, summed over episodes), whether
+    any panel collided, the first panel's total reward, and the frame count.
     """
     if any(env.render_mode != "rgb_array" for env in envs):
         raise ValueError("recording needs envs made with render_mode='rgb_array'")
+    if settings is None:
+        settings = RecordingSettings()
+    max_steps, every = settings.max_steps, settings.every
     frames: list[np.ndarray] = []
     steps, total, collided = 0, 0.0, False
     for k, seed in enumerate(seeds):

@@ -38,6 +38,7 @@ from reach.result_columns import current_names
 from reach.systems import ControlAffineSystem, make_system
 from reach.validation import check_float, check_output_path, settings_from
 from safety.value_loading import (
+    FORMATS,
     composition_kind,
     is_composition,
     load_value_function,
@@ -222,13 +223,35 @@ class References:
                 object.__setattr__(self, name, check_float(name, value))
 
 
+@dataclass(frozen=True)
+class SourceLoading:
+    """How :func:`evaluate_many` loads its sources (:func:`~safety.value_loading.load_value_function`).
+
+    Attributes:
+        system: the sources' system (an instance, a registered name or an import path), which the
+            states are drawn for; ``None``: the first source that loads decides.
+        format: ``"auto"`` (from each source's suffix), ``"reach"``, ``"deepreach"`` or ``"grid"``.
+        layout: the expected network layout (required for DeepReach files).
+    """
+
+    system: ControlAffineSystem | str | None = None
+    format: str = "auto"
+    layout: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.system is not None and not isinstance(self.system, (str, ControlAffineSystem)):
+            raise ValueError(f"system must be a system, its name or an import path, got {self.system!r}")
+        if self.format not in FORMATS:
+            raise ValueError(f"format must be one of {FORMATS}, got {self.format!r}")
+        if self.layout is not None and not isinstance(self.layout, str):
+            raise ValueError(f"layout must be a layout string such as 'ssssl', got {self.layout!r}")
+
+
 def evaluate_many(
     sources: Sequence[str],
     out: str | os.PathLike,
     settings: VerifySettings,
-    system: ControlAffineSystem | str | None = None,
-    format: str = "auto",
-    layout: str | None = None,
+    loading: SourceLoading | None = None,
     references: References | None = None,
     device: str = "cpu",
     progress: bool = True,
@@ -238,11 +261,16 @@ def evaluate_many(
     """Evaluate every source on the same states; returns the rows (also written to ``out``).
 
     ``references`` (:class:`References`; its fields may also be given as keywords, e.g.
-    ``ground_truth="gt.npz"``) adds the comparison columns; ``system``, ``format`` and ``layout``
-    say how to load the sources (:func:`~safety.value_loading.load_value_function`). ``backend``
+    ``ground_truth="gt.npz"``) adds the comparison columns; ``loading`` (:class:`SourceLoading`:
+    system, format and layout) says how to load the sources. ``backend``
     (:class:`~safety.verification.sharding.RayBlocks`) runs the rollout blocks on its workers, with the same rows."""
     refs = settings_from(References, references, reference_fields, "reference")
     ground_truth, gt_time, gt_slice, pairwise = refs.ground_truth, refs.gt_time, refs.gt_slice, refs.pairwise
+    if loading is None:
+        loading = SourceLoading()
+    elif not isinstance(loading, SourceLoading):
+        raise ValueError(f"loading must be a SourceLoading, got {type(loading).__name__}")
+    system, format, layout = loading.system, loading.format, loading.layout
     paths = expand_sources(sources)
     out = check_output_path(out, "results")
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -358,4 +386,12 @@ def load_results(path: str | os.PathLike) -> list[dict[str, Any]]:
     return current_names(restore_nan(read_json(p, "a reach evaluation file", expect_format=FORMAT)["results"]))
 
 
-__all__ = ["References", "evaluate_many", "expand_sources", "load_results", "markdown_table", "report_failures"]
+__all__ = [
+    "References",
+    "SourceLoading",
+    "evaluate_many",
+    "expand_sources",
+    "load_results",
+    "markdown_table",
+    "report_failures",
+]

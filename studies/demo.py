@@ -11,24 +11,59 @@ from __future__ import annotations
 
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from reach.atomic import atomic_path
+from reach.validation import check_float, check_int, check_seed, settings_from
+
+
+@dataclass(frozen=True)
+class DemoSettings:
+    """How large the demo is; ``reach demo`` reads its option defaults from here. Checked when made.
+
+    Attributes:
+        budget_s: the training run's wall-clock budget in seconds.
+        grid: the ground truth's nodes per dimension (at least 5).
+        samples: verification rollouts per value function.
+        episodes: filter-evaluation episodes.
+        seed: the seed of the verification states and of the episodes.
+        compile: whether the grid solver compiles (``None``: it decides from the work,
+            :class:`~groundtruth.settings.SolverSettings`).
+    """
+
+    budget_s: float = 180.0
+    grid: int = 101
+    samples: int = 10_000
+    episodes: int = 500
+    seed: int = 0
+    compile: bool | None = None
+
+    def __post_init__(self) -> None:
+        check_float("budget_s", self.budget_s, 0, low_open=True)
+        check_int("grid", self.grid, 5)
+        check_int("samples", self.samples, 1)
+        check_int("episodes", self.episodes, 1)
+        check_seed("seed", self.seed)
+        if not isinstance(self.compile, (bool, type(None))):
+            raise ValueError(f"compile must be True, False or None (decide from the work), got {self.compile!r}")
 
 
 def run_demo(
     out: str | os.PathLike = "reach-demo",
-    budget_s: float = 180.0,
-    grid: int = 101,
-    samples: int = 10_000,
-    episodes: int = 500,
-    seed: int = 0,
+    settings: DemoSettings | None = None,
+    *,
     progress: bool = True,
     log: Any = print,
-    compile: bool | None = None,
+    **options: Any,
 ) -> Path:
-    """Run the Air3D demo into ``out``; returns the report's path."""
+    """Run the Air3D demo into ``out``; returns the report's path.
+
+    ``settings`` (:class:`DemoSettings`, default: its defaults) sizes the demo; its fields may also
+    be given as keywords (``grid=21, samples=300``), each replacing its field."""
+    demo = settings_from(DemoSettings, settings, options, "demo")
+    budget_s, grid, samples, episodes, seed = demo.budget_s, demo.grid, demo.samples, demo.episodes, demo.seed
     # lazy: the demo's stack only when it runs (the CLI's parser imports this module)
     from groundtruth.settings import SolverSettings
     from groundtruth.solution import GridSolution
@@ -36,7 +71,7 @@ def run_demo(
     from reach.systems import Air3D
     from safety.value_loading import load_value_function
     from safety.verification.verify import VerifySettings
-    from studies.batch_verification import evaluate_many, markdown_table
+    from studies.batch_verification import SourceLoading, evaluate_many, markdown_table
     from studies.filter_study import run_filter_study
     from studies.filter_tables import filter_table
     from studies.plots import plot_brt_slices
@@ -52,7 +87,7 @@ def run_demo(
     gt_path = out / "air3d_gt.npz"
     if not gt_path.exists():
         log(f"[1/5] ground truth: Air3D on a {grid}^3 grid to t = 1.1")
-        solve(system, grid, times, settings=SolverSettings(compile=compile), progress=progress).save(gt_path)
+        solve(system, grid, times, settings=SolverSettings(compile=demo.compile), progress=progress).save(gt_path)
     gt = GridSolution.load(gt_path, outside="clamp")
 
     run = out / "air3d-ssssl"
@@ -69,7 +104,7 @@ def run_demo(
         [str(gt_path), str(run)],
         results,
         VerifySettings(samples=samples, seed=seed, robust_samples=0),  # robust needs ~1M rollouts
-        system=system,
+        loading=SourceLoading(system=system),
         ground_truth=gt_path,
         gt_time=1.0,
         progress=progress,

@@ -12,13 +12,14 @@ from __future__ import annotations
 
 import copy
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from reach.validation import check_seed
 from reach.value_function import ValueFunction
 from reach_envs.scenes import Scene, make_scene
 from safety.filters.settings import FilterSettings, make_filter_settings
@@ -30,30 +31,57 @@ from studies.filter_tables import filter_table_rows, merge_filter_results, write
 from studies.goal_tasks import GoalTask, make_task
 
 
+@dataclass(frozen=True, eq=False)  # eq=False: an array of starts has no single truth value
+class RecordedEpisodes:
+    """Which episodes :func:`record_side_by_side` shows, and who else acts in them.
+
+    Attributes:
+        seeds: one episode per seed (at least one).
+        initial_states: one start state per seed (``None``: the scene's own sampler).
+        task: the nominal policy's task (default: the scene system's goal task).
+        scene_overrides: keyword overrides of the scene (e.g. ``disturbance=`` for a pursuer).
+    """
+
+    seeds: Sequence[int] = (0, 1, 2)
+    initial_states: np.ndarray | None = None
+    task: GoalTask | None = None
+    scene_overrides: Mapping[str, Any] | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "seeds", tuple(check_seed("seed", s) for s in self.seeds))
+        if not self.seeds:
+            raise ValueError("RecordedEpisodes needs at least one seed")
+        if self.initial_states is not None and len(self.initial_states) < len(self.seeds):
+            raise ValueError(
+                f"initial_states holds {len(self.initial_states)} starts for {len(self.seeds)} seeds {self.seeds}"
+            )
+
+
 def record_side_by_side(
     scene: str | Scene,
     value_function: ValueFunction,
     path: str,
     threshold: float | None = None,
-    seeds: Sequence[int] = (0, 1, 2),
+    episodes: RecordedEpisodes | None = None,
     *,
     kinds: Sequence[str] = (FilterSettings.kind,),
-    task: GoalTask | None = None,
-    scene_overrides: dict[str, Any] | None = None,
-    initial_states: np.ndarray | None = None,
     settings: FilterSettings | None = None,
     **options: Any,
 ) -> str:
     """A GIF of a few episodes from the same starts: the nominal policy (left), then the same policy
-    under each filter kind in ``kinds``, side by side. The filters share ``settings``, with
-    ``threshold`` and any other :class:`FilterSettings` field given by keyword (``time_to_go=``,
-    ``gamma=``, ``backup_horizon=``, ``policy=``, ...) replacing its own; each has its own kind."""
+    under each filter kind in ``kinds``, side by side. ``episodes`` (:class:`RecordedEpisodes`,
+    default: seeds 0, 1, 2 from the scene's starts) picks the episodes. The filters share
+    ``settings``, with ``threshold`` and any other :class:`FilterSettings` field given by keyword
+    (``time_to_go=``, ``gamma=``, ``backup_horizon=``, ``policy=``, ...) replacing its own; each has
+    its own kind."""
     # lazy: the env and recording only when a GIF is recorded
     from reach_envs.env import ReachEnv
     from reach_envs.recording import record_panels
 
     shared = make_filter_settings(settings, threshold=threshold, **options)
-    sc = make_scene(scene, **(scene_overrides or {})).replace(trails=True)
+    picked = episodes if episodes is not None else RecordedEpisodes()
+    seeds, task, initial_states = picked.seeds, picked.task, picked.initial_states
+    sc = make_scene(scene, **(picked.scene_overrides or {})).replace(trails=True)
     first = task if task is not None else make_task(sc.system)
     tasks = [first] + [copy.deepcopy(first) for _ in kinds]
     envs: list[Any] = [ReachEnv(sc, render_mode="rgb_array")]
@@ -187,15 +215,17 @@ def run_filter_study(
             value_functions[0][1],
             str(output.gif),
             output.gif_threshold if output.gif_threshold is not None else grid.thresholds[0],
-            [episodes.seed + i for i in picks],
+            RecordedEpisodes(
+                seeds=[episodes.seed + i for i in picks],
+                initial_states=None if starts is None else starts[picks],
+                task=task,
+                scene_overrides=overrides,
+            ),
             kinds=grid.kinds,
-            task=task,
-            scene_overrides=overrides,
-            initial_states=None if starts is None else starts[picks],
             settings=make_filter_settings(grid.shared, gamma=grid.gammas[0]),
         )
         paths.append(str(output.gif))
     return FilterStudy(rows, paths)
 
 
-__all__ = ["FilterStudy", "record_side_by_side", "run_filter_study"]
+__all__ = ["FilterStudy", "RecordedEpisodes", "record_side_by_side", "run_filter_study"]

@@ -276,7 +276,7 @@ def test_sigint_saves_and_the_run_resumes(tmp_path):
 
 def test_evaluate_merges_rows_instead_of_replacing_them(tmp_path, air3d_grid):
     from safety.verification.verify import VerifySettings
-    from studies.batch_verification import evaluate_many
+    from studies.batch_verification import SourceLoading, evaluate_many
 
     a = str(tiny_checkpoint(tmp_path / "a.pt"))
     b = str(tiny_checkpoint(tmp_path / "b.pt", layout="rrrrl"))
@@ -284,7 +284,7 @@ def test_evaluate_merges_rows_instead_of_replacing_them(tmp_path, air3d_grid):
     settings = VerifySettings(samples=20, scenario_samples=0)
     evaluate_many([a, b], out, settings, progress=False)
     evaluate_many([a], out, settings, progress=False)  # fewer sources: b's row stays
-    evaluate_many([str(tmp_path / "missing.pt")], out, settings, system="air3d", progress=False)
+    evaluate_many([str(tmp_path / "missing.pt")], out, settings, loading=SourceLoading(system="air3d"), progress=False)
     rows = json.loads(out.with_suffix(".json").read_text())["results"]
     assert [Path(r["source"]).name for r in rows] == ["a.pt", "b.pt", "missing.pt"]
     assert not rows[0].get("error") and not rows[1].get("error") and rows[2]["error"]

@@ -184,7 +184,7 @@ def test_verification_bounds_the_reachable_set_below_minus_delta(reach_avoid_gri
 
 
 def test_a_results_table_names_the_kind_and_refuses_to_mix_kinds(reach_avoid_grid, tmp_path):
-    from studies.batch_verification import evaluate_many, markdown_table
+    from studies.batch_verification import SourceLoading, evaluate_many, markdown_table
 
     path = tmp_path / "ra.npz"
     reach_avoid_grid.save(path)
@@ -198,7 +198,9 @@ def test_a_results_table_names_the_kind_and_refuses_to_mix_kinds(reach_avoid_gri
     avoid = solve(Dubins3D("avoid"), 21, [0.0, 1.0], settings=SolverSettings(compile=False), progress=False)
     avoid_path = tmp_path / "avoid.npz"
     avoid.save(avoid_path)
-    rows = evaluate_many([str(avoid_path)], tmp_path / "other", settings, system=Dubins3D("reach"), progress=False)
+    rows = evaluate_many(
+        [str(avoid_path)], tmp_path / "other", settings, loading=SourceLoading(system=Dubins3D("reach")), progress=False
+    )
     assert "for a avoid problem (dubins3d), not a reach problem" in rows[0]["error"]
 
 

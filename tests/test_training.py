@@ -324,10 +324,10 @@ def test_tensorboard_logging_writes_the_metrics_and_resumes(tmp_path):
 
 
 def _loss_and_grads(network: ValueNetwork, x: torch.Tensor, t: torch.Tensor, residual_fn=None):
-    from training.loss import training_loss
+    from training.loss import LossSettings, training_loss
 
     network.zero_grad(set_to_none=True)
-    loss, _ = training_loss(network, x.clone(), t.clone(), residual_fn=residual_fn)
+    loss, _ = training_loss(network, x.clone(), t.clone(), settings=LossSettings(residual_fn=residual_fn))
     loss.backward()
     return float(loss.detach()), [p.grad.clone() for p in network.parameters()]
 
@@ -432,7 +432,7 @@ def test_margin_slope_is_the_failure_margins_steepest_normalised_slope():
 
 def test_gradient_bound_penalises_only_slopes_above_it(tmp_path):
     """A cliff (a steep wall in V) is charged by the gradient-bound term; a gentle network is not."""
-    from training.loss import LossWeights, residual_function, training_loss
+    from training.loss import LossSettings, LossWeights, residual_function, training_loss
 
     torch.manual_seed(0)
     network = ValueNetwork(Air3D(), "ssl", width=32)
@@ -441,10 +441,13 @@ def test_gradient_bound_penalises_only_slopes_above_it(tmp_path):
     fn = residual_function(network, "fused", compile=False)
     _, v, dv_dx = fn(x, t)
     slope = torch.linalg.vector_norm(dv_dx * network._scale, dim=-1).detach()
-    loose, terms = training_loss(network, x, t, residual_fn=fn, gradient_bound=float(slope.max()) + 1)
+    loose, terms = training_loss(
+        network, x, t, settings=LossSettings(residual_fn=fn, gradient_bound=float(slope.max()) + 1)
+    )
     assert terms["gradient"] == 0.0
     bound = float(slope.median())
-    loss, terms = training_loss(network, x, t, residual_fn=fn, gradient_bound=bound, weights=LossWeights(gradient=2.0))
+    settings = LossSettings(residual_fn=fn, gradient_bound=bound, weights=LossWeights(gradient=2.0))
+    loss, terms = training_loss(network, x, t, settings=settings)
     expected = torch.relu(slope - bound).mean()
     assert terms["gradient"] == pytest.approx(float(expected), rel=1e-5)
     assert float(loss.detach()) == pytest.approx(terms["pde"] + 2.0 * terms["gradient"], rel=1e-5)
@@ -460,14 +463,15 @@ def test_gradient_bound_penalises_only_slopes_above_it(tmp_path):
 def test_upper_bound_term_charges_only_values_above_a_known_bound(tmp_path, pair_grid, air3d_grid):
     """The union-of-pairs penalty: mean(relu(V - bound)) where the bound is known, nothing where it
     is +inf; a 9D run with a pair solution file logs it; misuse is refused before training."""
-    from training.loss import LossWeights, training_loss
+    from training.loss import LossSettings, LossWeights, training_loss
 
     torch.manual_seed(0)
     network = ValueNetwork(Air3D(), "ssl", width=32)
     x, t = torch.rand(256, 3) * 2 - 1, torch.rand(256)
     v = network(x, t).detach()
     bound = torch.where(torch.arange(256) % 2 == 0, v - 0.1, torch.inf)  # half the points: V is 0.1 too high
-    loss, terms = training_loss(network, x, t, pde=False, upper_bound=bound, weights=LossWeights(upper_bound=3.0))
+    weights = LossWeights(upper_bound=3.0)
+    loss, terms = training_loss(network, x, t, pde=False, upper_bound=bound, settings=LossSettings(weights=weights))
     assert terms["upper_bound"] == pytest.approx(0.05, rel=1e-4)
     assert float(loss.detach()) == pytest.approx(0.15, rel=1e-4)
     loss.backward()  # the penalty's gradient lowers V at the charged points only

@@ -22,7 +22,7 @@ The input derivatives ``dV/dx``, ``dV/dt`` come one of two ways (``gradients``):
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -132,6 +132,30 @@ class LossWeights:
             check_float(f"{name} weight", getattr(self, name), 0)
 
 
+@dataclass(frozen=True)
+class LossSettings:
+    """What a run's loss is fixed to before its first step, passed whole to :func:`loss_terms`.
+
+    Attributes:
+        residual_fn: computes the HJI residual (from :func:`residual_function`); ``None``: autograd's.
+        gradient_bound: the gradient term's bound on ``|dV/dx * s|`` in the network's normalised
+            coordinates; ``None``: no gradient term.
+        weights: the norm and each optional term's weight (:class:`LossWeights`).
+    """
+
+    residual_fn: ResidualFunction | None = None
+    gradient_bound: float | None = None
+    weights: LossWeights = field(default_factory=LossWeights)
+
+    def __post_init__(self) -> None:
+        if self.residual_fn is not None and not callable(self.residual_fn):
+            raise ValueError(f"residual_fn must be callable (see residual_function), got {self.residual_fn!r}")
+        if self.gradient_bound is not None:
+            check_float("gradient_bound", self.gradient_bound, 0)
+        if not isinstance(self.weights, LossWeights):
+            raise ValueError(f"weights must be a LossWeights, got {self.weights!r}")
+
+
 def training_loss(
     network: ValueNetwork,
     x: torch.Tensor,
@@ -157,21 +181,20 @@ def loss_terms(
     t: torch.Tensor,
     *,
     pde: bool = True,
-    residual_fn: ResidualFunction | None = None,
     boundary_mask: torch.Tensor | None = None,
-    gradient_bound: float | None = None,
     upper_bound: torch.Tensor | None = None,
     lower_bound: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
-    weights: LossWeights = LossWeights(),
+    settings: LossSettings | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Scalar loss and its terms (``pde``, ``boundary``, ``gradient``, ...) as detached 0-d tensors:
     nothing here reads a value back from the device (except the vanilla boundary mask's ``any``), so
     a CUDA graph can capture it (:mod:`training.cuda_graph`).
 
-    ``residual_fn`` (from :func:`residual_function`) computes the residual; default: autograd's.
-    ``weights`` (:class:`LossWeights`) holds the norm and each optional term's weight.
+    ``settings`` (:class:`LossSettings`, default ``LossSettings()``) holds what is fixed for a run:
+    the residual function (default: autograd's), the gradient bound and the :class:`LossWeights`
+    (the norm and each optional term's weight).
 
-    ``gradient_bound`` adds ``weights.gradient * mean(relu(|dV/dx * s| - bound))``, ``s`` the
+    ``settings.gradient_bound`` adds ``weights.gradient * mean(relu(|dV/dx * s| - bound))``, ``s`` the
     encoding's state scales (the gradient in the network's normalised coordinates, 2-norm). Value
     functions are Lipschitz, but the residual alone admits networks with a cliff: a thin wall where
     ``V`` drops by a finite amount and continues on a wrong branch. The wall violates the PDE only on a
@@ -185,6 +208,9 @@ def loss_terms(
     ``lower_bound`` = ``(x, t, J)``: labelled points with a known lower bound ``J`` of the true value
     (:func:`training.policy_lower_bounds.policy_lower_bound`) add ``weights.lower_bound * mean(relu(J - V(x, t)))``.
     """
+    if settings is None:
+        settings = LossSettings()
+    residual_fn, gradient_bound, weights = settings.residual_fn, settings.gradient_bound, settings.weights
     terms: dict[str, torch.Tensor] = {}
     total = x.new_zeros(())
     if pde:

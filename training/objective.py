@@ -16,7 +16,7 @@ import torch
 from reach.systems import ControlAffineSystem, MultiVehicle
 from training import pretrained
 from training.config import TrainConfig
-from training.loss import LossWeights, loss_terms, residual_function
+from training.loss import LossSettings, LossWeights, loss_terms, residual_function
 from training.network import ValueNetwork
 from training.policy_lower_bounds import check_lower_bound_system
 from training.sampling import Labels
@@ -56,21 +56,24 @@ class Objective(torch.nn.Module):
         super().__init__()
         self.config = config
         self.network = network
-        self.residual_fn = residual_function(network, config.gradients, config.compile_resolved())
-        #: the gradient bound in the network's normalised coordinates (``gradient_bound`` x l's steepest slope)
-        self.gradient_bound = None if config.gradient_bound is None else config.gradient_bound * network.margin_slope()
+        #: the residual function, the gradient bound in the network's normalised coordinates
+        #: (``gradient_bound`` x l's steepest slope) and the terms' weights, fixed for the run
+        self.settings = LossSettings(
+            residual_fn=residual_function(network, config.gradients, config.compile_resolved()),
+            gradient_bound=None if config.gradient_bound is None else config.gradient_bound * network.margin_slope(),
+            weights=LossWeights(
+                norm=config.loss,
+                boundary=config.boundary_weight,
+                gradient=config.gradient_weight,
+                upper_bound=config.upper_bound_weight,
+                lower_bound=config.lower_bound_weight,
+            ),
+        )
         self.upper_bound = load_upper_bound(config, network.system)
         #: whether the union checks its points (finite, within its horizon) before interpolating. A
         #: step captured as a CUDA graph turns this off, since the checks read back from the device;
         #: its points are the sampler's own, drawn inside the domain and the time range.
         self.check_points = True
-        self.weights = LossWeights(
-            norm=config.loss,
-            boundary=config.boundary_weight,
-            gradient=config.gradient_weight,
-            upper_bound=config.upper_bound_weight,
-            lower_bound=config.lower_bound_weight,
-        )
         if config.lower_bound is not None:
             check_lower_bound_system(network.system)
 
@@ -85,12 +88,10 @@ class Objective(torch.nn.Module):
             x,
             t,
             pde=pde,
-            residual_fn=self.residual_fn,
             boundary_mask=mask,
-            gradient_bound=self.gradient_bound,
             upper_bound=None if self.upper_bound is None else self.upper_bound_at(x, t),
             lower_bound=labels,
-            weights=self.weights,
+            settings=self.settings,
         )
 
     def upper_bound_at(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:

@@ -157,12 +157,12 @@ class Trainer:
 
     @property
     def residual_fn(self) -> Any:
-        return self.objective.residual_fn
+        return self.objective.settings.residual_fn
 
     @property
     def gradient_bound(self) -> float | None:
         """The gradient bound in the network's normalised coordinates (``gradient_bound`` x l's steepest slope)."""
-        return self.objective.gradient_bound
+        return self.objective.settings.gradient_bound
 
     @property
     def upper_bound(self) -> Any:
