@@ -12,8 +12,8 @@ the kind asked for, each in its own module with its own decision rule (every env
   The cheapest rule; it reacts one decision late, which its default threshold covers.
 - ``"lookahead"`` (:class:`~safety.filters.lookahead.LookaheadFilter`, a backup shield): keep the
   nominal input only where the state one step ahead, and a rollout of the backup policy from there,
-  stay safe. It checks what the next step does instead of where the state is, and so holds at
-  threshold 0.
+  stay safe. It checks what the next step does instead of where the state is, so its default
+  threshold is 0.
 - ``"smooth"`` (:class:`~safety.filters.smooth.SmoothFilter`, a control barrier-value function):
   the input closest to the nominal one that meets the HJ barrier condition, so the input changes
   gradually instead of jumping to the backup input at a boundary. Avoid problems only.
@@ -73,7 +73,7 @@ from safety.filters.settings import (
 from safety.tracing import only_rows, refuse_untrusted, tracing
 from safety.value_policies import GreedyPolicy, OptimalPolicy, check_states
 
-__all__ = ["TIME_SLACK", "Evaluation", "FilterInfo", "SafetyFilter", "project_inputs", "require_served_kind"]
+__all__ = ["Evaluation", "FilterInfo", "SafetyFilter", "project_inputs", "require_served_kind"]
 
 #: slack (s) on the lookahead's "a whole step of time-to-go is left" (times summed in float arithmetic)
 TIME_SLACK = 1e-9

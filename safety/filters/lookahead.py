@@ -8,11 +8,12 @@ predicted state; else it applies the backup input (or the control box's centre w
 input fails the same check and the centre passes it: :meth:`LookaheadFilter._fallback`).
 
 Use it where a state must not ride the boundary between two decisions: it judges what the step does,
-not where the state is, so it holds at threshold 0 where the switch needs a margin
-(:mod:`safety.filters.switch`); it costs ``backup_horizon / dt`` value evaluations per decision
-(measured: docs/results/filters.md). Checking one step of ``u*`` alone is not enough at threshold 0:
-near the BRT's edge a held ``u*`` loses a little value each step, and states ride the failure set's
-edge into a graze; the backup rollout is what rules that out.
+not where the state is, so its default threshold is 0 where the switch's is a margin
+(:mod:`safety.filters.switch`); each decision rolls up to ``backup_horizon / dt`` backup steps, one
+value-and-gradient evaluation each, where the switch evaluates once (measured:
+docs/results/filters.md). Checking one step of ``u*`` alone is not enough at threshold 0: near the
+BRT's edge a held ``u*`` loses a little value each step, and states ride the failure set's edge into
+a graze; the backup rollout is what rules that out.
 
 ``backup_disturbance="robust"`` (default) checks two predicted paths: the value function's ``d*``,
 and a greedy worst case that each step takes whichever of ``d*`` and the disturbance box's corners
