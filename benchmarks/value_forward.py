@@ -52,7 +52,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    in_place = network_module._activate_in_place
+    in_place = network_module.activate_in_place
     print(f"torch {torch.__version__}, {args.threads} threads, {args.states:,} states, median of {args.repeats}")
     print("| network | allocating (ms) | in place (ms) | ratio | identical |")
     print("|---|---:|---:|---:|---|")
@@ -60,16 +60,16 @@ def main() -> None:
         vf = load_value_function(f"pretrained:{name}").value_function
         x = sample_states(vf.system, args.states, 5)
         t = 0.9 * vf.system.horizon
-        network_module._activate_in_place = allocating
+        network_module.activate_in_place = allocating
         before = vf.value(x, t)
-        network_module._activate_in_place = in_place
+        network_module.activate_in_place = in_place
         after = vf.value(x, t)
         slow, fast = [], []
         call = functools.partial(vf.value, x, t)
         for _ in range(args.repeats):  # alternate, so that a busy spell hits both
-            network_module._activate_in_place = allocating
+            network_module.activate_in_place = allocating
             slow += timed(call, 1)
-            network_module._activate_in_place = in_place
+            network_module.activate_in_place = in_place
             fast += timed(call, 1)
         a, b = statistics.median(slow) * 1e3, statistics.median(fast) * 1e3
         print(f"| {name} | {a:.1f} | {b:.1f} | {a / b:.2f} | {torch.equal(before, after)} |")
@@ -78,10 +78,10 @@ def main() -> None:
     x = sample_states(vf.system, args.rollout_states, 7)
     results = {}
     for label, fn in (("allocating", allocating), ("in place", in_place)):
-        network_module._activate_in_place = fn
+        network_module.activate_in_place = fn
         start = time.perf_counter()
         results[label] = (rollout(vf, x, policy="greedy", progress=False), time.perf_counter() - start)
-    network_module._activate_in_place = in_place
+    network_module.activate_in_place = in_place
     (r0, t0), (r1, t1) = results["allocating"], results["in place"]
     same = torch.equal(r0.collided, r1.collided) and torch.equal(r0.decided_time, r1.decided_time)
     print(

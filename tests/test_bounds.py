@@ -23,7 +23,8 @@ from safety.formal.bounds import (
     sin_interval,
 )
 from safety.formal.linear_bounds import INTERMEDIATE, linear_bounds
-from training.network import Encoding, ValueNetwork
+from training.encoding import Encoding
+from training.network import ValueNetwork
 
 SYSTEMS = {"air3d": Air3D(), "9d": MultiVehicle9D()}
 

@@ -25,7 +25,8 @@ from safety.formal.checker import check_certificate
 from safety.formal.closure import certified_set
 from safety.formal.settings import OUTSIDE, PROVEN, REFUTED, UNKNOWN, CertifySettings
 from safety.formal.verifier import certify
-from training.network import Encoding, ValueNetwork
+from training.encoding import Encoding
+from training.network import ValueNetwork
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,9 @@ load ours and DeepReach's; ``NeuralValueFunction`` puts a network behind the val
 from training.checkpoint import load_network, save_checkpoint
 from training.config import TrainConfig, parse_duration
 from training.deepreach import load_deepreach
-from training.network import ACTIVATIONS, Encoding, NeuralValueFunction, ValueNetwork, parse_layout
+from training.encoding import Encoding
+from training.layers import ACTIVATIONS, parse_layout
+from training.network import NeuralValueFunction, ValueNetwork
 from training.trainer import Trainer, TrainingDivergedError, TrainingInterrupted
 
 __all__ = [

@@ -22,7 +22,8 @@ from reach.atomic import atomic_path
 from reach.provenance import package_versions
 from reach.systems import ControlAffineSystem, system_from_config
 from reach.validation import check_input_file
-from training.network import Encoding, ValueNetwork
+from training.encoding import Encoding
+from training.network import ValueNetwork
 
 FORMAT = "reach.checkpoint.v1"
 

@@ -12,7 +12,8 @@ from typing import Any
 from reach.systems import ControlAffineSystem
 from reach.systems.registry import SystemSpecified
 from reach.validation import check_device, check_float, check_int, check_known_fields, check_seed
-from training.network import LEARNED_BOUNDARY, check_parameterisation, parse_layout
+from training.layers import parse_layout
+from training.network import LEARNED_BOUNDARY, check_parameterisation
 
 
 def parse_duration(text: str | float | int) -> float:

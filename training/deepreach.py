@@ -24,7 +24,9 @@ import re
 import torch
 
 from reach.systems import ControlAffineSystem
-from training.network import Encoding, ValueNetwork, parse_layout
+from training.encoding import Encoding
+from training.layers import parse_layout
+from training.network import ValueNetwork
 
 #: largest mean |V(x, 0) - l(x)| / mean |l(x)| accepted for an imported model
 BOUNDARY_TOLERANCE = 0.2

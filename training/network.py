@@ -1,21 +1,10 @@
 """Value networks of any activation layout, with input encoding and output parameterisation.
 
 A layout is a string with one letter per activated hidden layer and a final ``l`` (linear output):
-``s`` sine ``sin(w0 z)``, ``r`` ReLU, ``t`` tanh. ``"ssrsl"`` is sine, sine, ReLU, sine, linear.
+``s`` sine ``sin(w0 z)``, ``r`` ReLU, ``t`` tanh. ``"ssrsl"`` is sine, sine, ReLU, sine, linear. The
+layers, their activations and their initialisation live in :mod:`training.layers`.
 
-Initialisation per layer kind, chosen so that every pre-activation starts with a spread of order one
-whatever mixes the layout has:
-
-* sine, first layer: ``U(-1/fan_in, 1/fan_in)`` (SIREN), so ``w0 z`` spans about one period over
-  the normalised input box;
-* sine, later layers (also after a ReLU or tanh layer): ``U(-sqrt(6/fan_in)/w0, +sqrt(6/fan_in)/w0)``
-  (SIREN). It assumes inputs of second moment about 1/2, which sine outputs have and Kaiming-
-  initialised ReLU outputs roughly have too, so ``w0 z`` stays of order one after a ReLU layer;
-* ReLU: Kaiming-normal (fan_in, ReLU gain), biases zero; tanh: Xavier-uniform, biases zero;
-* the linear output after a sine layer uses the SIREN hidden rule (as DeepReach), after ReLU or tanh
-  Kaiming-normal with linear gain.
-
-Inputs ``(t, x)`` are encoded by an :class:`Encoding` (affine maps to about [-1, 1]; optionally
+Inputs ``(t, x)`` are encoded by an :class:`~training.encoding.Encoding` (affine maps to about [-1, 1]; optionally
 ``(sin, cos)`` of periodic dimensions). Outputs: ``vanilla`` ``V = value_scale o + value_offset``
 (DeepReach) or ``exact`` ``V = b(x) + (t / T) value_scale o``, which meets the boundary condition
 ``V(x, 0) = b(x)`` by construction (``b`` is the system's
@@ -27,8 +16,6 @@ docs/training.md for what each costs and wins).
 
 from __future__ import annotations
 
-import math
-from dataclasses import asdict, dataclass, field
 from typing import Any, Literal, NamedTuple
 
 import torch
@@ -37,9 +24,9 @@ from torch import nn
 from reach.systems import ControlAffineSystem
 from reach.validation import positive_finite
 from reach.value_function import check_time
+from training.encoding import Encoding
+from training.layers import activate_in_place, init_linear, make_activation, parse_layout
 
-#: Activation letters and their names.
-ACTIVATIONS = {"s": "sine", "r": "relu", "t": "tanh"}
 Parameterisation = Literal["exact", "vanilla", "exact-constraint", "diff"]
 #: the output parameterisations (:class:`ValueNetwork`); ``exact-constraint`` is for reach-avoid systems;
 #: ``diff`` is DeepReach's ``diff_model`` (``V = b(x) + scale * o``), kept for its checkpoints
@@ -74,143 +61,6 @@ def check_parameterisation(parameterisation: object, system: ControlAffineSystem
             f"{system.kind} problem (use 'exact')"
         )
     return str(parameterisation)
-
-
-def parse_layout(layout: str) -> tuple[str, ...]:
-    """Letters of the activated layers of ``layout``; errors name the bad part."""
-    if not isinstance(layout, str) or not layout:
-        raise ValueError(f"layout must be a non-empty string such as 'ssrsl', got {layout!r}")
-    if not layout.endswith("l"):
-        raise ValueError(f"layout {layout!r} must end with 'l' (the linear output layer)")
-    body = layout[:-1]
-    if not body:
-        raise ValueError(f"layout {layout!r} needs at least one activated layer before the final 'l'")
-    for i, letter in enumerate(body):
-        if letter not in ACTIVATIONS:
-            known = ", ".join(f"{k} = {v}" for k, v in ACTIVATIONS.items())
-            raise ValueError(
-                f"layout {layout!r}: unknown letter {letter!r} at position {i} (known: {known}, l = output)"
-            )
-    return tuple(body)
-
-
-@dataclass(frozen=True)
-class Encoding:
-    """How ``(t, x)`` becomes network input and the output becomes ``V``.
-
-    Input: ``((t - time_offset) / time_scale, (x - state_offset) / state_scale)``; periodic
-    dimensions listed in ``sincos_dims`` are replaced by ``r (sin x_i, cos x_i)`` instead (a heading
-    encoding with no seam at +-pi), ``r = sincos_radius``. With ``r = 1/pi`` a full turn is a circle
-    of circumference 2 in input space, the same length as the [-1, 1] span of the plain encoding, so
-    a sine network's first layer sees the heading at the same spatial frequency either way (with
-    ``r = 1`` it sees it pi times faster). Output: ``value_scale * o + value_offset`` (vanilla) or
-    ``l(x) + (t / horizon) * value_scale * o`` (exact).
-    """
-
-    state_offset: tuple[float, ...]
-    state_scale: tuple[float, ...]
-    time_offset: float = 0.0
-    time_scale: float = 1.0
-    value_scale: float = 1.0
-    value_offset: float = 0.0
-    horizon: float = 1.0
-    sincos_dims: tuple[int, ...] = field(default_factory=tuple)
-    sincos_radius: float = 1.0
-
-    @classmethod
-    def for_system(
-        cls, system: ControlAffineSystem, sincos: bool = False, value_scale: float = 1.0, sincos_radius: float = 1.0
-    ) -> Encoding:
-        """Domain box mapped to [-1, 1], time-to-go [0, T] to [-1, 1]."""
-        lo = [a for a, _ in system.domain]
-        hi = [b for _, b in system.domain]
-        return cls(
-            state_offset=tuple(0.5 * (a + b) for a, b in zip(lo, hi)),
-            state_scale=tuple(0.5 * (b - a) for a, b in zip(lo, hi)),
-            time_offset=0.5 * system.horizon,
-            time_scale=0.5 * system.horizon,
-            value_scale=value_scale,
-            value_offset=0.0,
-            horizon=system.horizon,
-            sincos_dims=tuple(system.periodic_dims) if sincos else (),
-            sincos_radius=sincos_radius,
-        )
-
-    @classmethod
-    def deepreach(cls, system: ControlAffineSystem) -> Encoding:
-        """DeepReach's convention: raw t, headings / 1.2 pi, ``V = 25 o + 0.25`` (checkpoint import)."""
-        n = system.deepreach
-        if n is None:
-            raise ValueError(
-                f"{system.reference()} declares no DeepReach normalisation (attribute 'deepreach'), which "
-                "importing a DeepReach checkpoint needs"
-            )
-        return cls(
-            state_offset=n.state_offset,
-            state_scale=n.state_scale,
-            value_scale=n.value_scale,
-            value_offset=n.value_offset,
-            horizon=system.horizon,
-        )
-
-    def input_dim(self, state_dim: int) -> int:
-        return 1 + state_dim + len(self.sincos_dims)
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> Encoding:
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
-
-
-class Sine(nn.Module):
-    def __init__(self, w0: float) -> None:
-        super().__init__()
-        self.w0 = w0
-
-    def forward(self, z: torch.Tensor) -> torch.Tensor:
-        return torch.sin(self.w0 * z)
-
-    def forward_(self, z: torch.Tensor) -> torch.Tensor:
-        """:meth:`forward` in ``z``'s own memory: the same values, no new tensor (inference only)."""
-        return z.mul_(self.w0).sin_()
-
-    def extra_repr(self) -> str:
-        return f"w0={self.w0}"
-
-
-def _activate_in_place(activation: nn.Module, z: torch.Tensor) -> torch.Tensor:
-    """``activation(z)`` written into ``z`` (which the caller owns and no graph records): the same
-    values as the module's forward, without allocating a second activation-sized tensor."""
-    if isinstance(activation, Sine):
-        return activation.forward_(z)
-    if isinstance(activation, nn.ReLU):
-        return z.relu_()
-    if isinstance(activation, nn.Tanh):
-        return z.tanh_()
-    return activation(z)
-
-
-def _activation(letter: str, w0: float) -> nn.Module:
-    return {"s": lambda: Sine(w0), "r": nn.ReLU, "t": nn.Tanh}[letter]()
-
-
-@torch.no_grad()
-def _init_linear(layer: nn.Linear, kind: str, previous: str | None, w0: float) -> None:
-    """Initialise ``layer`` whose output feeds activation ``kind`` (``"l"`` for the output)."""
-    fan_in = layer.in_features
-    if kind == "s" or (kind == "l" and previous == "s"):
-        bound = 1.0 / fan_in if previous is None else math.sqrt(6.0 / fan_in) / w0
-        layer.weight.uniform_(-bound, bound)
-        return  # biases keep torch's default init, as SIREN and DeepReach do
-    if kind == "r":
-        nn.init.kaiming_normal_(layer.weight, nonlinearity="relu")
-    elif kind == "t":
-        nn.init.xavier_uniform_(layer.weight, gain=nn.init.calculate_gain("tanh"))
-    else:  # linear output after relu/tanh
-        nn.init.kaiming_normal_(layer.weight, nonlinearity="linear")
-    nn.init.zeros_(layer.bias)
 
 
 class ValueNetwork(nn.Module):
@@ -257,12 +107,12 @@ class ValueNetwork(nn.Module):
         previous = None
         for letter in letters:
             layer = nn.Linear(in_dim, width)
-            _init_linear(layer, letter, previous, self.w0)
+            init_linear(layer, letter, previous, self.w0)
             self.layers.append(layer)
-            self.activations.append(_activation(letter, self.w0))
+            self.activations.append(make_activation(letter, self.w0))
             in_dim, previous = width, letter
         self.output = nn.Linear(in_dim, 1)
-        _init_linear(self.output, "l", previous, self.w0)
+        init_linear(self.output, "l", previous, self.w0)
         enc = self.encoding
         self.register_buffer("_offset", torch.tensor(enc.state_offset, dtype=torch.float32), persistent=False)
         self.register_buffer("_scale", torch.tensor(enc.state_scale, dtype=torch.float32), persistent=False)
@@ -309,7 +159,7 @@ class ValueNetwork(nn.Module):
         in_place = not torch.is_grad_enabled()
         for layer, act in zip(self.layers, self.activations):
             z = layer(h)
-            h = _activate_in_place(act, z) if in_place else act(z)
+            h = activate_in_place(act, z) if in_place else act(z)
         return self.output(h).squeeze(-1)
 
     def _raw_and_input_gradient(

@@ -26,8 +26,9 @@ from reach.threads import thread_policy
 from training.config import TrainConfig
 from training.cuda_graph import GraphedStep, portable_state
 from training.distributed import Processes
+from training.encoding import Encoding
 from training.loss import terms_to_floats
-from training.network import Encoding, ValueNetwork
+from training.network import ValueNetwork
 from training.objective import Objective, load_upper_bound
 from training.progress import Evaluator, ProgressReport, StepRecord
 from training.run_directory import (

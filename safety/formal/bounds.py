@@ -41,7 +41,8 @@ import torch
 from torch import nn
 
 from safety.formal.intervals import FUNCTION_ULPS, UNIT_ROUNDOFF, cos_interval, sin_interval
-from training.network import Sine, ValueNetwork
+from training.layers import Sine
+from training.network import ValueNetwork
 
 Interval = tuple[torch.Tensor, torch.Tensor]
 

@@ -27,7 +27,8 @@ import torch
 from torch import nn
 
 from safety.formal.bounds import FUNCTION_ULPS, UNIT_ROUNDOFF, Interval, check_box, interval_bounds, on_network_device
-from training.network import Sine, ValueNetwork
+from training.layers import Sine
+from training.network import ValueNetwork
 
 __all__ = ["INTERMEDIATE", "linear_bounds"]
 

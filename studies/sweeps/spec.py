@@ -21,7 +21,7 @@ from reach.systems import MultiVehicle, make_system
 from reach.systems.registry import SystemSpecified
 from reach.validation import check_known_fields
 from training.config import TrainConfig
-from training.network import parse_layout
+from training.layers import parse_layout
 
 FORMAT = "reach.sweep.v1"
 
