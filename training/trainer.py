@@ -4,18 +4,17 @@
 step draws (:mod:`training.sampling`), the loss (:mod:`training.objective`), the schedule
 (:mod:`training.schedule`), what it reports (:mod:`training.progress`), the run's directory with its
 lock, checkpoints, metrics and resume state (:mod:`training.run_directory`, whose docstring shows the
-layout), Ctrl-C / SIGTERM (:mod:`training.signals`), and the processes of a distributed run
-(:mod:`training.distributed`). Names that lived here before are re-exported.
+layout), what it saves and takes back up (:mod:`training.checkpointing`), Ctrl-C / SIGTERM
+(:mod:`training.signals`), and the processes of a distributed run (:mod:`training.distributed`).
+Names that lived here before are re-exported.
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import os
 import time
-import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -23,8 +22,9 @@ from typing import Any
 import torch
 
 from reach.threads import thread_policy
+from training.checkpointing import Checkpointer
 from training.config import TrainConfig
-from training.cuda_graph import GraphedStep, portable_state
+from training.cuda_graph import GraphedStep
 from training.distributed import Processes
 from training.encoding import Encoding
 from training.loss import terms_to_floats
@@ -35,7 +35,6 @@ from training.run_directory import (
     LEGACY_DEFAULTS,
     RESUME_OVERRIDABLE,
     RUN_FILES,
-    CheckpointState,
     RunDirectory,
     clean_metrics,
 )
@@ -144,6 +143,10 @@ class Trainer:
             self.config, self.network, self.device, self.processes.rank, self.processes.world_size
         )
         self.schedule = Schedule(self.config, self.system.horizon)
+        #: checkpoints, snapshots and the resumed state (:mod:`training.checkpointing`)
+        self.checkpointer = Checkpointer(
+            self.run, self.config, self.processes, self.network, self.optimizer, self.sampler
+        )
         #: the step as one CUDA graph (training.cuda_graph), built at the first step where the run allows it
         self.graphed: GraphedStep | None = None
         self._wants_graph = self.uses_cuda_graph()  # decided once: the configuration does not change
@@ -188,35 +191,12 @@ class Trainer:
         config, trained_on = run.resumed_config(overrides)
         trainer = cls(config, run.path, evaluator, progress, processes=processes, _resuming=True)
         if run.checkpoint_path.exists():
-            trainer._restore(run.load_checkpoint(trainer.network, config.layout), trained_on)
+            state = run.load_checkpoint(trainer.network, config.layout)
+            standing = trainer.checkpointer.restore(state, trained_on, trainer.device)
+            trainer.step, trainer.wall, trainer.loss_ema, trainer.labels = standing
         if trainer.processes.main:
             run.clean_metrics(trainer.step)
         return trainer
-
-    def _restore(self, state: CheckpointState, trained_on: str) -> None:
-        """Take up a checkpoint's training state (its weights are loaded already)."""
-        self.optimizer.load_state_dict(state.optimizer)
-        self.step, self.wall, self.loss_ema = state.step, state.wall, state.loss_ema
-        generator, labels = state.stream(self.processes.rank, self.processes.world_size)
-        if self.sampler.resume_stream(generator, trained_on, self.step) and self.processes.main:
-            written = len(state.streams or [state.generator])
-            if written != self.processes.world_size:  # the streams are per process: they cannot carry over
-                why = (
-                    f"written by {written} process(es), resumed by {self.processes.world_size} at step {self.step}: "
-                    "each process's sampling generator is reseeded from the run's seed, its rank and the step, "
-                    "and lower-bound labels are redrawn"
-                )
-            else:  # a CPU and a CUDA generator have different states: the stream cannot carry over
-                why = (
-                    f"trained on {trained_on}, resumed on {self.device.type} at step {self.step}: the sampling "
-                    "generator is reseeded from the run's seed and step"
-                )
-            warnings.warn(
-                f"{self.run_dir}: {why} (same schedule and steps, not the sample stream of an uninterrupted run)",
-                stacklevel=3,  # the caller of resume
-            )
-        # checkpoints load on the CPU; the labels train on the run's device
-        self.labels = None if labels is None else tuple(v.to(self.device) for v in labels)
 
     @classmethod
     def open(cls, config: TrainConfig, run_dir: str | os.PathLike, progress: bool = True) -> Trainer:
@@ -239,41 +219,13 @@ class Trainer:
     def snapshot_dir(self) -> Path:
         return self.run.snapshot_dir
 
-    def _metadata(self, **fields: Any) -> dict[str, Any]:
-        """A checkpoint's or snapshot's metadata: where the run stands, ``fields``, and its configuration."""
-        return {
-            "steps": self.step,
-            "wall_time_s": self.wall,
-            **fields,
-            "seed": self.config.seed,
-            "config": json.loads(self.config.to_json()),
-        }
-
     def _save(self) -> None:
-        """Checkpoint the run. Every process of a distributed run calls this at the same step: rank 0
-        gathers their sampling streams and labels and writes the checkpoint alone."""
-        labels = None if self.labels is None else tuple(v.cpu() for v in self.labels)
-        streams = self.processes.gather((self.generator.get_state(), labels))
-        if not self.processes.main:
-            return
-        state = CheckpointState(
-            portable_state(self.optimizer.state_dict()),  # loads into an eager or a graphed run alike
-            self.generator.get_state(),
-            self.step,
-            self.wall,
-            self.loss_ema,
-            self.labels,
-            streams if len(streams) > 1 else None,
-        )
-        self.run.save_checkpoint(self.network, state, self._metadata())
+        """Checkpoint the run (every process of a distributed run at the same step, :class:`Checkpointer`)."""
+        self.checkpointer.save(self.step, self.wall, self.loss_ema, self.labels)
 
     def _snapshot(self, index: int) -> None:
-        """Save the network alone as snapshot ``index`` (of ``config.snapshots``), with its step and wall
-        time (rank 0's part alone in a distributed run)."""
-        if not self.processes.main:
-            return
-        meta = self._metadata(fraction=self.progress_fraction(), snapshot=index, snapshots=self.config.snapshots)
-        self.run.save_snapshot(index, self.network, meta)
+        """Save the network alone as snapshot ``index`` (:meth:`Checkpointer.snapshot`)."""
+        self.checkpointer.snapshot(index, self.step, self.wall, self.progress_fraction())
 
     def _snapshots_due(self) -> int:
         return self.schedule.snapshots_due(self.progress_fraction())
@@ -350,20 +302,8 @@ class Trainer:
         return c.cuda_graph is not False and self.processes.world_size == 1 and c.cuda_graph_unsupported() is None
 
     def _diverged_message(self, loss: float) -> str:
-        """What a diverged run kept on disk, and what to do next: resume from the last checkpoint
-        when there is one, start over (with a lower learning rate) when there is none."""
-        saved = self.run.checkpoint_step()
-        head = f"loss became {loss} at step {self.step + 1}"
-        if saved is None:
-            return (
-                f"{head}, before the run saved its first checkpoint, so nothing was kept in {self.run_dir}; "
-                "start over (for example with a lower --lr)"
-            )
-        return (
-            f"{head}; the last good checkpoint (step {saved}) is kept in {self.checkpoint_path}; "
-            f"`reach train --resume {self.run_dir}` continues from it (the same points follow, so "
-            "lower the learning rate in a new run if it diverges again)"
-        )
+        """What a diverged run kept on disk, and what to do next (:meth:`Checkpointer.diverged_message`)."""
+        return self.checkpointer.diverged_message(loss, self.step)
 
     # ------------------------------------------------------------------ the loop
     def train(self) -> dict[str, Any]:
