@@ -3,7 +3,9 @@
 ``<!-- generated: environment table -->`` becomes one row per registered environment (spaces,
 dynamics summary, horizon) built from its scene and system; ``<!-- generated: cli reference -->``
 becomes every subcommand's ``--help``, defaults included (they come from the library's dataclasses);
-``<!-- generated: pretrained cards -->`` becomes the shipped models' card table (package data);
+``<!-- generated: pretrained cards -->`` becomes the shipped models' card table (package data, with
+their measured scores and hardware: the results page); ``<!-- generated: pretrained list -->`` becomes
+the list of shipped models, their systems and envs (the user page);
 ``<!-- generated: system gallery -->`` becomes one section per built-in system (:mod:`studies.gallery`).
 """
 
@@ -62,7 +64,7 @@ def _pretrained_cards() -> str:
     from training import pretrained
 
     rows = [
-        "| model | system, envs | trained | violation % | false safe (reach) % | collision % | certified vol. | "
+        "| model | system, envs | trained | violation % | false safe (reach) % | collision % | scenario vol. | "
         "robust vol. (eps) | misses union % | IoU vol. |",
         "|---|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
@@ -89,6 +91,17 @@ def _pretrained_cards() -> str:
             f"commit {t.get('commit', '?')}; evaluated on {card.evaluation.get('samples', '?')} states.{extra}"
         )
     return "\n".join(rows) + "\n\n" + "\n\n".join(commands) + "\n"
+
+
+def _pretrained_list() -> str:
+    from training import pretrained
+
+    rows = ["| source | kind | system | Gymnasium envs |", "|---|---|---|---|"]
+    for card in pretrained.cards():
+        kind = "grid" if card.format == "grid" else "value network"
+        envs = ", ".join(f"`{env_id}`" for env_id in card.env_ids) or "-"
+        rows.append(f"| `pretrained:{card.name}` | {kind} | `{card.system}` | {envs} |")
+    return "\n".join(rows) + "\n"
 
 
 def _card_row(model: str, what: str, trained: str, m: dict) -> str:
@@ -121,6 +134,7 @@ GENERATORS = {
     "<!-- generated: environment table -->": _environment_table,
     "<!-- generated: cli reference -->": _cli_reference,
     "<!-- generated: pretrained cards -->": _pretrained_cards,
+    "<!-- generated: pretrained list -->": _pretrained_list,
     "<!-- generated: system gallery -->": _system_gallery,
 }
 
