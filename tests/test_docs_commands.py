@@ -15,7 +15,7 @@ from reach.validation import csv_floats
 from reach_cli import build_parser
 
 ROOT = Path(__file__).resolve().parents[1]
-PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), *sorted((ROOT / "docs" / "results").glob("*.md"))]
 #: options whose value is a list of numbers, checked as the commands check them
 NUMBER_LISTS = ("--times", "--thresholds", "--gammas")
 
