@@ -20,8 +20,8 @@ import math
 from collections.abc import Sequence
 from typing import Any, ClassVar
 
-from reach.systems.arrays import Backend, Column
-from reach.systems.base import ControlAffineSystem, InputMatrix
+from reach.systems.arrays import Backend, Column, InputMatrix
+from reach.systems.base import ControlAffineSystem
 from reach.systems.box import NO_INPUT, Box
 from reach.systems.deepreach_normalisation import DeepReachNormalisation
 from reach.validation import positive_finite

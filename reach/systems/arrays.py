@@ -17,7 +17,7 @@ arithmetic broadcasts, and :meth:`stack` materialises constants where a full arr
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -27,6 +27,9 @@ PI = math.pi
 TAU = 2.0 * math.pi
 
 Column = Any  # float | np.ndarray | torch.Tensor
+
+#: Sparse input matrix: {(state index, input index): entry}; absent entries are zero.
+InputMatrix = Mapping[tuple[int, int], Column]
 
 
 def is_number(value: Column, number: float) -> bool:

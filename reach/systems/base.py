@@ -3,12 +3,17 @@
 A concrete system declares only physics (see :class:`ControlAffineSystem`): its state layout, the
 control-affine dynamics ``x' = f(x) + G_u(x) u + G_d(x) d`` with box-bounded inputs, which player
 maximises the value, the failure margin ``l(x)`` and a default horizon. Everything the rest of the
-library needs is derived here, once, generically:
+library needs is derived once, generically, in the classes :class:`ControlAffineSystem` inherits,
+one module per job:
 
-* the Hamiltonian ``H(x, p) = opt_u opt_d p . (f + G_u u + G_d d)``,
-* the optimal control and disturbance (extreme points of the input boxes),
-* the per-dimension bound on ``|dH/dp_i|`` used as Lax-Friedrichs dissipation by the grid solver,
-* batched dynamics, failure margin and heading wrapping.
+* :mod:`reach.systems.optimal_inputs`: the Hamiltonian ``H(x, p) = opt_u opt_d p . (f + G_u u + G_d d)``,
+  the optimal control and disturbance (extreme points of the input boxes), and the per-dimension
+  bound on ``|dH/dp_i|`` used as Lax-Friedrichs dissipation by the grid solver;
+* :mod:`reach.systems.batched`: batched dynamics, margins, heading wrapping and sampling on tensors;
+* :mod:`reach.systems.margins`: bounds and estimates of how fast the failure margin can change.
+
+This module keeps the declarations, the kind of problem, the per-system defaults, the identity
+(configuration, equality, physics compatibility) and the checks run on construction.
 
 Physics methods work on *columns* with a backend (:mod:`reach.systems.arrays`), so the same
 lines run on Python floats (single environment), NumPy (vector environments) and torch (solver,
@@ -30,22 +35,20 @@ from __future__ import annotations
 import json
 import math
 from abc import ABCMeta, abstractmethod
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from typing import Any, ClassVar
 
-import numpy as np
 import torch
 
-from reach.systems.arrays import FLOAT, TORCH, Backend, Column, is_number
+from reach.systems.arrays import TORCH, Backend, Column, InputMatrix
+from reach.systems.batched import BatchedPhysics
 from reach.systems.box import NO_INPUT, Ball, Box, InputSet  # also importable from here, as before the split
 from reach.systems.class_names import system_reference
 from reach.systems.deepreach_normalisation import DeepReachNormalisation  # likewise
-from reach.systems.hamiltonian import FixedStateHamiltonian
+from reach.systems.margins import MarginBounds
+from reach.systems.optimal_inputs import OptimalInputs
 from reach.systems.problem import Objective, ProblemKind, problem_kind
 from reach.validation import positive_finite
-
-#: Sparse input matrix: {(state index, input index): entry}; absent entries are zero.
-InputMatrix = Mapping[tuple[int, int], Column]
 
 
 class _CheckedOnConstruction(ABCMeta):
@@ -58,17 +61,16 @@ class _CheckedOnConstruction(ABCMeta):
         return system
 
 
-def _radius(bounds: InputSet) -> float | None:
-    """A ball's radius, ``None`` for a box (the Hamiltonian's side descriptor)."""
-    return float(bounds.radius) if isinstance(bounds, Ball) else None
-
-
-class ControlAffineSystem(metaclass=_CheckedOnConstruction):
+class ControlAffineSystem(OptimalInputs, BatchedPhysics, MarginBounds, metaclass=_CheckedOnConstruction):
     """Base class of every dynamical system; subclasses declare physics only.
 
     Subclasses set the class or instance attributes below and implement :meth:`drift`,
     :meth:`control_matrix`, optionally :meth:`disturbance_matrix`, and :meth:`failure_margin_columns`.
-    Every instance is checked by :meth:`validate` when it is constructed.
+    Every instance is checked by :meth:`validate` when it is constructed. What is derived from the
+    physics comes from the classes it inherits: :class:`~reach.systems.optimal_inputs.OptimalInputs`
+    (Hamiltonian, optimal inputs, dissipation), :class:`~reach.systems.batched.BatchedPhysics` (the
+    batched tensor interface) and :class:`~reach.systems.margins.MarginBounds` (how fast the margin
+    can change).
     """
 
     #: short name (default: the class name in lower case); configs store the registered name or the
@@ -153,48 +155,6 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
                 "(the grid solver solves every kind)"
             )
 
-    def margin_rate_bound(self) -> float | None:
-        """A bound on ``|d l(x(t)) / dt|`` along every trajectory with admissible inputs, or ``None``.
-
-        Physics, declared per system where it is known (e.g. the sum of two cars' speeds bounds how
-        fast their distance changes). With it, a rollout can stop simulating a trajectory once
-        ``l(x) > bound * time_left``: the failure set is then out of reach, whatever the inputs.
-        """
-        return None
-
-    def margin_step_bound(self, dt: float, integrator: str) -> float | None:
-        """``delta``: one step of ``integrator`` over ``dt`` lowers the failure margin by at most this,
-        from *every* state (inside the domain or far outside it), with every admissible control and
-        disturbance held over the step: ``l(step(x, u, d)) >= l(x) - delta``. ``None`` (the default)
-        where no such bound is known for this integrator.
-
-        A proof obligation, declared per system with its argument in the docstring (and checked at
-        samples in the tests): a formal certificate (:mod:`safety.formal.verifier`) uses it to treat the
-        states far from failure, where the value function is not trusted or not defined, without
-        bounding the network there."""
-        return None
-
-    def margin_outside_domain(self, scale: float = 1.0) -> float | None:
-        """A lower bound of the failure margin ``l`` on every state outside the domain (its periodic
-        dimensions aside), or ``None`` (the default) where a state outside may be near failure.
-        ``scale``: outside the domain widened that many times about its centre (a certificate's
-        ``closure_scale``). With :meth:`margin_step_bound` it lets a certificate accept next states
-        that leave the domain."""
-        return None
-
-    def margin_floor(self, x: torch.Tensor, time: float) -> torch.Tensor | None:
-        """A lower bound of ``l`` over the next ``time`` seconds from states ``x`` ``(..., n)``, under
-        *any* admissible inputs (held over Euler steps or not), or ``None`` where none is known.
-
-        Default: ``l(x) - margin_rate_bound() * time``. A system that knows more of its geometry may
-        return a tighter bound (multi-vehicle systems use the cars' headings and turn rates). A
-        rollout stops a trajectory whose floor over the time left is positive: no input can reach
-        the failure set any more."""
-        bound = self.margin_rate_bound()
-        if bound is None:
-            return None
-        return self.failure_margin(x) - bound * time
-
     # ------------------------------------------------------------------ per-system defaults (hooks)
     # Built-in systems override these with the choices of the literature; a user system inherits
     # generic fallbacks derived from its declared physics.
@@ -218,32 +178,7 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
         centre = tuple(0.5 * (lo + hi) for lo, hi in self.domain)
         return [(centre, self.view_dims(), "domain centre")]
 
-    def margin_rate_estimate(self, samples: int = 4096, seed: int = 0) -> float:
-        """The largest ``|d l(x(t)) / dt|`` over ``samples`` states drawn from the domain and every
-        admissible input (exact over the input boxes: ``grad l . xdot`` is affine in the inputs).
-
-        A sampled estimate, not a bound: it sets default filter thresholds for systems that declare
-        no :meth:`margin_rate_bound`, and never licenses skipping simulation."""
-        x = self.sample_states(samples, torch.Generator().manual_seed(seed), dtype=torch.float64).requires_grad_(True)
-        (p,) = torch.autograd.grad(self.boundary_value(x).sum(), x)  # l, or max(l, -g): what V starts from
-        x = x.detach()
-        cols, pc = TORCH.unbind(x), TORCH.unbind(p)
-        centre = self.xdot_columns(cols, self.control_bounds.center, self.disturbance_bounds.center, TORCH)
-        rate = sum(pi * fi for pi, fi in zip(pc, centre)).abs()
-        sides = [(self.control_matrix(cols, TORCH), self.control_bounds)]
-        if self.disturbance_dim:
-            sides.append((self.disturbance_matrix(cols, TORCH), self.disturbance_bounds))
-        for matrix, box in sides:
-            switching = self._switching(matrix, pc, box.dim)
-            if isinstance(box, Ball):  # max over the ball of |s . (u - c)| is r |s|_2
-                if any(isinstance(sj, torch.Tensor) for sj in switching):
-                    rate = rate + box.radius * TORCH.norm(switching)
-                continue
-            for sj, hw in zip(switching, box.half_width):
-                rate = rate + hw * (sj.abs() if isinstance(sj, torch.Tensor) else abs(sj))
-        rate = rate[torch.isfinite(rate)]
-        return float(rate.max()) if rate.numel() else 0.0
-
+    # ------------------------------------------------------------------ identity
     def parameters(self) -> dict[str, Any]:
         """Constructor arguments that rebuild this system (JSON-serialisable)."""
         return {}
@@ -376,216 +311,3 @@ class ControlAffineSystem(metaclass=_CheckedOnConstruction):
                 )
             if not torch.isfinite(margin).all():
                 raise ValueError(f"{what}: {method} returned non-finite values inside the domain")
-
-    # ------------------------------------------------------------------ derived, on columns
-    def xdot_columns(self, x: Sequence[Column], u: Sequence[Column], d: Sequence[Column], xp: Backend) -> list[Column]:
-        """``f(x) + G_u(x) u + G_d(x) d`` on columns."""
-        # Hot path of every simulation step: kept free of avoidable calls and copies.
-        out = self.drift(x, xp)
-        for (i, j), g in self.control_matrix(x, xp).items():
-            out[i] = out[i] + g * u[j]
-        if d:
-            for (i, k), g in self.disturbance_matrix(x, xp).items():
-                out[i] = out[i] + g * d[k]
-        return out
-
-    @staticmethod
-    def _switching(matrix: InputMatrix, p: Sequence[Column], dim: int) -> list[Column]:
-        """``G^T p``: one switching function per input dimension."""
-        s: list[Column | None] = [None] * dim
-        for (i, j), g in matrix.items():
-            term = p[i] if is_number(g, 1.0) else g * p[i]  # skip passes that change nothing (the grid
-            s[j] = term if s[j] is None else s[j] + term  # solver runs these on every node, every stage)
-        return [0.0 if sj is None else sj for sj in s]
-
-    def _optimal(self, s: Sequence[Column], box: InputSet, objective: Objective, xp: Backend) -> list[Column]:
-        sigma = 1.0 if objective == "max" else -1.0
-        if isinstance(box, Ball):  # c + sigma r s / |s|_2; the centre where s = 0
-            numbers = all(isinstance(sj, (int, float)) for sj in s)
-            norm = FLOAT.norm(s) if numbers else xp.norm(list(s))
-            if numbers:
-                return [c + (sigma * box.radius * sj / norm if norm > 0 else 0.0) for sj, c in zip(s, box.center)]
-            safe = xp.where(norm > 0, norm, 1.0)
-            return [c + sigma * box.radius * sj / safe for sj, c in zip(s, box.center)]
-        return [c + sigma * h * xp.sign(sj) for sj, c, h in zip(s, box.center, box.half_width)]
-
-    def optimal_inputs_columns(
-        self, x: Sequence[Column], p: Sequence[Column], xp: Backend
-    ) -> tuple[list[Column], list[Column]]:
-        """Optimal control and disturbance for costate ``p`` (tie-break: box centre)."""
-        su = self._switching(self.control_matrix(x, xp), p, self.control_dim)
-        u = self._optimal(su, self.control_bounds, self.control_objective, xp)
-        d: list[Column] = []
-        if self.disturbance_dim:
-            sd = self._switching(self.disturbance_matrix(x, xp), p, self.disturbance_dim)
-            d = self._optimal(sd, self.disturbance_bounds, self.disturbance_objective, xp)
-        return u, d
-
-    def hamiltonian_columns(self, x: Sequence[Column], p: Sequence[Column], xp: Backend) -> Column:
-        """``H(x, p) = opt_u opt_d p . xdot`` in closed form for box inputs."""
-        return self.hamiltonian_at(x, xp)(p)
-
-    def hamiltonian_at(
-        self, x: Sequence[Column], xp: Backend, *, scale: Sequence[float] | None = None, prune: bool = False
-    ) -> FixedStateHamiltonian:
-        """``p -> H(x, scale * p)`` with the drift and input matrices evaluated once at the states ``x``.
-
-        For callers that read ``H`` at the same states many times (the grid solver). ``prune`` drops
-        drift and matrix entries that are zero at every state (it reads each array column once);
-        ``scale`` folds a number factor per costate component into the coefficients.
-        """
-        sides = [(self.control_matrix(x, xp), self.control_bounds, self.control_objective)]
-        if self.disturbance_dim:
-            sides.append((self.disturbance_matrix(x, xp), self.disturbance_bounds, self.disturbance_objective))
-        return FixedStateHamiltonian(
-            self.drift(x, xp),
-            [
-                (m, box.center, box.half_width, 1.0 if objective == "max" else -1.0, _radius(box))
-                for m, box, objective in sides
-            ],
-            xp,
-            scale=scale,
-            prune=prune,
-        )
-
-    def dissipation_columns(self, x: Sequence[Column], xp: Backend) -> list[Column]:
-        """``max over the input boxes of |xdot_i|`` per state dimension: bounds ``|dH/dp_i|``. A ball of
-        inputs counts as its bounding box, which contains it: still a bound, if not the tightest."""
-        centre_u = self.control_bounds.center
-        centre_d = self.disturbance_bounds.center
-        out = list(self.xdot_columns(x, centre_u, centre_d, xp))
-        out = [xp.abs(v) if not isinstance(v, (int, float)) else abs(v) for v in out]
-        sides = [(self.control_matrix(x, xp), self.control_bounds)]
-        if self.disturbance_dim:
-            sides.append((self.disturbance_matrix(x, xp), self.disturbance_bounds))
-        for matrix, box in sides:
-            hw = box.half_width
-            for (i, j), g in matrix.items():
-                out[i] = out[i] + (xp.abs(g) if not isinstance(g, (int, float)) else abs(g)) * hw[j]
-        return out
-
-    def wrap_columns(self, x: Sequence[Column], xp: Backend) -> list[Column]:
-        """Periodic dimensions wrapped into ``[-pi, pi)``; others unchanged."""
-        out = list(x)
-        wrap = xp.wrap_angle
-        for i in self.periodic_dims:
-            out[i] = wrap(out[i])
-        return out
-
-    # ------------------------------------------------------------------ derived, batched torch
-    def _check(self, name: str, t: torch.Tensor, dim: int) -> None:
-        if not isinstance(t, torch.Tensor):
-            raise TypeError(f"{self.name}: {name} must be a torch.Tensor, got {type(t).__name__}")
-        if t.ndim == 0 or t.shape[-1] != dim:
-            raise ValueError(f"{self.name}: {name} must have shape (..., {dim}), got {tuple(t.shape)}")
-
-    def input_columns(self, v: torch.Tensor | None, box: Box, name: str) -> Sequence[Column]:
-        """Columns of a batch of inputs ``(..., box.dim)`` (checked), or the box centre for None."""
-        if v is None:
-            return box.center
-        self._check(name, v, box.dim)
-        return TORCH.unbind(v)
-
-    def dynamics(self, x: torch.Tensor, u: torch.Tensor | None = None, d: torch.Tensor | None = None) -> torch.Tensor:
-        """``x'`` for states ``(..., n)``, controls ``(..., m_u)`` and disturbances ``(..., m_d)``.
-
-        A missing input means the centre of its box (zero turn rate for the built-in systems).
-        """
-        self._check("x", x, self.state_dim)
-        cols = TORCH.unbind(x)
-        uc = self.input_columns(u, self.control_bounds, "u")
-        dc = self.input_columns(d, self.disturbance_bounds, "d")
-        return TORCH.stack(self.xdot_columns(cols, uc, dc, TORCH), like=cols[0])
-
-    def hamiltonian(self, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-        """``H(x, p)`` for states and costates ``(..., n)``; returns ``(...)``."""
-        self._check("x", x, self.state_dim)
-        self._check("p", p, self.state_dim)
-        h = self.hamiltonian_columns(TORCH.unbind(x), TORCH.unbind(p), TORCH)
-        return h if isinstance(h, torch.Tensor) else torch.full(x.shape[:-1], float(h), dtype=x.dtype, device=x.device)
-
-    def optimal_control(self, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-        """``u*(x, p)``, shape ``(..., m_u)``: the box corner along ``G_u^T p`` (centre on ties)."""
-        self._check("x", x, self.state_dim)
-        self._check("p", p, self.state_dim)
-        u, _ = self.optimal_inputs_columns(TORCH.unbind(x), TORCH.unbind(p), TORCH)
-        return TORCH.stack(u, like=x[..., 0])
-
-    def control_switching(self, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-        """``G_u(x)^T p``, shape ``(..., m_u)``: how ``p . xdot`` changes with each control input
-        (``p . f(x, u, d)`` is affine in ``u`` with this slope)."""
-        self._check("x", x, self.state_dim)
-        self._check("p", p, self.state_dim)
-        s = self._switching(self.control_matrix(TORCH.unbind(x), TORCH), TORCH.unbind(p), self.control_dim)
-        return TORCH.stack(s, like=x[..., 0])
-
-    def optimal_disturbance(self, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-        """``d*(x, p)``, shape ``(..., m_d)`` (``m_d`` may be 0)."""
-        self._check("x", x, self.state_dim)
-        self._check("p", p, self.state_dim)
-        if not self.disturbance_dim:
-            return x.new_zeros((*x.shape[:-1], 0))
-        _, d = self.optimal_inputs_columns(TORCH.unbind(x), TORCH.unbind(p), TORCH)
-        return TORCH.stack(d, like=x[..., 0])
-
-    def dissipation_bounds(self, x: torch.Tensor) -> torch.Tensor:
-        """Per-dimension bound on ``|dH/dp_i|`` at each state, shape ``(..., n)``."""
-        self._check("x", x, self.state_dim)
-        return TORCH.stack(self.dissipation_columns(TORCH.unbind(x), TORCH), like=x[..., 0])
-
-    def failure_margin(self, x: torch.Tensor) -> torch.Tensor:
-        """``l(x)`` for states ``(..., n)``; returns ``(...)``."""
-        self._check("x", x, self.state_dim)
-        return self.failure_margin_columns(TORCH.unbind(x), TORCH)
-
-    def target_margin(self, x: torch.Tensor) -> torch.Tensor:
-        """``l(x)`` of a reach kind for batched states ``(..., n)``: negative inside the target."""
-        return self.target_margin_columns(TORCH.unbind(x), TORCH)
-
-    def constraint_margin(self, x: torch.Tensor) -> torch.Tensor:
-        """``g(x)`` of a reach-avoid system for batched states ``(..., n)``: positive where allowed."""
-        return self.constraint_margin_columns(TORCH.unbind(x), TORCH)
-
-    def terminal_margin(self, x: torch.Tensor) -> torch.Tensor:
-        """The ``l`` of the kind's variational inequality for batched states ``(..., n)``: the failure
-        margin (avoid) or the target margin (reach kinds)."""
-        self._check("x", x, self.state_dim)
-        return self.terminal_margin_columns(TORCH.unbind(x), TORCH)
-
-    def boundary_value(self, x: torch.Tensor) -> torch.Tensor:
-        """``V(x, 0)`` for batched states ``(..., n)``: ``l(x)``, or ``max(l(x), -g(x))`` for reach-avoid."""
-        g = self.constraint_margin(x) if self.problem.has_constraint else None
-        return self.problem.boundary_value(self.terminal_margin(x), g)
-
-    def wrap(self, x: torch.Tensor) -> torch.Tensor:
-        """States with periodic dimensions wrapped into ``[-pi, pi)``."""
-        self._check("x", x, self.state_dim)
-        cols = TORCH.unbind(x)
-        return TORCH.stack(self.wrap_columns(cols, TORCH), like=cols[0])
-
-    # ------------------------------------------------------------------ sampling helpers
-    def domain_tensor(self, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> torch.Tensor:
-        """The domain as a ``(n, 2)`` tensor of (low, high)."""
-        return torch.tensor(self.domain, dtype=dtype, device=device)
-
-    def sample_states(
-        self,
-        n: int,
-        generator: torch.Generator | None = None,
-        dtype: torch.dtype = torch.float32,
-        device: torch.device | str = "cpu",
-    ) -> torch.Tensor:
-        """``n`` states drawn uniformly from the domain (batched; no loop over samples)."""
-        box = self.domain_tensor(dtype, device)
-        r = torch.rand((n, self.state_dim), generator=generator, dtype=dtype, device=device)
-        return box[:, 0] + r * (box[:, 1] - box[:, 0])
-
-    def sample_states_numpy(self, rng: np.random.Generator, n: int | None = None) -> np.ndarray:
-        """States drawn uniformly from the domain with a NumPy generator (float64)."""
-        lo, hi = np.array(self.domain, dtype=np.float64).T
-        size = (self.state_dim,) if n is None else (n, self.state_dim)
-        return rng.uniform(lo, hi, size=size)
-
-    def failure_margin_float(self, x: Sequence[float]) -> float:
-        """``l(x)`` for one state given as a sequence of floats."""
-        return float(self.failure_margin_columns(x, FLOAT))

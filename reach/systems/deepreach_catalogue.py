@@ -32,8 +32,8 @@ from typing import Any
 
 import torch
 
-from reach.systems.arrays import TORCH, Backend, Column
-from reach.systems.base import ControlAffineSystem, InputMatrix
+from reach.systems.arrays import TORCH, Backend, Column, InputMatrix
+from reach.systems.base import ControlAffineSystem
 from reach.systems.box import Ball, Box
 from reach.systems.deepreach_normalisation import DeepReachNormalisation
 from reach.systems.dubins import SET_MODES  # DeepReach's set_mode values, one table for every system

@@ -17,8 +17,8 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-from reach.systems.arrays import Backend, Column
-from reach.systems.base import ControlAffineSystem, InputMatrix
+from reach.systems.arrays import Backend, Column, InputMatrix
+from reach.systems.base import ControlAffineSystem
 from reach.systems.box import Box
 from reach.systems.deepreach_normalisation import DeepReachNormalisation
 from reach.validation import finite_point, positive_finite

@@ -23,8 +23,8 @@ from typing import Any
 
 import torch
 
-from reach.systems.arrays import Backend, Column
-from reach.systems.base import ControlAffineSystem, InputMatrix
+from reach.systems.arrays import Backend, Column, InputMatrix
+from reach.systems.base import ControlAffineSystem
 from reach.systems.box import Box
 from reach.systems.deepreach_normalisation import DeepReachNormalisation
 from reach.validation import positive_finite
