@@ -100,7 +100,9 @@ def test_bookkeeping_is_recognised():
 
 
 @pytest.mark.parametrize(
-    "page", [*USER_PAGES, README, *sorted(RESULTS.glob("*.md"))], ids=lambda p: p.relative_to(ROOT).as_posix()
+    "page",
+    [*USER_PAGES, README, *sorted(RESULTS.glob("*.md")), *sorted((DOCS / "studies").glob("*.md"))],
+    ids=lambda p: p.relative_to(ROOT).as_posix(),
 )
 def test_certify_means_a_proof(page):
     found = [m.group(0) for m in CERTIFIED_STATISTICS.finditer(page_text(page))]
