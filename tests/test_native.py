@@ -115,13 +115,13 @@ def test_each_operator_computes_what_onnx_runtime_computes(tmp_path):
 
 def _reference(model, feeds):
     """The model's outputs by the NumPy semantics the compiler folds with."""
-    from reach_runtime.native import _evaluate
+    from reach_runtime.native.folding import evaluate
 
     values = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer} | dict(feeds)
     for node in model.graph.node:
         attrs = {a.name: helper.get_attribute_value(a) for a in node.attribute}
         with np.errstate(all="ignore"):
-            values[node.output[0]] = _evaluate(node.op_type, attrs, [values[n] if n else None for n in node.input])
+            values[node.output[0]] = evaluate(node.op_type, attrs, [values[n] if n else None for n in node.input])
     return [np.asarray(values[o.name]) for o in model.graph.output]
 
 
@@ -247,7 +247,7 @@ def test_work_one_side_of_a_flag_reads_runs_only_where_the_flag_is_on(tmp_path):
     inside ``if`` in the C source, and the outputs equal ONNX Runtime's on both sides: a NaN in the
     gated work counts only where the flag is on. An ``And`` of two flags gates the later by the
     earlier, never each by the other (the first version did, and decided from stale values)."""
-    from reach_runtime.native import _emitter_for
+    from reach_runtime.native.emission import emitter_for
 
     f = TensorProto.FLOAT
     nodes = [
@@ -282,7 +282,7 @@ def test_work_one_side_of_a_flag_reads_runs_only_where_the_flag_is_on(tmp_path):
         ],
     )
     onnx.save(model, tmp_path / "gate.onnx")
-    assert _emitter_for(tmp_path / "gate.onnx").gated >= 8
+    assert emitter_for(tmp_path / "gate.onnx").gated >= 8
     source = c_source(tmp_path / "gate.onnx")
     gated = source[source.index("if (") :]
     assert "logf(" in gated.split("}")[0]  # the logarithm runs inside the flag's block
