@@ -9,10 +9,12 @@ a file for the value function named, from the file alone.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 from reach.exit_codes import EXIT_PARTIAL
 from reach.validation import (
+    check_output_path,
     device_arg,
     finite_float_arg,
     nonnegative_int_arg,
@@ -102,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     from safety.formal.certificate import save_certificate
     from safety.formal.checker import check_certificate
     from safety.formal.closure import certified_set
-    from safety.formal.verifier import certify
+    from safety.formal.verifier import certify, network_of
     from safety.value_loading import load_value_function
 
     if args.check is not None:
@@ -120,6 +122,13 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("give --level and --out (or --check CERT to re-verify a file)")
     if not str(args.out).endswith(".npz"):
         raise ValueError(f"--out: a certificate file ends in .npz, got {args.out!r}")
+    out = check_output_path(args.out, "--out")  # a folder, a device or an unwritable place: before the proof
+    if args.resume is not None:
+        check_output_path(args.resume, "--resume")
+        if Path(args.resume).resolve() == out.resolve():
+            raise ValueError(
+                f"--out and --resume name the same file ({args.out}): the certificate would overwrite the progress"
+            )
     if args.dt is None:
         from reach_envs.scenes import Scene  # lazy: the env stack (gymnasium) only for this default
 
@@ -128,6 +137,7 @@ def run(args: argparse.Namespace) -> int:
     given = {field: getattr(args, field) for _, field, _, _ in CERTIFY_OPTIONS if getattr(args, field) is not None}
     time_to_go = args.time_to_go if args.time_to_go is not None else value_function.system.horizon
     settings = CertifySettings(level=args.level, time_to_go=time_to_go, dt=args.dt, **given)
+    network_of(value_function)  # a grid or a composition is refused before any work, naming what it takes
     result = certify(value_function, settings, device=args.device, resume=args.resume)
     certificate = certified_set(value_function, result)
     path = save_certificate(args.out, certificate)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -515,3 +516,100 @@ def test_a_stopped_verifier_resumes_to_the_same_result_and_refuses_another_proof
         next(other.parameters()).add_(1e-3)
     with pytest.raises(ValueError, match="another value function"):
         certify(other, SETTINGS, resume=path)
+
+
+def test_every_field_of_a_certificate_file_is_checked_and_a_damaged_file_named(
+    torus_network, torus_certificate, tmp_path
+):
+    """A certificate is data from outside: a NaN or infinite input or corner, a bad resolution or level,
+    a truncated or bit-flipped file and a FIFO are refused naming the file (NaN used to pass the range
+    check ``(u < low) | (u > high)``, and the certified filter then applied a NaN input)."""
+    import dataclasses
+
+    from safety.formal.certificate import load_certificate
+    from safety.formal.certified_filter import CertifiedFilter
+    from safety.formal.checker import verify_certificate
+
+    path = save_certificate(tmp_path / "torus.npz", torus_certificate)
+    with np.load(path) as data:
+        arrays = dict(data)
+    header = json.loads(str(arrays["header"]))
+
+    def bad(name: str, **changed) -> str:
+        out = tmp_path / f"{name}.npz"
+        np.savez(out, **dict(arrays, **changed))
+        return str(out)
+
+    nan_input = arrays["inputs"].copy()
+    nan_input[0, 0] = np.nan
+    inf_corner = arrays["kept_hi"].copy()
+    inf_corner[-1, 0] = np.inf
+    nan_corner = arrays["kept_lo"].copy()
+    nan_corner[0, -1] = np.nan
+    cases = [
+        (bad("nan_input", inputs=nan_input), "a backup input is not finite"),
+        (bad("inf_corner", kept_hi=inf_corner), "a kept box has a corner that is not finite"),
+        (bad("nan_corner", kept_lo=nan_corner), "a kept box has a corner that is not finite"),
+        (bad("short_inputs", inputs=arrays["inputs"][:-1]), "not one row per kept box"),
+        (bad("resolution", header=np.array(json.dumps(dict(header, resolution=2.5)))), "resolution 2.5"),
+    ]
+    nan_level = dict(header, settings={**header["settings"], "level": math.nan})
+    cases.append((bad("level", header=np.array(json.dumps(nan_level))), "level must be finite"))
+    for where, message in cases:
+        with pytest.raises(ValueError, match=message) as refused:
+            load_certificate(where)
+        assert str(refused.value).startswith(where)
+    raw = path.read_bytes()
+    (tmp_path / "truncated.npz").write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(ValueError, match=r"truncated\.npz: not a reach certificate file, or a damaged one"):
+        load_certificate(tmp_path / "truncated.npz")
+    for at in range(len(raw) // 4, len(raw), max(1, len(raw) // 16)):  # a flipped bit anywhere in the data
+        flipped = bytearray(raw)
+        flipped[at] ^= 0x10
+        (tmp_path / "flipped.npz").write_bytes(bytes(flipped))
+        try:
+            load_certificate(tmp_path / "flipped.npz")
+        except ValueError as err:
+            assert str(err).startswith(str(tmp_path / "flipped.npz")), err
+    os.mkfifo(tmp_path / "fifo.npz")
+    with pytest.raises(ValueError, match="FIFO"):  # refused without opening it (opening would block)
+        load_certificate(tmp_path / "fifo.npz")
+    # a certificate made in memory with a NaN input is refused by the checker and the certified filter
+    poisoned = dataclasses.replace(torus_certificate, inputs=torch.as_tensor(nan_input))
+    with pytest.raises(ValueError, match="a backup input is not finite"):
+        verify_certificate(poisoned, torus_network)
+    with pytest.raises(ValueError, match="a backup input is not finite"):
+        CertifiedFilter(poisoned, torus_network, verify=False)
+
+
+def test_a_certify_run_that_cannot_fit_or_write_is_refused_before_it_starts(network, tmp_path, capsys):
+    """Size before work, and where the result goes: each refused in one line before any box is bounded."""
+    import time
+
+    from reach_cli import main
+    from training import save_checkpoint
+
+    source = tmp_path / "air3d.pt"
+    save_checkpoint(source, network.float())
+    (tmp_path / "folder.npz").mkdir()
+    (tmp_path / "a-file").write_text("not a folder")
+    base = ["certify", str(source), "--level", "0.3", "--dt", "0.05"]
+    progress = tmp_path / "p.npz"
+    for extra, message in (
+        (["--disturbance-splits", "100000", "--out", str(tmp_path / "a.npz")], "GiB, but"),
+        (["--min-width", "1e-12", "--out", str(tmp_path / "a.npz")], "beyond what a 64-bit index holds"),
+        (["--closure-width", "1e-5", "--out", str(tmp_path / "a.npz")], "closure cover cut down to"),
+        (["--out", str(tmp_path / "folder.npz")], "is a directory"),
+        (["--out", str(tmp_path / "a-file" / "c.npz")], "--out path"),  # its folder cannot be made
+        (["--out", str(progress), "--resume", str(progress)], "name the same file"),
+    ):
+        start = time.monotonic()
+        assert main([*base, *extra]) == 2, extra
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and message in err, err
+        assert time.monotonic() - start < 30
+    assert not (tmp_path / "a.npz").exists() and not progress.exists()
+    for source_text in (f"min:{source},{source}",):
+        assert main(["certify", source_text, "--level", "0.3", "--out", str(tmp_path / "m.npz")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "certify takes a neural value function" in err and err.count("\n") == 0, err

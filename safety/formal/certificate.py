@@ -17,6 +17,8 @@ boxes, and load with none.
 from __future__ import annotations
 
 import json
+import zipfile
+import zlib
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -24,6 +26,7 @@ import numpy as np
 import torch
 
 from reach.atomic import atomic_path
+from reach.validation import check_input_file
 from safety.formal.settings import CertifySettings
 
 __all__ = [
@@ -31,6 +34,7 @@ __all__ = [
     "Boxes",
     "Certificate",
     "Provenance",
+    "check_fields",
     "load_certificate",
     "save_certificate",
     "volume_share",
@@ -144,8 +148,50 @@ def save_certificate(path: str | Path, certificate: Certificate) -> Path:
     return path
 
 
+def check_fields(certificate: Certificate, where: str = "the certificate") -> Certificate:
+    """``certificate`` if every field is well formed, else ``ValueError`` naming ``where`` and the field.
+
+    A certificate is data from outside: each box array is ``(B, n)`` with one ``n`` for all, every
+    corner finite with ``lo <= hi``, one finite backup input row per kept box, a resolution that is a
+    positive integer, and a provenance of a system configuration and a fingerprint. The comparisons
+    are written so that NaN fails them (``~(lo <= hi)``, not ``lo > hi``). The settings were checked
+    when they were made (:class:`~safety.formal.settings.CertifySettings`); what depends on the
+    system (inputs inside its control box, boxes inside its domain) the checker adds."""
+    if not isinstance(certificate.settings, CertifySettings):
+        raise ValueError(f"{where}: its settings are not a verifier's ({type(certificate.settings).__name__})")
+    provenance = certificate.provenance
+    if not isinstance(provenance.system, dict) or not isinstance(provenance.fingerprint, str):
+        raise ValueError(f"{where}: its provenance is not a system configuration and a fingerprint")
+    resolution = certificate.resolution
+    if isinstance(resolution, bool) or not isinstance(resolution, int) or resolution < 1:
+        raise ValueError(f"{where}: its resolution {resolution!r} is not a positive integer")
+    n = certificate.kept.lo.shape[-1] if certificate.kept.lo.ndim == 2 else None
+    parts = (("kept", certificate.kept), ("outside", certificate.outside),
+             ("escape", certificate.escape), ("excluded", certificate.excluded))  # fmt: skip
+    for name, boxes in parts:
+        lo, hi = boxes.lo, boxes.hi
+        if lo.ndim != 2 or lo.shape != hi.shape or lo.shape[-1] != n:
+            shapes = f"{tuple(lo.shape)} and {tuple(hi.shape)}"
+            raise ValueError(f"{where}: its {name} boxes have corners of shapes {shapes}")
+        if not bool((torch.isfinite(lo) & torch.isfinite(hi)).all()):
+            raise ValueError(f"{where}: a {name} box has a corner that is not finite (NaN or inf)")
+        if not bool((lo <= hi).all()):
+            raise ValueError(f"{where}: a {name} box has a lower corner above its upper one")
+    inputs = certificate.inputs
+    if inputs.ndim != 2 or len(inputs) != len(certificate.kept):
+        raise ValueError(
+            f"{where}: its backup inputs have shape {tuple(inputs.shape)}, not one row per kept box "
+            f"({len(certificate.kept)})"
+        )
+    if not bool(torch.isfinite(inputs).all()):
+        raise ValueError(f"{where}: a backup input is not finite (NaN or inf)")
+    return certificate
+
+
 def load_certificate(path: str | Path) -> Certificate:
-    """Read a certificate file (no pickles: nothing in it runs); refuses junk naming the problem."""
+    """Read a certificate file (no pickles: nothing in it runs); refuses junk naming the problem: a
+    truncated or damaged file, a foreign one, and any field :func:`check_fields` refuses."""
+    check_input_file(path, "certificate")
     try:
         with np.load(path, allow_pickle=False) as data:
             header = json.loads(str(data["header"]))
@@ -154,28 +200,36 @@ def load_certificate(path: str | Path) -> Certificate:
             # files without an escape set may lack these (written before there was one)
             arrays |= {k: torch.from_numpy(np.array(data[k], dtype=np.float64)) for k in
                        ("escape_lo", "escape_hi", "excluded_lo", "excluded_hi") if k in data.files}  # fmt: skip
-    except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError) as err:
-        raise ValueError(f"{path}: not a reach certificate file ({err})") from None
+    except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+        # a truncated or bit-flipped file fails inside the zip reader or the inflater: name the file
+        why = f"{type(err).__name__}: {err}"
+        raise ValueError(f"{path}: not a reach certificate file, or a damaged one ({why})") from None
     found = header.get("format") if isinstance(header, dict) else None
     if found != FORMAT:
         raise ValueError(f"{path}: not a reach certificate file (format {found!r})")
     try:
         settings = CertifySettings(**header["settings"])
-    except (TypeError, ValueError) as err:
+    except (KeyError, TypeError, ValueError) as err:
         raise ValueError(f"{path}: its settings are not a verifier's ({err})") from None
+    try:
+        resolution = header["resolution"]
+        provenance = Provenance(header["system"], header["fingerprint"])
+    except KeyError as err:
+        raise ValueError(f"{path}: its header is not a certificate's (no {err})") from None
     kept_lo = arrays["kept_lo"]
-    none = kept_lo.new_zeros((0, kept_lo.shape[-1]))
+    none = kept_lo.new_zeros((0, kept_lo.shape[-1] if kept_lo.ndim == 2 else 0))
 
     def boxes(name: str) -> Boxes:
         return Boxes(arrays.get(f"{name}_lo", none), arrays.get(f"{name}_hi", none))
 
-    return Certificate(
+    certificate = Certificate(
         settings,
-        Provenance(header["system"], header["fingerprint"]),
+        provenance,
         Boxes(kept_lo, arrays["kept_hi"]),
         arrays["inputs"],
         boxes("outside"),
-        int(header["resolution"]),
+        resolution,
         boxes("escape"),
         boxes("excluded"),
     )
+    return check_fields(certificate, str(path))

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import torch
 
-from safety.formal.certificate import Certificate, load_certificate
+from safety.formal.certificate import Certificate, check_fields, load_certificate
 from safety.formal.checker import CertificateCells, check_provenance, landing_verdicts, verify_certificate
 from safety.formal.cover import CellGrid
 from safety.formal.verifier import Verifier, network_of
@@ -62,6 +62,7 @@ class CertifiedFilter:
         label = str(certificate) if not isinstance(certificate, Certificate) else "the certificate"
         if not isinstance(certificate, Certificate):
             certificate = load_certificate(certificate)
+        check_fields(certificate, label)  # a non-finite stored input is refused here, never applied
         network = network_of(value_function)
         if verify:
             verify_certificate(certificate, network, label)
@@ -113,6 +114,11 @@ class CertifiedFilter:
         elsewhere = ~certified
         if bool(elsewhere.any()):
             applied[elsewhere] = self._optimal(x[elsewhere])
+        if not bool(torch.isfinite(applied).all()):  # the filter's own input (u* of a NaN gradient): never applied
+            raise ValueError(
+                "the certified filter computed a non-finite input (NaN or inf) from the value function's gradient "
+                "outside the certified set; the nominal input was not the cause"
+            )
         info = CertifiedInfo(value, certified, ~keep, applied)
         return (applied[0] if single else applied), info
 

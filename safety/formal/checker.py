@@ -25,7 +25,7 @@ from typing import NamedTuple
 
 import torch
 
-from safety.formal.certificate import Certificate, load_certificate
+from safety.formal.certificate import Certificate, check_fields, load_certificate
 from safety.formal.cover import CellGrid, DyadicCover
 from safety.formal.intervals import Interval
 from safety.formal.verifier import Verifier, margin_bounds, network_of
@@ -94,6 +94,7 @@ def verify_certificate(
 ) -> None:
     """Re-verify ``certificate`` for ``value_function`` (what :func:`check_certificate` does after
     reading); the network's bounds are computed on ``device``, everything else on the CPU."""
+    check_fields(certificate, path)
     network = network_of(value_function)
     check_provenance(certificate, network, path)
     settings = certificate.settings
@@ -112,7 +113,7 @@ def verify_certificate(
         lo, hi = boxes.lo, boxes.hi
         if lo.ndim != 2 or lo.shape != hi.shape or lo.shape[-1] != domain.shape[0]:
             raise ValueError(f"{path}: its {name} boxes have shape {tuple(lo.shape)}")
-        if bool(((lo < domain[:, 0] - 1e-12) | (hi > domain[:, 1] + 1e-12) | (lo > hi)).any()):
+        if not bool(((lo >= domain[:, 0] - 1e-12) & (hi <= domain[:, 1] + 1e-12) & (lo <= hi)).all()):  # NaN fails
             raise ValueError(f"{path}: a {name} box is not a box inside the domain")
         grid.cells(lo, hi, exact=True)
     every = certificate.every_box()
@@ -128,7 +129,7 @@ def verify_certificate(
     lo, hi, u = certificate.kept.lo, certificate.kept.hi, certificate.inputs
     control = network.system.control_bounds
     low, high = torch.tensor(control.low, dtype=torch.float64), torch.tensor(control.high, dtype=torch.float64)
-    if u.shape != (len(lo), len(control.low)) or bool(((u < low) | (u > high)).any()):
+    if u.shape != (len(lo), len(control.low)) or not bool(((u >= low) & (u <= high)).all()):  # NaN fails
         raise ValueError(f"{path}: a backup input is missing or outside the control box")
     margin = margin_bounds(network.system, lo, hi)
     if bool((margin.lo <= 0).any()):

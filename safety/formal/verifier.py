@@ -64,10 +64,18 @@ from safety.formal.settings import (
     closure_domain,
     escape_rule,
 )
+from safety.formal.sizing import check_size
 from training.checkpoint import network_digest
 from training.network import NeuralValueFunction, ValueNetwork
 
-__all__ = ["Verifier", "candidate_inputs", "certify", "margin_bounds", "network_of", "value_bounds"]
+__all__ = [
+    "Verifier",
+    "candidate_inputs",
+    "certify",
+    "margin_bounds",
+    "network_of",
+    "value_bounds",
+]
 
 
 class _Unwrapped(IntervalBackend):
@@ -109,7 +117,10 @@ def network_of(value_function: NeuralValueFunction | ValueNetwork) -> ValueNetwo
     an avoid problem, with the ``exact``, ``diff`` or ``vanilla`` output parameterisation."""
     network = getattr(value_function, "network", value_function)
     if not isinstance(network, ValueNetwork):
-        raise TypeError(f"certify takes a neural value function, got {type(value_function).__name__}")
+        raise ValueError(
+            "certify takes a neural value function (a run, a .pt checkpoint or pretrained:NAME), not a "
+            f"{type(value_function).__name__}: a proof bounds a network's layers"
+        )
     system = network.system
     if system.kind != "avoid":
         raise ValueError(f"certify proves avoid problems for now; {system.name} is a {system.kind} problem")
@@ -462,6 +473,7 @@ def certify(
     The result's ``wall_time`` and ``boxes_handled`` then count every run."""
     network = network_of(value_function)
     escape_rule(network.system, settings, settings.closure_scale)  # refused before any box is bounded
+    check_size(network, settings)
     if settings.time_to_go > network.system.horizon:
         raise ValueError(
             f"time_to_go {settings.time_to_go:g} is beyond the value function's horizon {network.system.horizon:g}"
