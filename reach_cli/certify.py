@@ -23,7 +23,7 @@ from reach.validation import (
     unit_interval_arg,
 )
 from reach_cli.options import add_subparser, default
-from safety.formal.settings import CertifySettings
+from safety.formal.settings import CertifySettings, certify_defaults
 
 #: (option, CertifySettings field, argparse keywords, help) of the verifier's knobs
 CERTIFY_OPTIONS = (
@@ -79,7 +79,9 @@ def add_parser(sub: Any) -> None:
     )
     p.add_argument("source", help="value function: a run, .pt or pretrained:NAME (a neural avoid problem)")
     p.add_argument("--check", metavar="CERT", default=None, help="re-verify this certificate file for SOURCE")
-    p.add_argument("--level", type=finite_float_arg, default=None, help="c: the set is {V(x, T) >= c}")
+    p.add_argument(
+        "--level", type=finite_float_arg, default=None, help="c: the set is {V(x, T) >= c} (default: the system's)"
+    )
     p.add_argument("--time-to-go", type=positive_float_arg, default=None, help="T (default: the system's horizon)")
     p.add_argument("--dt", type=positive_float_arg, default=None, help="the env's step (default: the env scenes' step)")
     for option, field, kwargs, text in CERTIFY_OPTIONS:
@@ -118,8 +120,8 @@ def run(args: argparse.Namespace) -> int:
             f"T = {s.time_to_go:g}, dt = {s.dt:g} ({s.integrator})"
         )
         return 0
-    if args.level is None or args.out is None:
-        raise ValueError("give --level and --out (or --check CERT to re-verify a file)")
+    if args.out is None:
+        raise ValueError("give --out CERT.npz (or --check CERT to re-verify a file)")
     if not str(args.out).endswith(".npz"):
         raise ValueError(f"--out: a certificate file ends in .npz, got {args.out!r}")
     out = check_output_path(args.out, "--out")  # a folder, a device or an unwritable place: before the proof
@@ -135,8 +137,18 @@ def run(args: argparse.Namespace) -> int:
         args.dt = default(Scene, "dt")
     value_function = load_value_function(args.source).value_function
     given = {field: getattr(args, field) for _, field, _, _ in CERTIFY_OPTIONS if getattr(args, field) is not None}
-    time_to_go = args.time_to_go if args.time_to_go is not None else value_function.system.horizon
-    settings = CertifySettings(level=args.level, time_to_go=time_to_go, dt=args.dt, **given)
+    if args.level is not None:
+        given["level"] = args.level
+    system = value_function.system
+    # the system's certification defaults (declared beside its lemmas, or derived from them) fill what
+    # the options leave out; the options stay for experts
+    defaults = certify_defaults(system, args.dt, given.get("integrator", default(CertifySettings, "integrator")))
+    used = {k: v for k, v in defaults.items() if k not in given}
+    if used:
+        shown = ", ".join(f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}" for k, v in used.items())
+        print(f"{system.name}'s certification defaults: {shown}")
+    time_to_go = args.time_to_go if args.time_to_go is not None else system.horizon
+    settings = CertifySettings(time_to_go=time_to_go, dt=args.dt, **{**defaults, **given})
     network_of(value_function)  # a grid or a composition is refused before any work, naming what it takes
     result = certify(value_function, settings, device=args.device, resume=args.resume)
     certificate = certified_set(value_function, result)

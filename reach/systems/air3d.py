@@ -150,6 +150,20 @@ class RelativePair(ControlAffineSystem):
         times) ``|r| > scale * half_width``."""
         return positive_finite("scale", scale) * self.half_width - self.collision_radius
 
+    def certification_defaults(self) -> dict[str, Any]:
+        """The zero level, closed over the box four times wider with the escape set as far out as
+        :meth:`margin_outside_domain` allows there (``4 half_width - R``), on cells of 1/32 of the span
+        cut finer three times near the set's edge: the settings of the documented Air3D certificate
+        (docs/results/certificates.md), and what the derived defaults give for these lemmas."""
+        return {
+            "level": 0.0,
+            "escape_margin": self.margin_outside_domain(4.0),
+            "closure_scale": 4,
+            "closure_relative_width": 1 / 32,
+            "min_relative_width": 1 / 32,
+            "closure_refinements": 3,
+        }
+
     def failure_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
         return xp.hypot(x[0], x[1]) - self.collision_radius
 

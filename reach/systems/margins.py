@@ -12,6 +12,8 @@ system (the defaults here know nothing), apart from the physics declarations of
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 
 from reach.systems.arrays import TORCH
@@ -49,6 +51,15 @@ class MarginBounds:
         ``scale``: outside the domain widened that many times about its centre (a certificate's
         ``closure_scale``). With :meth:`margin_step_bound` it lets a certificate accept next states
         that leave the domain."""
+        return None
+
+    def certification_defaults(self) -> dict[str, Any] | None:
+        """The proof settings ``reach certify`` uses for this system when given none: a mapping of
+        :class:`~safety.formal.settings.CertifySettings` fields (``level``, ``escape_margin``,
+        ``closure_scale``, ``closure_relative_width``, ``min_relative_width``, ``closure_refinements``),
+        or ``None`` (the default): derived from the lemmas above
+        (:func:`safety.formal.settings.certify_defaults`). A system states them beside its lemmas
+        where it knows better settings than the derived ones."""
         return None
 
     def margin_floor(self, x: torch.Tensor, time: float) -> torch.Tensor | None:

@@ -29,7 +29,9 @@ __all__ = [
     "UNKNOWN",
     "CertificationResult",
     "CertifySettings",
+    "certify_defaults",
     "closure_domain",
+    "derived_defaults",
     "escape_rule",
 ]
 
@@ -185,6 +187,67 @@ def escape_rule(system: ControlAffineSystem, settings: CertifySettings, scale: i
             "a state that leaves the domain might not be in the escape set"
         )
     return m, float(delta)
+
+
+#: derived defaults: the closure runs over the box this many times wider where the lemmas allow
+DEFAULT_CLOSURE_SCALE = 4
+#: ... on the finest power-of-two cells with at most this many over the wide box
+DEFAULT_CLOSURE_CELLS = 2**21
+#: ... cut finer near the set's edge this many times
+DEFAULT_REFINEMENTS = 3
+#: the proof fields a system's certification defaults may name
+DEFAULT_FIELDS = (
+    "level",
+    "escape_margin",
+    "closure_scale",
+    "closure_relative_width",
+    "min_relative_width",
+    "closure_refinements",
+)
+
+
+def derived_defaults(system: ControlAffineSystem, dt: float, integrator: str = "euler") -> dict[str, object]:
+    """Proof settings derived from ``system``'s lemmas alone (what a user's system gets):
+
+    - the zero level;
+    - where one step's loss of margin is bounded (:meth:`~reach.systems.margins.MarginBounds.margin_step_bound`
+      for this ``dt`` and ``integrator``) and the margin outside the domain too
+      (:meth:`~reach.systems.margins.MarginBounds.margin_outside_domain`): an escape set as far out as
+      that bound allows, over the box :data:`DEFAULT_CLOSURE_SCALE` times wider where the bound takes
+      a scale (else the box itself), on the finest power-of-two cells of which at most
+      :data:`DEFAULT_CLOSURE_CELLS` cover the wide box, cut finer :data:`DEFAULT_REFINEMENTS` times
+      near the set's edge. Without those lemmas, the dataclass's own defaults."""
+    out: dict[str, object] = {"level": 0.0}
+    if system.margin_step_bound(dt, integrator) is None:
+        return out
+    takes_scale = "scale" in inspect.signature(system.margin_outside_domain).parameters
+    scale = DEFAULT_CLOSURE_SCALE if takes_scale else 1
+    margin = system.margin_outside_domain(scale) if takes_scale else system.margin_outside_domain()
+    if margin is None or not math.isfinite(margin) or margin <= 0:
+        return out
+    n = system.state_dim
+    width = 2.0 ** -max(0, math.floor(math.log2(DEFAULT_CLOSURE_CELLS ** (1 / n) / scale)))
+    out.update(
+        escape_margin=float(margin),
+        closure_scale=scale,
+        closure_relative_width=width,
+        min_relative_width=width,
+        closure_refinements=DEFAULT_REFINEMENTS,
+    )
+    return out
+
+
+def certify_defaults(system: ControlAffineSystem, dt: float, integrator: str = "euler") -> dict[str, object]:
+    """The proof settings ``reach certify`` uses where none are given: the system's own
+    (:meth:`~reach.systems.margins.MarginBounds.certification_defaults`), else :func:`derived_defaults`.
+    A declared field outside :data:`DEFAULT_FIELDS` is refused, naming it."""
+    declared = system.certification_defaults()
+    if declared is None:
+        return derived_defaults(system, dt, integrator)
+    unknown = sorted(set(declared) - set(DEFAULT_FIELDS))
+    if unknown:
+        raise ValueError(f"{system.name}.certification_defaults names fields no proof takes: {unknown}")
+    return dict(declared)
 
 
 def closure_domain(system: ControlAffineSystem, scale: int = 1, device: str | torch.device = "cpu") -> torch.Tensor:
