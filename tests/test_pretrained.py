@@ -28,8 +28,8 @@ Z = 4.0
 def test_every_registered_env_has_a_shipped_model() -> None:
     for env_id, scene in reach_envs.ENV_SCENES.items():
         system = gym.make(env_id).unwrapped.system
-        source = pretrained.for_env(env_id, system)
         (card,) = [c for c in pretrained.cards() if env_id in c.env_ids]
+        source = pretrained.for_env(env_id, system, allow_untrusted=not card.verdict.passes)
         assert source == (card.filter_source or pretrained.PREFIX + card.name), (env_id, scene)
 
 
@@ -50,10 +50,16 @@ def test_model_loads_and_fits_its_envs(name: str) -> None:
     for env_id in card.env_ids:
         env = gym.make(env_id)
         assert env.unwrapped.system.same_physics(loaded.value_function.system), env_id
-        filtered = SafetyFilterWrapper(env)  # no value function: the shipped one for this env
+        trusted = card.verdict.passes
+        if not trusted:  # nothing picks an untrusted model: refused, naming the figures and the opt-in
+            with pytest.raises(ValueError, match=r"fails \(.*allow_untrusted=True"):
+                SafetyFilterWrapper(gym.make(env_id))
+        # no value function: the shipped one for this env (opted in where it fails the bar)
+        filtered = SafetyFilterWrapper(env, allow_untrusted=not trusted)
         filtered.reset(seed=0)
         _, _, _, _, info = filtered.step(filtered.action_space.sample())
         assert math.isfinite(info["filter_value"])
+        assert info["filter_source_trusted"] is trusted and filtered.source_verdict == card.verdict
         assert filtered.safety_filter.value_function.system.same_physics(env.unwrapped.system)
 
 
@@ -257,3 +263,41 @@ def test_the_listings_show_each_models_verdict(capsys):
     out = capsys.readouterr().out
     assert "Quadrotor-v0" in out and "model=quadrotor (fails the trust bar)" in out
     assert "model=air3d (trusted)" in out and "yet" not in out
+
+
+def test_every_wrapper_refuses_a_failing_default_and_reports_its_sources_verdict():
+    """The Gymnasium, vector and PettingZoo wrappers take a shipped model only if its verdict passes,
+    unless the user opts in by name; a value function the user passes is the user's choice, and each
+    wrapper reports whether its source passed (None: the user's own, which has no card)."""
+    import numpy as np
+
+    from reach_envs.parallel import parallel_env
+    from safety.filters.wrappers import SafetyFilterParallelWrapper, SafetyFilterVectorWrapper
+
+    def vector():
+        return gym.make_vec("MultiVehicle15D-v0", num_envs=2, vectorization_mode="vector_entry_point")
+
+    makers = {
+        "gymnasium": (lambda: gym.make("MultiVehicle15D-v0"), SafetyFilterWrapper),
+        "vector": (vector, SafetyFilterVectorWrapper),
+        "pettingzoo": (lambda: parallel_env("five-car-15d"), SafetyFilterParallelWrapper),
+    }
+    for label, (make, wrapper) in makers.items():
+        with pytest.raises(ValueError, match=r"pretrained:multivehicle15d, the shipped model .* fails"):
+            wrapper(make())
+        opted = wrapper(make(), allow_untrusted=True)
+        assert opted.source_trusted is False, label
+        named = wrapper(make(), "pretrained:multivehicle15d")  # named by the user: their choice
+        assert named.source_trusted is False, label
+        with pytest.raises(ValueError, match="allow_untrusted must be True or False"):
+            wrapper(make(), allow_untrusted="yes")
+    env = SafetyFilterWrapper(gym.make("MultiVehicle15D-v0"), allow_untrusted=True)
+    env.reset(seed=0)
+    assert env.step(env.action_space.sample())[-1]["filter_source_trusted"] is False
+    vec = SafetyFilterVectorWrapper(vector(), allow_untrusted=True)
+    vec.reset(seed=0)
+    assert vec.step(np.zeros(vec.action_space.shape))[-1]["filter_source_trusted"] is False
+    trusted = SafetyFilterWrapper(gym.make("Air3D-v0"))
+    assert trusted.source_trusted is True and trusted.source_verdict.passes
+    own = SafetyFilterWrapper(gym.make("Air3D-v0"), load_value_function("pretrained:air3d").value_function)
+    assert own.source_trusted is None  # a value function object: the user's own

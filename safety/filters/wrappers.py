@@ -78,12 +78,14 @@ __all__ = [
 ]
 
 
-def filter_step_info(info: Any, batched: bool = False) -> dict[str, Any]:
+def filter_step_info(info: Any, batched: bool = False, source_trusted: bool | None = None) -> dict[str, Any]:
     """The ``filter_*`` entries of a wrapper's step ``info``, from the filter's info (a
     :class:`FilterInfo`, or a certificate's :class:`~safety.formal.certified_filter.CertifiedInfo`):
-    ``filter_value`` (``V`` at the pre-step state), ``filter_intervened``, and ``filter_certified``
-    where the filter is a certificate's. One state (``batched=False``) as Python numbers; a batch
-    (the vector wrapper) as arrays, with ``filter_infeasible`` too (the smooth filter's, else None)."""
+    ``filter_value`` (``V`` at the pre-step state), ``filter_intervened``, ``filter_certified``
+    where the filter is a certificate's, and ``filter_source_trusted``: whether the value function's
+    source passed its model card's trust bar (None: the user's own value function, which has no card).
+    One state (``batched=False``) as Python numbers; a batch (the vector wrapper) as arrays, with
+    ``filter_infeasible`` too (the smooth filter's, else None)."""
     if batched:
         infeasible = getattr(info, "infeasible", None)
         entries = {
@@ -95,6 +97,7 @@ def filter_step_info(info: Any, batched: bool = False) -> dict[str, Any]:
         entries = {"filter_value": float(info.value), "filter_intervened": bool(info.intervened)}
     if hasattr(info, "certified"):
         entries["filter_certified"] = info.certified.numpy() if batched else bool(info.certified)
+    entries["filter_source_trusted"] = source_trusted
     return entries
 
 
@@ -131,6 +134,11 @@ class _UnitAdapter:
         x = torch.as_tensor(state, dtype=torch.float64)
         u_nominal = torch.as_tensor(inputs_of_actions(a, self.bounds), dtype=torch.float64)
         applied_u, info = self._decide(x, elapsed, u_nominal)
+        if not bool(torch.isfinite(applied_u).all()):  # the filter's own value, not the caller's action
+            raise ValueError(
+                "the safety filter computed a non-finite input (NaN or inf) from its value function; "
+                "the nominal action was finite and is not the cause"
+            )
         star = (applied_u.numpy() - self.centre) / self.half
         keep = ~info.intervened.numpy().reshape(a.shape[:-1])  # one state: the filter's batch of one
         applied = np.where(keep[..., None], a, star)
@@ -245,8 +253,12 @@ class _FilterAdapterMixin:
         *,
         settings: FilterSettings | None = None,
         certificate: Any = None,
+        allow_untrusted: bool = False,
         **options: Any,
     ) -> None:
+        if not isinstance(allow_untrusted, bool):
+            raise ValueError(f"allow_untrusted must be True or False, got {allow_untrusted!r}")
+        self._allow_untrusted = allow_untrusted
         if certificate is not None:
             given = {"threshold": threshold, "time_to_go": time_to_go, "settings": settings, **options}
             named = sorted(k for k, v in given.items() if v is not None)
@@ -273,12 +285,22 @@ class _FilterAdapterMixin:
         certificate: Any = None,
     ) -> None:
         base = env.unwrapped
-        if value_function is None:
-            value_function = pretrained.for_env(_env_id(env), base.system)
+        if value_function is None:  # nothing picks an untrusted model: refused unless allow_untrusted
+            value_function = pretrained.for_env(_env_id(env), base.system, self._allow_untrusted)
+            found = pretrained.card_for_env(_env_id(env), base.system)
+            self.source_verdict = None if found is None else found.verdict
+        else:
+            self.source_verdict = pretrained.source_verdict(value_function)
         if certificate is not None:
             self._adapter = _CertifiedAdapter(base.system, value_function, base.scene, certificate)
         else:
             self._adapter = _Adapter(base.system, value_function, base.scene, device, settings)
+
+    @property
+    def source_trusted(self) -> bool | None:
+        """Whether the value function's source passed its model card's trust bar
+        (:attr:`source_verdict`); None for a value function of the user's own, which has no card."""
+        return None if self.source_verdict is None else self.source_verdict.passes
 
     @property
     def safety_filter(self) -> Any:
@@ -311,6 +333,8 @@ class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordCons
         self, value_function: ValueFunction | str | None, device: str, settings: FilterSettings, certificate: Any
     ) -> None:
         recorded = {"certificate": certificate} if certificate is not None else settings.keywords()
+        if self._allow_untrusted:  # the opt-in travels with the wrapper's recorded arguments
+            recorded["allow_untrusted"] = True
         gym.utils.RecordConstructorArgs.__init__(self, value_function=value_function, device=device, **recorded)
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
@@ -320,7 +344,8 @@ class SafetyFilterWrapper(_FilterAdapterMixin, gym.Wrapper, gym.utils.RecordCons
             raise ValueError(f"action must have shape {self.action_space.shape}, got {a.shape}")
         applied, info = self._adapter.apply(base.state, base.time, np.asarray(action))
         obs, reward, terminated, truncated, step_info = self.env.step(applied)
-        step_info.update(filter_step_info(info), nominal_action=np.asarray(action), applied_action=applied)
+        entries = filter_step_info(info, source_trusted=self.source_trusted)
+        step_info.update(entries, nominal_action=np.asarray(action), applied_action=applied)
         return obs, reward, terminated, truncated, step_info
 
 
@@ -335,9 +360,8 @@ class SafetyFilterVectorWrapper(_FilterAdapterMixin, VectorWrapper):
         applied, info = self._adapter.apply(base.state, base.elapsed, np.asarray(actions))
         obs, reward, terminated, truncated, step_info = self.env.step(applied)
         step_info = dict(step_info)
-        step_info.update(
-            filter_step_info(info, batched=True), nominal_action=np.asarray(actions), applied_action=applied
-        )
+        entries = filter_step_info(info, batched=True, source_trusted=self.source_trusted)
+        step_info.update(entries, nominal_action=np.asarray(actions), applied_action=applied)
         return obs, reward, terminated, truncated, step_info
 
 
@@ -361,7 +385,8 @@ class SafetyFilterParallelWrapper(_FilterAdapterMixin, BaseParallelWrapper):
         applied, info = self._adapter.apply(base.full_state, base.elapsed, joint)
         filtered = {agent: applied[list(base.control_indices(agent))].astype(np.float32) for agent in actions}
         obs, rewards, terminations, truncations, infos = self.env.step(filtered)
-        shared = filter_step_info(info)  # the joint input's verdict, the same for every agent
+        # the joint input's verdict, the same for every agent
+        shared = filter_step_info(info, source_trusted=self.source_trusted)
         for agent in infos:
             k = list(base.control_indices(agent))
             one = len(k) == 1  # a car's turn rate reads as a number, an agent of several inputs as an array

@@ -205,6 +205,14 @@ def checkpoint_path(source: str) -> Path:
     return path
 
 
+def source_verdict(source: Any) -> Verdict | None:
+    """The verdict of a source that names a shipped model (``"pretrained:NAME"``), else None: a value
+    function of the user's own carries no verdict (using it is the user's choice)."""
+    if not is_pretrained(source):
+        return None
+    return card(str(source)[len(PREFIX) :]).verdict
+
+
 def card_for_env(env_id: str | None, system: Any) -> ModelCard | None:
     """The card of the model a filter on env ``env_id`` uses when given no value function: a card
     listing ``env_id`` wins; otherwise a model trained for a system of the same physics as ``system``
@@ -231,6 +239,12 @@ def for_env(env_id: str | None, system: Any, allow_untrusted: bool = False) -> s
         raise ValueError(f"allow_untrusted must be True or False, got {allow_untrusted!r}")
     found = card_for_env(env_id, system)
     if found is not None:
+        verdict = found.verdict
+        if not verdict.passes and not allow_untrusted:
+            raise ValueError(
+                f"{PREFIX}{found.name}, the shipped model for {env_id or found.system}, {verdict.line()}; pass "
+                "allow_untrusted=True to filter with it anyway, or give your own value function"
+            )
         return found.filter_source or PREFIX + found.name
     all_cards = cards()
     wanted = make_system(system)
@@ -252,5 +266,6 @@ __all__ = [
     "for_env",
     "is_pretrained",
     "names",
+    "source_verdict",
     "trust_verdict",
 ]
