@@ -3,7 +3,9 @@
 The one implementation of explicit Euler and RK4 in the package: environments step with it on
 Python floats or NumPy columns, and the rollout engine on torch columns. Inputs are held constant
 over a step (zero-order hold), as a digital controller applies them. Periodic dimensions are
-wrapped after the step, not inside it, so RK4 stages see continuous angles.
+wrapped after the step, not inside it, so RK4 stages see continuous angles. A system with state
+limits that its inputs respect (:mod:`reach.systems.limits`) has each step saturated to them, as the
+continuous system keeps them; any other system steps with no extra work.
 """
 
 from __future__ import annotations
@@ -26,11 +28,24 @@ def check_integrator(integrator: str) -> str:
 
 
 def make_stepper(system: ControlAffineSystem, dt: float, integrator: str, xp: Backend) -> Stepper:
-    """A function ``(x, u, d) -> x_next`` advancing ``dt`` seconds and wrapping headings.
+    """A function ``(x, u, d) -> x_next`` advancing ``dt`` seconds, wrapping headings and keeping the
+    system's state limits (:meth:`~reach.systems.limits.StateLimits.saturate_columns`), if it has any.
 
     ``x``, ``u`` and ``d`` are column sequences of the backend ``xp``.
     """
-    check_integrator(integrator)
+    step = _unlimited_stepper(system, dt, check_integrator(integrator), xp)
+    if not system.state_limits():
+        return step  # the default: the dynamics' step as it is, no extra work
+    saturate = system.saturate_columns
+
+    def limited(x: Sequence[Column], u: Sequence[Column], d: Sequence[Column]) -> list[Column]:
+        return saturate(x, step(x, u, d), xp)
+
+    return limited
+
+
+def _unlimited_stepper(system: ControlAffineSystem, dt: float, integrator: str, xp: Backend) -> Stepper:
+    """Euler or RK4 over ``dt``, headings wrapped after the step."""
     xdot = system.xdot_columns
     wrap = system.wrap_columns
     if integrator == "euler":

@@ -62,6 +62,7 @@ class _Cliff(_Line):
 
     name = "cliff"
     kind = "avoid"
+    target_margin_columns = ControlAffineSystem.target_margin_columns  # the line's target: none for avoid
 
     def failure_margin_columns(self, x, xp):
         return x[0] + 0.5

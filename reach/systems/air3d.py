@@ -69,7 +69,7 @@ class RelativePair(ControlAffineSystem):
                 ("half_width", half_width),
             ),
         )
-        if role_2 not in ROLES:
+        if not isinstance(role_2, str) or role_2 not in ROLES:
             raise ValueError(f"RelativePair: role_2 must be one of {ROLES}, got {role_2!r}")
         self._setup(speed_1, speed_2, max_turn_rate_1, max_turn_rate_2, role_2, collision_radius, horizon, half_width)
 
@@ -212,6 +212,7 @@ class Air3D(RelativePair):
                 ("evader_max_turn_rate", evader_max_turn_rate),
                 ("pursuer_max_turn_rate", pursuer_max_turn_rate),
                 ("collision_radius", collision_radius),
+                ("horizon", horizon),
                 ("half_width", half_width),
             ),
         )

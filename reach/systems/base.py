@@ -10,7 +10,8 @@ one module per job:
   the optimal control and disturbance (extreme points of the input boxes), and the per-dimension
   bound on ``|dH/dp_i|`` used as Lax-Friedrichs dissipation by the grid solver;
 * :mod:`reach.systems.batched`: batched dynamics, margins, heading wrapping and sampling on tensors;
-* :mod:`reach.systems.margins`: bounds and estimates of how fast the failure margin can change.
+* :mod:`reach.systems.margins`: bounds and estimates of how fast the failure margin can change;
+* :mod:`reach.systems.limits`: state limits the inputs respect, which the discrete step keeps.
 
 This module keeps the declarations, the kind of problem, the per-system defaults, the identity
 (configuration, equality, physics compatibility) and the checks run on construction.
@@ -42,12 +43,13 @@ import torch
 
 from reach.systems.arrays import TORCH, Backend, Column, InputMatrix
 from reach.systems.batched import BatchedPhysics
-from reach.systems.box import NO_INPUT, Ball, Box, InputSet  # also importable from here, as before the split
+from reach.systems.box import NO_INPUT, Ball, Box, InputSet
 from reach.systems.class_names import system_reference
-from reach.systems.deepreach_normalisation import DeepReachNormalisation  # likewise
+from reach.systems.deepreach_normalisation import DeepReachNormalisation
+from reach.systems.limits import StateLimits
 from reach.systems.margins import MarginBounds
 from reach.systems.optimal_inputs import OptimalInputs
-from reach.systems.problem import Objective, ProblemKind, problem_kind
+from reach.systems.problem import Objective, ProblemKind, check_margins, problem_kind
 from reach.validation import positive_finite
 
 
@@ -61,7 +63,7 @@ class _CheckedOnConstruction(ABCMeta):
         return system
 
 
-class ControlAffineSystem(OptimalInputs, BatchedPhysics, MarginBounds, metaclass=_CheckedOnConstruction):
+class ControlAffineSystem(OptimalInputs, BatchedPhysics, MarginBounds, StateLimits, metaclass=_CheckedOnConstruction):
     """Base class of every dynamical system; subclasses declare physics only.
 
     Subclasses set the class or instance attributes below and implement :meth:`drift`,
@@ -69,8 +71,8 @@ class ControlAffineSystem(OptimalInputs, BatchedPhysics, MarginBounds, metaclass
     Every instance is checked by :meth:`validate` when it is constructed. What is derived from the
     physics comes from the classes it inherits: :class:`~reach.systems.optimal_inputs.OptimalInputs`
     (Hamiltonian, optimal inputs, dissipation), :class:`~reach.systems.batched.BatchedPhysics` (the
-    batched tensor interface) and :class:`~reach.systems.margins.MarginBounds` (how fast the margin
-    can change).
+    batched tensor interface), :class:`~reach.systems.margins.MarginBounds` (how fast the margin
+    can change) and :class:`~reach.systems.limits.StateLimits` (state limits the inputs respect).
     """
 
     #: short name (default: the class name in lower case); configs store the registered name or the
@@ -270,23 +272,20 @@ class ControlAffineSystem(OptimalInputs, BatchedPhysics, MarginBounds, metaclass
         for side in ("control_bounds", "disturbance_bounds"):
             if not isinstance(getattr(self, side), (Box, Ball)):
                 raise ValueError(f"{what}: {side} must be a Box or a Ball, got {getattr(self, side)!r}")
-        problem = problem_kind(self.kind, what)
+        problem_kind(self.kind, what)  # an unknown kind, refused by name
         for attr in ("control_objective", "disturbance_objective"):
             if any(attr in vars(cls) for cls in type(self).__mro__ if cls is not ControlAffineSystem):
                 raise ValueError(
                     f"{what}: declare kind = 'avoid', 'reach' or 'reach-avoid' instead of {attr}: the "
                     "players' objectives follow from the kind"
                 )
-        needed = ["failure_margin_columns"] if problem.name == "avoid" else ["target_margin_columns"]
-        needed += ["constraint_margin_columns"] if problem.has_constraint else []
-        for method in needed:
-            if getattr(type(self), method) is getattr(ControlAffineSystem, method):
-                raise ValueError(f"{what}: a {problem.name} system must define {method}")
         positive_finite(f"{what}: horizon", self.horizon)
+        self.check_state_limits(what)
         self._probe_physics(what)
 
     def _probe_physics(self, what: str) -> None:
-        """Evaluate the physics on 4 states of the domain: column counts, matrix indices, ``l``'s shape."""
+        """Evaluate the physics on 4 states of the domain: column counts, matrix indices, and the margins
+        against the kind (:func:`~reach.systems.problem.check_margins`)."""
         x = TORCH.unbind(self.sample_states(4, torch.Generator().manual_seed(0), dtype=torch.float64))
         n = self.state_dim
         drift = self.drift(x, TORCH)
@@ -301,13 +300,4 @@ class ControlAffineSystem(OptimalInputs, BatchedPhysics, MarginBounds, metaclass
                     raise ValueError(
                         f"{what}: {side} entry {key!r} is out of range: keys are (state index < {n}, input index < {m})"
                     )
-        methods = [self.problem.margin_method] + (["constraint_margin_columns"] if self.problem.has_constraint else [])
-        for method in methods:
-            margin = getattr(self, method)(x, TORCH)
-            if not isinstance(margin, torch.Tensor) or tuple(margin.shape) != (4,):
-                shape = tuple(margin.shape) if isinstance(margin, torch.Tensor) else type(margin).__name__
-                raise ValueError(
-                    f"{what}: {method} must return one value per state, shape (4,) for 4 states, got {shape}"
-                )
-            if not torch.isfinite(margin).all():
-                raise ValueError(f"{what}: {method} returned non-finite values inside the domain")
+        check_margins(self, x, what)  # the kind's margins, and no other: real, finite, one per state

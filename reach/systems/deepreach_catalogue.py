@@ -64,11 +64,14 @@ class NarrowPassage(ControlAffineSystem):
     [-3 pi, 3 pi]. As in DeepReach, an input may not push ``v`` below 0.001 or above 6.5, nor ``phi``
     beyond ``0.3 pi - 0.001``: there its bound on that side is 0. That box depends on the state, so
     the controls are normalised, ``u`` in [-1, 1]^4 with ``a = centre(x) + half_width(x) u`` (same for
-    ``psi``); :meth:`physical_controls` maps them back to ``(a1, psi1, a2, psi2)``.
+    ``psi``); :meth:`physical_controls` maps them back to ``(a1, psi1, a2, psi2)``. Those limits are
+    the system's :meth:`state_limits`: a step that would overshoot one (full throttle from 6.49 held
+    for a step) stops at it, as the continuous system does (:mod:`reach.systems.limits`).
 
     ``g`` (constraint, or failure margin with ``avoid_only``) is ``avoid_fn_weight`` times the least
     of each car's clearance to the curbs (less ``L / 2``), to the stranded car and to the other car
-    (less ``L``); the target is both cars within ``L`` of their goals. ``avoid_fn_weight`` 1 is ours.
+    (less ``L``); the target (reach-avoid only) is both cars within ``L`` of their goals.
+    ``avoid_fn_weight`` 1 is ours.
     """
 
     name = "narrowpassage"
@@ -129,20 +132,44 @@ class NarrowPassage(ControlAffineSystem):
         inputs = self._inputs(x, xp)
         return {(3, 0): inputs[0][1], (4, 1): inputs[1][1], (8, 2): inputs[2][1], (9, 3): inputs[3][1]}
 
+    def state_limits(self) -> dict[int, tuple[float, float]]:
+        """Each car's speed within :attr:`speed_limits` and steering angle within ``+-steer_limit``:
+        its input bound on a side is 0 at the limit (:meth:`_inputs`), so neither is crossed."""
+        steer = (-self.steer_limit, self.steer_limit)
+        return {3: self.speed_limits, 4: steer, 8: self.speed_limits, 9: steer}
+
     def physical_controls(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """``(a1, psi1, a2, psi2)`` of normalised controls ``u`` ``(..., 4)`` at states ``x`` ``(..., 10)``."""
+        """``(a1, psi1, a2, psi2)`` of normalised controls ``u`` ``(..., 4)`` in [-1, 1] at states ``x``
+        ``(..., 10)``; a ``u`` outside [-1, 1] (or NaN) is refused naming it, not mapped past the box."""
         self._check("x", x, self.state_dim)
         self._check("u", u, self.control_dim)
+        outside = ~((u >= -1.0) & (u <= 1.0))
+        if bool(outside.any()):
+            j = int(outside.nonzero()[0, -1])
+            value = float(u[outside][0])
+            names = ("a1", "psi1", "a2", "psi2")
+            raise ValueError(f"NarrowPassage: normalised control u must lie in [-1, 1], got {value!r} for {names[j]}")
         inputs = self._inputs(TORCH.unbind(x), TORCH)
         return torch.stack([c + h * u[..., j] for j, (c, h) in enumerate(inputs)], dim=-1)
 
     def target_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
+        if self.avoid_only:
+            return super().target_margin_columns(x, xp)  # an avoid problem has no target
         (g1x, g1y), (g2x, g2y) = self.goals
         d1 = xp.hypot(x[0] - g1x, x[1] - g1y) - self.L
         d2 = xp.hypot(x[5] - g2x, x[6] - g2y) - self.L
         return _maximum(d1, d2, xp)
 
     def constraint_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
+        if self.avoid_only:
+            return super().constraint_margin_columns(x, xp)  # its clearance is the failure margin instead
+        return self._clearance(x, xp)
+
+    def failure_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
+        return self._clearance(x, xp)  # reach-avoid: the constraint margin, as the base class's default
+
+    def _clearance(self, x: Sequence[Column], xp: Backend) -> Column:
+        """``g``: the weighted least clearance of the two cars (see the class docstring)."""
         low, high = self.curbs
         sx, sy = self.stranded_car
         margin = xp.hypot(x[0] - x[5], x[1] - x[6]) - self.L
@@ -151,9 +178,6 @@ class NarrowPassage(ControlAffineSystem):
             margin = xp.minimum(margin, high - py - 0.5 * self.L)
             margin = xp.minimum(margin, xp.hypot(px - sx, py - sy) - self.L)
         return self.avoid_fn_weight * margin
-
-    def failure_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
-        return self.constraint_margin_columns(x, xp)
 
 
 class Quadrotor(ControlAffineSystem):
@@ -181,7 +205,7 @@ class Quadrotor(ControlAffineSystem):
     def __init__(
         self, collisionR: float = 0.5, thrust_max: float = 20.0, set_mode: str = "avoid", horizon: float = 1.0
     ) -> None:
-        if set_mode not in SET_MODES:
+        if not isinstance(set_mode, str) or set_mode not in SET_MODES:
             raise ValueError(f"Quadrotor: set_mode must be one of {tuple(SET_MODES)}, got {set_mode!r}")
         self.set_mode = set_mode
         self.kind = SET_MODES[set_mode]
@@ -246,6 +270,8 @@ class Quadrotor(ControlAffineSystem):
         return xp.hypot(xp.hypot(x[0], x[1]), x[2]) - self.collisionR
 
     def target_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
+        if self.kind != "reach":
+            return super().target_margin_columns(x, xp)  # an avoid problem has no target
         return self._ball(x, xp)
 
     def failure_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:

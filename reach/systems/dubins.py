@@ -51,7 +51,7 @@ class Dubins3D(ControlAffineSystem):
         omega_max: float = 1.1,
         horizon: float = 1.0,
     ) -> None:
-        if set_mode not in SET_MODES:
+        if not isinstance(set_mode, str) or set_mode not in SET_MODES:
             raise ValueError(f"Dubins3D: set_mode must be one of {tuple(SET_MODES)}, got {set_mode!r}")
         self.set_mode = set_mode
         self.kind = SET_MODES[set_mode]
@@ -84,6 +84,8 @@ class Dubins3D(ControlAffineSystem):
         return _disc_margin(x, xp, (0.0, 0.0), self.goalR)
 
     def target_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
+        if self.kind != "reach":
+            return super().target_margin_columns(x, xp)  # an avoid problem has no target
         return self._disc(x, xp)
 
     def failure_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:

@@ -45,8 +45,28 @@ class Car:
         for field in ("speed", "max_turn_rate"):
             value = getattr(self, field)
             positive_finite(f"Car {self.name or '?'}: {field}", value)
-        if self.role not in ROLES:
+        if not isinstance(self.name, str):
+            raise ValueError(f"Car: name must be a string, got {self.name!r}")
+        if not isinstance(self.role, str) or self.role not in ROLES:
             raise ValueError(f"Car {self.name or '?'}: role must be one of {ROLES}, got {self.role!r}")
+
+
+def _cars(cars: Any) -> tuple[Car, ...]:
+    """``cars`` as a tuple of :class:`Car`, each given as one or as a mapping of its fields (a config's
+    form); anything else is refused naming it."""
+    if isinstance(cars, (str, bytes)) or not isinstance(cars, Sequence):
+        raise ValueError(f"MultiVehicle: cars must be a list of Car (or of their fields), got {cars!r}")
+    fields = {"speed", "max_turn_rate", "role", "name"}
+    out = []
+    for i, c in enumerate(cars):
+        if isinstance(c, dict):
+            if not (set(c) <= fields and {"speed", "max_turn_rate"} <= set(c)):
+                raise ValueError(f"MultiVehicle: cars[{i}] must have speed, max_turn_rate (role, name), got {c!r}")
+            c = Car(**c)
+        if not isinstance(c, Car):
+            raise ValueError(f"MultiVehicle: cars[{i}] must be a Car or a mapping of its fields, got {c!r}")
+        out.append(c)
+    return tuple(out)
 
 
 class MultiVehicle(ControlAffineSystem):
@@ -61,15 +81,12 @@ class MultiVehicle(ControlAffineSystem):
         horizon: float = 1.0,
         half_width: float = 1.0,
     ) -> None:
-        cars = tuple(Car(**c) if isinstance(c, dict) else c for c in cars)
+        cars = _cars(cars)
         if len(cars) < 2:
             raise ValueError(f"MultiVehicle: cars needs at least 2 cars, got {len(cars)}")
-        for c in cars:
-            if not isinstance(c, Car):
-                raise TypeError(f"MultiVehicle: cars must hold Car objects, got {type(c).__name__}")
         if not any(c.role == "control" for c in cars):
             raise ValueError("MultiVehicle: cars needs at least one car with role 'control'")
-        for field, value in (("collision_radius", collision_radius), ("half_width", half_width)):
+        for field, value in (("collision_radius", collision_radius), ("horizon", horizon), ("half_width", half_width)):
             positive_finite(f"MultiVehicle: {field}", value)
         self.cars = tuple(
             c if c.name else Car(c.speed, c.max_turn_rate, c.role, f"car_{i + 1}") for i, c in enumerate(cars)
