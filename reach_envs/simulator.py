@@ -45,6 +45,7 @@ class SceneSimulator:
             if np.any(std > 0):
                 noise = std * math.sqrt(scene.dt)
         self._noise = noise
+        self._limited = bool(self.system.state_limits())  # the step keeps them; noise must too
         self._arena = scene.arena
         self._has_constraint = self.system.problem.has_constraint
 
@@ -61,7 +62,8 @@ class SceneSimulator:
     def advance(
         self, x: Sequence[Column], u: Sequence[Column], d: Sequence[Column], rng: np.random.Generator
     ) -> list[Column]:
-        """One step of length ``dt``: integrate, add process noise if the scene has any, wrap headings.
+        """One step of length ``dt``: integrate, add process noise if the scene has any, wrap headings;
+        the system's state limits (:mod:`reach.systems.limits`) hold after the noise as after the step.
 
         A non-finite next state (a user system's drift that returns NaN or overflows) raises
         ``ValueError`` naming the state it came from, instead of returning a NaN observation."""
@@ -74,6 +76,8 @@ class SceneSimulator:
             z = rng.standard_normal(size=shape + self._noise.shape) * self._noise
             x = [a + b for a, b in zip(x, z.tolist())] if self.xp is FLOAT else [a + z[..., i] for i, a in enumerate(x)]
             x = self.system.wrap_columns(x, self.xp)
+            if self._limited:
+                x = self.system.saturate_columns(before, x, self.xp)
         return x
 
     def margin(self, x: Sequence[Column]) -> Column:
