@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from reach.systems.base import Box, ControlAffineSystem
+from reach.systems.base import ControlAffineSystem
+from reach.systems.box import Box
 from safety import SafetyFilter
 from safety.value_loading import load_value_function
 from safety.value_policies import GREEDY_STEP, GreedyPolicy, OptimalPolicy

@@ -193,7 +193,7 @@ def test_resume_on_another_kind_of_device_reseeds_and_moves_the_labels(tmp_path)
     seed a CPU generator, so the stream restarts from the run's seed and step, with a warning; the
     lower-bound labels, loaded on the CPU, move to the run's device."""
     from training.checkpoint import network_from_payload, read_checkpoint, save_checkpoint
-    from training.trainer import moved_run_seed
+    from training.sampling import moved_run_seed
 
     run = tmp_path / "run"
     Trainer(TrainConfig(system="multivehicle9d", steps=4, seed=5, lower_bound="policy", lower_bound_points=8,

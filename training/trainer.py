@@ -6,7 +6,6 @@ step draws (:mod:`training.sampling`), the loss (:mod:`training.objective`), the
 lock, checkpoints, metrics and resume state (:mod:`training.run_directory`, whose docstring shows the
 layout), what it saves and takes back up (:mod:`training.checkpointing`), Ctrl-C / SIGTERM
 (:mod:`training.signals`), and the processes of a distributed run (:mod:`training.distributed`).
-Names that lived here before are re-exported.
 """
 
 from __future__ import annotations
@@ -29,35 +28,19 @@ from training.distributed import Processes
 from training.encoding import Encoding
 from training.loss import terms_to_floats
 from training.network import ValueNetwork
-from training.objective import Objective, load_upper_bound
+from training.objective import Objective
 from training.progress import Evaluator, ProgressReport, StepRecord
-from training.run_directory import (
-    LEGACY_DEFAULTS,
-    RESUME_OVERRIDABLE,
-    RUN_FILES,
-    RunDirectory,
-    clean_metrics,
-)
-from training.sampling import Labels, PointSampler, moved_run_seed
+from training.run_directory import RunDirectory
+from training.sampling import Labels, PointSampler
 from training.schedule import Schedule
 from training.signals import caught_signal_name, deferred_signals
 
 __all__ = [
-    "LEGACY_DEFAULTS",
-    "RESUME_OVERRIDABLE",
-    "RUN_FILES",
-    "Evaluator",
     "Trainer",
     "TrainingDivergedError",
     "TrainingInterrupted",
     "build_network",
-    "moved_run_seed",
 ]
-
-# the names these helpers had here before the split
-_clean_metrics = clean_metrics
-_deferred_signals = deferred_signals
-_upper_bound = load_upper_bound
 
 
 @contextlib.contextmanager
@@ -160,10 +143,6 @@ class Trainer:
         return self.sampler.generator
 
     @property
-    def residual_fn(self) -> Any:
-        return self.objective.settings.residual_fn
-
-    @property
     def gradient_bound(self) -> float | None:
         """The gradient bound in the network's normalised coordinates (``gradient_bound`` x l's steepest slope)."""
         return self.objective.settings.gradient_bound
@@ -214,10 +193,6 @@ class Trainer:
     @property
     def checkpoint_path(self) -> Path:
         return self.run.checkpoint_path
-
-    @property
-    def snapshot_dir(self) -> Path:
-        return self.run.snapshot_dir
 
     def _save(self) -> None:
         """Checkpoint the run (every process of a distributed run at the same step, :class:`Checkpointer`)."""
