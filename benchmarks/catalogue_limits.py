@@ -1,4 +1,4 @@
-"""What limits the catalogue's models (issue 42, point 4): the measurements behind docs/training.md.
+"""What limits the catalogue's models (issue 42, point 4): the measurements behind docs/results/training.md.
 
 Run: ``python benchmarks/catalogue_limits.py [--states 100000]`` (needs the recipes' run directories
 in ``runs/catalogue`` for the loss columns; a missing run is named and skipped).

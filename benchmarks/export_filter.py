@@ -1,6 +1,6 @@
 """The exported safety filter against the torch filter: equal decisions, and what a decision costs.
 
-Two studies, one command each (docs/export.md holds their tables):
+Two studies, one command each (docs/results/export.md holds their tables):
 
     python benchmarks/export_filter.py equivalence --states 100000 [--engine native]
     python benchmarks/export_filter.py latency --calls 3000
@@ -17,7 +17,7 @@ those lie within 1e-4 of the threshold), the largest value and gradient differen
 inputs that differ where the decision agrees.
 
 ``graph`` counts operators: the ONNX nodes of each exported filter, and the ATen operations ``V``
-alone and ``V`` with its gradient trace to (ONNX Runtime spends about a microsecond a node at batch 1).
+alone and ``V`` with its gradient trace to (what a node costs at batch 1: docs/results/export.md).
 
 ``latency`` times one decision at batch 1 on one thread (``torch.set_num_threads(1)``, ONNX
 Runtime with one intra-op thread), per call, the calls cycling through ``--states`` random states

@@ -3,8 +3,8 @@
 #
 # Usage: benchmarks/gpu_studies.sh OUTDIR SECONDS [train|score]
 #
-# The 9D training step (4x128 network, 8192 points) is launch-bound on a GPU: one process keeps an
-# H100 busy for a small share of each step (docs/benchmarks.md). So this script starts the studies'
+# The 9D training step (4x128 network, 8192 points) is launch-bound on a GPU: one process keeps the
+# GPU busy for a small share of each step (measured: docs/results/benchmarks.md). So this script starts the studies'
 # runs as parallel processes (one per line of JOBS below, or of the file named by $JOBS_FILE), each
 # with `--device cuda`, and stops every one with SIGTERM after SECONDS (`reach train` finishes its
 # step and checkpoints first). Running it again resumes every run where it stopped: the studies
@@ -24,7 +24,7 @@ if [[ -n ${JOBS_FILE:-} ]]; then
     mapfile -t jobs <"$JOBS_FILE"
 elif [[ $stage == train ]]; then
     jobs=(
-        # issue 18's candidate recipe: two hours of its own quiet CPU rate (433 steps a minute)
+        # issue 18's candidate recipe: two hours of its own CPU rate (measured: docs/results/training.md)
         "$b/nine_d_ablation.py train --rows recipe --seeds 0 --minutes 120 --steps-per-minute 433"
         "$b/nine_d_ablation.py train --rows recipe --seeds 1 --minutes 120 --steps-per-minute 433"
         # the default recipe against time

@@ -6,11 +6,11 @@ Run (resumable; every stage skips what is already done)::
     python benchmarks/nine_d_layouts.py score  --out runs/studies/9d-layouts
     python benchmarks/nine_d_layouts.py report --out runs/studies/9d-layouts
 
-The 3-minute layout study (docs/studies.md) ranks early training only. Here each of the paper's
+The 3-minute layout study (docs/results/studies.md) ranks early training only. Here each of the paper's
 six layouts (``--layouts``, default ssrsl, rsrsl, rrrsl, srrrl, ssssl, rrrrl) trains for
 ``--minutes`` (default 15) with the ``reach train`` defaults, for every seed in ``--seeds``, seed 0
 of every layout first. As in the 9D accuracy-against-time study, minutes are trained as steps, so a
-run sharing the cores with other work trains what a quiet machine trains in that time: ``minutes x
+run trains the same steps whatever else shares its cores: ``minutes x
 --steps-per-minute x`` the layout's speed relative to ``ssssl`` (:data:`RELATIVE_SPEED`; ReLU
 layers are cheaper, and equal wall time is the comparison the paper's question asks for).
 ``--with ROW`` adds a change of the 9D ablation (``benchmarks/nine_d_ablation.py``,
@@ -43,10 +43,8 @@ from studies.step_budget_study import (
 #: the seed paper's six 9D layouts
 PAPER_LAYOUTS = ("ssrsl", "rsrsl", "rrrsl", "srrrl", "ssssl", "rrrrl")
 
-#: training steps per second relative to ssssl, 9D defaults, 2 threads, quiet 2-core machine
-#: (AMD EPYC, AVX2): steps 200-600 of ``reach --threads 2 train --system multivehicle9d --layout L
-#: --steps 600``, one layout after the other: ssssl 10.06, rsrsl 10.79, ssrsl 10.67, rrrsl 13.03,
-#: srrrl 13.66, rrrrl 13.17 steps/s
+#: training steps per second relative to ssssl, 9D defaults, from steps 200-600 of ``reach --threads 2
+#: train --system multivehicle9d --layout L --steps 600`` (measured: docs/results/studies.md)
 RELATIVE_SPEED = {
     "ssssl": 1.0,
     "rsrsl": 10.79 / 10.06,

@@ -40,11 +40,9 @@ from reach.systems.registry import make_system
 
 MAX_DIM = 4
 #: ``compile=None`` compiles on CPU only for at least this many node updates (nodes x RK3 steps):
-#: torch.compile costs 15-30 s once per new system or grid, and pays off only on large work.
-#: Measured with the heap kept (reach.malloc_thresholds) and the leaner WENO5 (fresh inductor cache, one process,
-#: 2 CPU cores, docs/groundtruth.md): Air3D 71^3 (1.6e8 updates) eager 14.5 s against 22.5 s compiled
-#: on a first run; DubinsAccel 41^4 (2.5e8) compiled 35.0 s on a first run, against 68 s eager
-#: before the WENO5 rewrite.
+#: torch.compile costs a fixed time once per new system or grid, and pays off only on large work; the
+#: threshold lies between a solve that ran faster eager and one that ran faster compiled on a first run
+#: (measured: docs/results/groundtruth.md, *When the solver compiles*).
 COMPILE_MIN_NODE_UPDATES = 2e8
 
 
@@ -64,8 +62,8 @@ def _rhs_factory(
     alpha = [a * k for a, k in zip(alpha, unscale)]
     hamiltonian = system.hamiltonian_at(cols, TORCH, scale=unscale, prune=True)
     # eager torch runs the WENO5 passes along the innermost dimension in rows of its length; below
-    # SHORT_INNER_LINE nodes a transposed copy is cheaper (DubinsAccel 21^4: 8.1 -> 7.3 ms per
-    # right-hand side; 31^4 within the noise, Air3D 51^3 3.2 -> 3.4 ms, so not there)
+    # SHORT_INNER_LINE nodes a transposed copy is cheaper, at longer lines it is not (measured:
+    # docs/results/groundtruth.md, *Eager speed*)
     last_moved = grid.ndim - 1 if grid.ndim > 1 and grid.shape[-1] < SHORT_INNER_LINE else None
 
     def rhs(v: torch.Tensor) -> torch.Tensor:
@@ -85,8 +83,8 @@ def _rhs_factory(
     return rhs
 
 
-#: measured peak working memory of an eager solve, per grid node and state dimension, in float32
-#: (Air3D: 330 B/node at 41^3, 240 B/node at 81^3); float64 doubles it
+#: peak working memory of an eager solve, per grid node and state dimension, in float32, from the
+#: largest measured (docs/results/groundtruth.md, *Memory of an eager solve*); float64 doubles it
 BYTES_PER_NODE_AND_DIM = 110
 
 
@@ -188,13 +186,13 @@ def solve(
         updates = grid.num_points * math.ceil(out_times[-1] / dt_max) if math.isfinite(dt_max) else 0
         compile = None if torch.device(device).type == "cpu" and updates >= COMPILE_MIN_NODE_UPDATES else False
     # compile the right-hand side, not the whole RK3 step: the three stages reuse one graph, which
-    # costs 17 s to compile for Air3D 51^3 against 40 s for the step, and runs as fast (1.6 s vs 1.5 s)
+    # compiles faster and runs as fast (measured: docs/results/groundtruth.md, *When the solver compiles*)
     rhs = maybe_compile(rhs, compile, "solving")
     values = []
     steps = 0
     t = 0.0
     v = problem.boundary_value(target, constraint).clone()
-    # on CPU, freed temporaries stay in the heap: page faults made eager 4D solves 2-3x slower (reach.malloc_thresholds)
+    # on CPU, freed temporaries stay in the heap: page faults slowed eager solves (reach.malloc_thresholds)
     keep_heap = retained_heap(need) if torch.device(device).type == "cpu" else contextlib.nullcontext()
     with (
         keep_heap,

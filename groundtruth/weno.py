@@ -47,7 +47,7 @@ def padded_differences(v: torch.Tensor, dim: int, periodic: bool, width: int = 3
     difference at an end equals the edge's: ``-sign(V_0) |V_1 - V_0|`` on the left and
     ``sign(V_n-1) |V_n-1 - V_n-2|`` on the right. An eager solve is bound by passes over memory, and
     the padded copy was one full pass per dimension and stage, plus the gathers that filled its
-    ghosts (docs/groundtruth.md, *No padded copy*)."""
+    ghosts (measured: docs/results/groundtruth.md, *No padded copy*)."""
     n = v.shape[dim]
     shape = list(v.shape)
     shape[dim] = n + 2 * width - 1
@@ -185,9 +185,9 @@ def biased_derivatives(v: torch.Tensor, dim: int, dx: float, periodic: bool) -> 
     The form :func:`mean_and_half_jump` takes under ``torch.compile``: fused into a few kernels,
     passes over memory cost little, and what counts is the arithmetic and the buffers the compiler
     keeps. Compiled, Jiang & Peng's form (which divides twice per bias and keeps two more difference
-    arrays) with the eager padding ran DubinsAccel 41^4's right-hand side in 29.6-30.0 ms, this form
-    in 20-25 ms (``benchmarks/bench_rhs.py``; docs/groundtruth.md, *Eager speed*); eager, this one is
-    the slower. It is built from the one-sided stencils:
+    arrays) with the eager padding ran a right-hand side slower than this form; eager, this one is
+    the slower (measured: docs/results/groundtruth.md, *Eager speed*). It is built from the one-sided
+    stencils:
 
     - the first differences stay undivided by ``dx``. Jiang & Peng's weights ``1 / (s + eps)^2`` then
       see ``s dx^2``, and ``eps dx^2`` in place of ``eps`` gives each weight times ``dx^4``;

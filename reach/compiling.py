@@ -63,7 +63,8 @@ def _own_code(fn: Callable[..., Any]) -> Callable[..., Any]:
     factory such as :func:`training.loss.residual_function` makes a closure over the same code, so a
     process that compiles it for a ninth network (a sweep worker running its ninth run) finds eight
     stale entries whose guards fail, hits ``torch._dynamo.config.recompile_limit`` (8) and silently
-    runs that network in eager mode, about 1.2-1.3x slower. A private copy gives each wrapper its own
+    runs that network in eager mode, which is slower (measured: docs/results/training.md, *Training
+    throughput*). A private copy gives each wrapper its own
     cache and count, which are dropped with the wrapper.
     """
     if not isinstance(fn, types.FunctionType):

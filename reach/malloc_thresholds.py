@@ -3,9 +3,8 @@
 An eager grid-solver step allocates and frees hundreds of arrays of the grid's size. glibc's
 ``malloc`` serves blocks above its mmap threshold (128 KiB at first, self-tuned upward later) with
 fresh ``mmap`` pages and gives heap memory back to the OS whenever more than its trim threshold lies
-free at the top. Both make the next allocation fault its pages in again: an eager DubinsAccel 21^4
-solve took 1.4 million page faults and 4.4 s, against about 7,000 faults and 1.6-1.9 s with the
-thresholds raised (``benchmarks/bench_groundtruth.py``; docs/groundtruth.md).
+free at the top. Both make the next allocation fault its pages in again, so an eager solve spends
+much of its time faulting pages in (measured: docs/results/groundtruth.md, *Eager speed*).
 
 :func:`retained_heap` raises both thresholds for the duration of a block and afterwards leaves them
 where glibc's own tuning would end (32 MiB and 64 MiB), giving the rest back with ``malloc_trim``.

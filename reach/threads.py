@@ -10,8 +10,8 @@ runnable at this moment whose nice value is at most this process's own (a ``nice
 yields its core to us, so it does not count) and whose scheduling policy is not ``SCHED_IDLE``; the
 median of three reads 10 ms apart. Where the threads' states cannot be read, ``/proc/loadavg``'s
 running count (every priority) stands in, and where ``/proc`` is missing, the 1-minute load average,
-which lags: it decays with a one-minute time constant, so for over a minute after a job on both cores
-of a 2-core machine it still rounds to 1 or more.
+which lags: it decays with a one-minute time constant, so for over a minute after a job that kept two
+cores busy it still rounds to 1 or more.
 
 The library's long entry points (:meth:`training.Trainer.train`, :func:`safety.verification.verify.verify`) apply
 the same policy for their duration through :func:`thread_policy`, unless the caller chose a count:

@@ -108,8 +108,8 @@ def console_main() -> None:
     """The ``reach`` console script (and ``python -m reach``): :func:`main`, then exit without
     Python's shutdown garbage pass over torch's objects.
 
-    That pass walks the ~170,000 objects ``import torch`` leaves behind; skipping it saved a median
-    0.23-0.29 s per command on the project's 2-core machine (``benchmarks/bench_startup.py``).
+    That pass walks every object ``import torch`` leaves behind; skipping it shortens each command's exit
+    (measured: docs/results/benchmarks.md, *Command start-up*).
     A command's results are written and closed before :func:`main` returns, and Python does not
     promise to finalise objects still alive at exit anyway. Only the console script does this:
     :func:`main` called in-process leaves the caller's collector alone."""

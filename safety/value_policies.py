@@ -99,9 +99,9 @@ class GreedyPolicy:
     Why: at a kink of ``V`` (two manoeuvres tie, e.g. three cars converging that can all turn left
     or all turn right) ``grad V`` is a blend of the two, and the bang-bang ``u*`` built from it can
     pick neither: each car turns by the sign of its own partial derivative, into the others. A held
-    step commits to one manoeuvre. On the shipped 9D model's 43 false-safe states among 100k
-    (docs/verification.md) no input at all saves 21 (``V`` there is below 0.003: a value error),
-    and a held constant input saves the other 22: the gradient policy failed, not ``V``.
+    step commits to one manoeuvre. Such policy errors, where some held input avoids the collision
+    that ``u*`` runs into, are among the shipped 9D model's false-safe states (measured:
+    docs/results/verification.md, *Value errors and policy errors*).
 
     Costs ``(2^m_u + 1) x (disturbance candidates)`` value evaluations and ``step / dt`` integration
     substeps per decision, against one value-and-gradient evaluation for ``u*``. Ties go to the

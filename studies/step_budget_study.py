@@ -12,11 +12,11 @@ with a row of another, and the ablation's baseline *is* the time study's run), s
 here once, written against the library (:class:`training.Trainer`,
 :func:`studies.batch_verification.evaluate_many`, :func:`groundtruth.solve`), not the command line.
 
-Why step budgets: a budget of M minutes is trained as ``M x steps_per_minute`` steps, the rate of a
-quiet 2-core machine (:data:`QUIET_STEPS_PER_MINUTE`), not as wall-clock time, so a run that shares
-the cores with other work trains exactly what a quiet machine trains in M minutes, with the same
-schedule. Every stage skips what is done: a run with a checkpoint is resumed (on any device: the
-step count, not the machine, fixes what it trains), only finished runs are scored, and the table
+Why step budgets: a budget of M minutes is trained as ``M x steps_per_minute`` steps, a fixed
+reference rate (:data:`QUIET_STEPS_PER_MINUTE`), not as wall-clock time, so a run trains the same
+steps, with the same schedule, whatever else shares its cores. Every stage skips what is done: a run
+with a checkpoint is resumed (on any device: the step count, not the machine, fixes what it trains),
+only finished runs are scored, and the table
 merges rows (:func:`~studies.batch_verification.evaluate_many`), so a study may be stopped at any
 time and split across sessions or machines.
 """
@@ -46,8 +46,9 @@ from training import TrainConfig, Trainer, TrainingDivergedError
 
 #: the system every run trains on: three cars (``reach train --system multivehicle9d``)
 SYSTEM = "multivehicle9d"
-#: 9D default network (ssssl, 4x128, 8192 points, compiled) on a quiet 2-core machine: 36,917 steps
-#: in 40 minutes (the run that opened issue 18); minutes are converted to steps with this rate
+#: the reference rate at which minutes are converted to steps: the 9D default network's (ssssl, 4x128,
+#: 8192 points, compiled) on the project's 2-core CPU, in the run that opened issue 18 (measured:
+#: docs/results/studies.md)
 QUIET_STEPS_PER_MINUTE = 923.0
 #: the union of pairwise BRTs (``reach groundtruth relativepair --grid 101``), solved once where missing
 DEFAULT_PAIRWISE = "runs/pair_gt.npz"
@@ -70,8 +71,7 @@ CHANGES: dict[str, dict[str, Any]] = {
     # the two terms that pushed towards soundness, without the labels that pulled the other way
     "upper-zero-level": {"upper_bound": PAIRWISE, "zero_level_fraction": 0.25},
     # issue 18's candidate recipe: both bounds and the zero-level points together. Trained for 2 hours
-    # of its own quiet rate (``--minutes 120 --steps-per-minute 433``: 400 steps took 55.4 s against
-    # 38.4 s for the defaults, `reach --threads 2 train ... --steps 400`, nothing else running)
+    # of its own rate (``--minutes 120 --steps-per-minute 433``; measured: docs/results/training.md)
     "recipe": {"upper_bound": PAIRWISE, "lower_bound": "policy", "zero_level_fraction": 0.25},
 }
 

@@ -21,9 +21,9 @@ _threads_decided_for: list[object] = [None]
 def pytest_runtest_setup(item: pytest.Item) -> None:
     """Run each test module on the cores other processes leave free (reach.threads' policy, which the
     CLI and the library's long entry points apply for themselves), decided before its fixtures are
-    built. torch's default of one thread per core spin-waits when another process keeps a core busy:
-    on the 2-core development machine beside a training run, the 51^3 ``air3d_grid`` solve took over
-    6 minutes with 2 threads and 22 s with 1. What the tests compute does not depend on the count."""
+    built. torch's default of one thread per core spin-waits when another process keeps a core busy
+    (measured: docs/results/benchmarks.md, *Threads when other processes share the cores*). What the
+    tests compute does not depend on the count."""
     module = getattr(item, "module", None)
     if module is _threads_decided_for[0]:
         return

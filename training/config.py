@@ -91,7 +91,7 @@ class TrainConfig(SystemSpecified):
     # allows it (cuda_graph_unsupported), True: require it, False: never
     cuda_graph: bool | None = None
     # "tf32": a CUDA GPU's TF32 tensor cores do the float32 matrix products (10-bit mantissas in,
-    # float32 sums): 1.4x the graphed 9D step on an H200, not exact (docs/benchmarks.md)
+    # float32 sums): faster, not exact (measured: docs/results/benchmarks.md, *The GPU step as one CUDA graph*)
     matmul_precision: str = "float32"
     curriculum: float = 0.5  # share of the run over which the sampled time range grows to the horizon
     pretrain: float = 0.0  # vanilla only: share of the run spent on the boundary loss alone
@@ -246,8 +246,9 @@ class TrainConfig(SystemSpecified):
     def compile_resolved(self) -> bool | None:
         """Whether to compile: ``compile`` if given, else (``None``, auto) for fused runs of at least
         :data:`COMPILE_MIN_STEPS` steps or :data:`COMPILE_MIN_BUDGET_S` seconds, where the one-off
-        compilation (10-20 s on a 2-core CPU) pays for itself; shorter runs (tests, smoke runs) stay
-        eager. Auto falls back to eager mode with a warning when compiling fails (returns ``None``)."""
+        compilation pays for itself (measured: docs/results/training.md, *Training throughput*);
+        shorter runs (tests, smoke runs) stay eager. Auto falls back to eager mode with a warning when
+        compiling fails (returns ``None``)."""
         if self.compile is not None or self.gradients != "fused":
             return self.compile if self.gradients == "fused" else False
         long_run = (self.steps or 0) >= COMPILE_MIN_STEPS or (self.budget_s or 0) >= COMPILE_MIN_BUDGET_S

@@ -1,9 +1,9 @@
 """One training step replayed as a single CUDA graph, so that a GPU step costs its arithmetic, not its launches.
 
-Why: eager, the 9D default step launches on the order of a thousand small kernels (the sine layers'
-value and input derivatives, their backward pass, Adam's update), and on an H100 it ran at about 113
-steps/s whether it took 8,192 points or 65,536: the GPU waited on the CPU to launch. A captured
-step is one launch.
+Why: eager, the 9D default step launches hundreds of small kernels (the sine layers'
+value and input derivatives, their backward pass, Adam's update), and on a GPU it ran at the same
+rate whether it took 8,192 points or 65,536: the GPU waited on the CPU to launch (measured:
+docs/results/benchmarks.md, *On a GPU*). A captured step is one launch.
 
 What the graph holds: the step's points made from its uniform draws (:meth:`PointSampler.points_from`,
 the zero-level selection included), the loss (:class:`training.objective.Objective`), the backward

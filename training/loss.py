@@ -80,9 +80,9 @@ def residual_function(
     ``compile`` (fused gradients only): ``True`` compiles the residual with ``torch.compile``,
     ``None`` tries to and falls back to eager mode with a warning (no C++ compiler, ...), ``False``
     stays eager. Compiling fuses each layer's ``sin``, ``cos`` and products (and their backward)
-    into a few kernels: on a 2-core CPU the default network's step runs 1.2-1.4x faster than eager
-    fused and 1.3-1.6x faster than autograd's double backward (``benchmarks/bench_training.py``);
-    the first step pays the compilation (10-20 s on that CPU).
+    into a few kernels, so the default network's step runs faster than eager fused and than
+    autograd's double backward; the first step pays the compilation (measured:
+    docs/results/training.md, *Training throughput*).
     """
     if gradients not in GRADIENTS:
         raise ValueError(f"gradients must be one of {GRADIENTS}, got {gradients!r}")

@@ -11,7 +11,7 @@ Inputs ``(t, x)`` are encoded by an :class:`~training.encoding.Encoding` (affine
 :meth:`~reach.systems.base.ControlAffineSystem.boundary_value`: ``l``, or ``max(l, -g)`` for a
 reach-avoid problem). A reach-avoid network may also hold its constraint ``V >= -g`` at every time
 by construction, ``exact-constraint``: ``V = max(b(x) + (t / T) value_scale o, -g(x))`` (see
-docs/training.md for what each costs and wins).
+docs/training.md for what each is, docs/results/training.md for what each costs and wins).
 """
 
 from __future__ import annotations
@@ -152,9 +152,8 @@ class ValueNetwork(nn.Module):
         """The network output ``o`` before the output parameterisation.
 
         Without autograd (every value a rollout, a filter or a sampler reads) each activation is
-        applied in the layer's own output, bit for bit the same values: 1.7x faster for the 9D
-        network on 72,000 states on the 2-core CPU (``benchmarks/value_forward.py``), since these
-        layers are memory-bound there."""
+        applied in the layer's own output, bit for bit the same values, and faster where these layers
+        are memory-bound, as on CPUs (measured: docs/results/verification.md, *Rollout engine*)."""
         h = self.encode(x, t)
         in_place = not torch.is_grad_enabled()
         for layer, act in zip(self.layers, self.activations):
@@ -194,7 +193,7 @@ class ValueNetwork(nn.Module):
                 h = torch.relu(z)
                 # 1 where z > 0, else 0, computed in float from h: a bool mask (z > 0) made torch.compile's
                 # CPU kernels store and reload byte masks, which cost more than the layer's matmul
-                # (rrrrl step 122 ms compiled vs 73 ms this way, 1 thread)
+                # (measured: docs/results/training.md, *Training throughput*)
                 slopes.append(torch.sign(h))
             else:
                 h = torch.tanh(z)
@@ -234,8 +233,9 @@ class ValueNetwork(nn.Module):
 
         ``matmul_dtype`` (e.g. ``torch.bfloat16``) runs the hidden-to-hidden products, forward and
         back, in that precision (inputs and weights rounded, fp32 accumulation on CPUs with bf16
-        dot products): several times faster where the hardware has them, at a measured accuracy cost
-        (see the rollout benchmark). The first layer, activations and output stay in float32.
+        dot products): faster where the hardware has them, and inexact (measured:
+        docs/results/verification.md, *Rollout engine*). The first layer, activations and output stay
+        in float32.
         """
         o, g = self._raw_and_input_gradient(self.encode(x, t), matmul_dtype, inplace=True)
         margins = self.margins(x) if self.parameterisation != "vanilla" else None

@@ -198,8 +198,8 @@ def _forward_pre_activations(layers: list[_Layer], inputs: Interval, magnitude: 
     them on by splitting its weights by sign. This costs ``O(width^2 d)`` a layer and box, against
     back-substitution's ``O(width^3)`` per layer and layer below, so it is far cheaper when the input
     dimension ``d`` (time and state) is small against the width. It is looser on wide boxes: the gap
-    between the two functions grows through ``|W|`` at every layer (measured in
-    ``benchmarks/bound_tightness.py``). Rounding: each interval is widened by the same a-priori bound
+    between the two functions grows through ``|W|`` at every layer (``benchmarks/bound_tightness.py``;
+    measured: docs/results/certificates.md). Rounding: each interval is widened by the same a-priori bound
     as back-substitution's (``_magnitudes`` bounds the absolute values of every product on the way).
     Returns the lines and the magnitudes per layer."""
     lo, hi = inputs

@@ -134,7 +134,8 @@ class RolloutSettings:
         chunk_size: states simulated together (memory is about ``chunk_size x width x layers``).
         matmul_precision: ``"bfloat16"`` runs a network's hidden products in bfloat16 (neural value
             functions only): faster on CPUs and GPUs with bf16 units, and not exact: outcomes can
-            differ from float32 near the BRT boundary (measured in ``benchmarks/bench_rollouts.py``).
+            differ from float32 near the BRT boundary (measured: docs/results/verification.md,
+            *Rollout engine*).
         early_exit: stop trajectories whose outcome is decided (see the module docstring).
         control_period: how often the policy decides, in seconds: its input is held in between, as
             a controller acting every ``control_period`` holds it (a whole multiple of ``dt``; None:
@@ -188,8 +189,8 @@ class RolloutSettings:
 
 
 #: states a CUDA device rolls out at once by default (:func:`default_chunk_size`). The CPU default
-#: (``RolloutSettings.chunk_size``) left an H100 launch-bound: five 9D models did not finish the card
-#: protocol in 240 s, and at this size each took 44-52 s (docs/benchmarks.md).
+#: (``RolloutSettings.chunk_size``) left a GPU launch-bound (measured: docs/results/benchmarks.md,
+#: *On a GPU*).
 CUDA_CHUNK_SIZE = 262_144
 
 
