@@ -36,6 +36,7 @@ from reach.malloc_thresholds import retained_heap
 from reach.memory_check import require_memory
 from reach.systems.arrays import TORCH
 from reach.systems.base import ControlAffineSystem
+from reach.systems.problem import require_finite_margin
 from reach.systems.registry import make_system
 
 MAX_DIM = 4
@@ -164,9 +165,15 @@ def solve(
         if problem.has_constraint
         else None
     )
+    # a margin that is NaN or infinite at some node is named here, not found as NaN values after the solve
+    require_finite_margin(system, problem.margin_method, target, cols)
+    if constraint is not None:
+        require_finite_margin(system, "constraint_margin_columns", constraint, cols)
     bounds = [torch.as_tensor(a, dtype=dtype, device=device) for a in system.dissipation_columns(cols, TORCH)]
     rate = sum(torch.broadcast_to(a, grid.shape) / dx for a, dx in zip(bounds, grid.spacing))
     max_rate = float(rate.max())
+    if not math.isfinite(max_rate):
+        raise ValueError(f"{system.name}: the dynamics (drift and input matrices) are NaN or infinite on the grid")
     dt_max = cfl / max_rate if max_rate > 0 else math.inf
     if dissipation == "global":
         bounds = [b.max() for b in bounds]
