@@ -94,9 +94,10 @@ def run(args: argparse.Namespace) -> int:
     meta = result.metadata
     print(
         f"wrote {result.path} ({result.path.stat().st_size / 1e6:.2f} MB): {meta['settings']['kind']} filter of "
-        f"{meta['system_name']}, threshold {meta['threshold']:g}, backup {meta['settings']['policy']}, "
+        f"{meta['system_name']}, threshold {meta['settings']['threshold']:g}, backup {meta['settings']['policy']}, "
         f"source {meta['source']} ({meta['fingerprint'][:19]}...)"
     )
+    print(f"trust bar: {meta['source_verdict']['line']}")
     if args.c_file is not None:
         from reach_runtime.native import c_source  # lazy: reads the graph with onnx, only for --c
 

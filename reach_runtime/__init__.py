@@ -15,14 +15,19 @@ runs; a non-finite value, gradient or optimal input met in the graph raises too 
 output); a state outside the domain keeps no nominal input (``info.outside_domain``).
 ``info.intervened`` says where the nominal input was overridden.
 
-This package imports only the standard library, NumPy and ONNX Runtime: copy its folder next to
-your controller and ``pip install numpy onnxruntime``. ``Filter.load(path, engine="native")``
-compiles the graph to C instead (:mod:`reach_runtime.native`: a fraction of the latency at batch 1;
-it needs a C compiler, and the ``onnx`` package to read the graph), checked against ONNX Runtime
-on sampled states before it decides; ``reach_runtime.native.c_source(path)`` is the C file alone,
-for a controller without Python.
+A file is trusted as a checkpoint is: it carries the SHA-256 of its graph, weights and metadata
+(:mod:`reach_runtime.digest`), and one whose digest is missing or does not match is refused, naming
+it. ``filter.metadata.source_verdict`` says whether its source passed the trust bar when exported.
+
+This package imports only the standard library, NumPy and ONNX Runtime; its native engine
+(``Filter.load(path, engine="native")``, :mod:`reach_runtime.native`: the graph compiled to C, a
+fraction of the latency at batch 1, checked against ONNX Runtime on sampled states before it
+decides) also reads the graph with the ``onnx`` package and needs a C compiler. Copy its folder
+next to your controller and ``pip install numpy onnxruntime onnx``.
+``reach_runtime.native.c_source(path)`` is the C file alone, for a controller without Python.
 """
 
-from reach_runtime.filter import Filter, FilterInfo, FilterMetadata
+from reach_runtime.filter import Filter, FilterInfo
+from reach_runtime.metadata import FilterMetadata
 
 __all__ = ["Filter", "FilterInfo", "FilterMetadata"]

@@ -1,12 +1,13 @@
 """The torch-free safety filter: an exported ONNX graph behind the checks the torch filter makes.
 
 See :mod:`reach_runtime`. The graph (``safety.filters.export``) is the torch filter's own decision, traced;
-this module only checks inputs, runs the graph, and refuses what the graph flags.
+this module only checks inputs, runs the graph, and refuses what the graph flags. A file is used
+only where its digest matches (:mod:`reach_runtime.digest`) and it passes the load checks
+(:mod:`reach_runtime.load_checks`).
 """
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from dataclasses import dataclass
@@ -15,10 +16,11 @@ from typing import Any
 import numpy as np
 import onnxruntime
 
-__all__ = ["ENGINES", "FORMAT", "Filter", "FilterInfo", "FilterMetadata"]
+from reach_runtime.digest import read_model
+from reach_runtime.load_checks import OUTPUTS, check_follows_metadata, check_interface, check_native, sampled_feeds
+from reach_runtime.metadata import FilterMetadata, check_format
 
-#: the exported format this runtime reads (``reach.format`` in the file's metadata)
-FORMAT = "reach-filter/1"
+__all__ = ["ENGINES", "Filter", "FilterInfo"]
 
 #: how a filter's graph can run (``Filter.load(..., engine=)``)
 ENGINES = ("onnxruntime", "native")
@@ -26,82 +28,6 @@ ENGINES = ("onnxruntime", "native")
 _FLOAT32 = np.dtype(np.float32)
 #: the dtypes one state may come in on the native engine's fast path (cast to float32 there)
 _CASTS = (np.dtype(np.float32), np.dtype(np.float64))
-
-#: relative slack on the time-to-go range: times summed in float32 (``k * dt``) may overshoot it
-_TIME_TOLERANCE = 1e-6
-
-
-@dataclass(frozen=True)
-class FilterMetadata:
-    """What an exported filter declares about itself (``reach.*`` metadata, JSON-decoded)."""
-
-    system_name: str
-    system: dict[str, Any]
-    problem: str
-    state_dim: int
-    control_dim: int
-    domain: tuple[tuple[float, float], ...]
-    control_set: dict[str, Any]
-    kind: str
-    settings: dict[str, Any]
-    threshold: float
-    dt: float | None
-    integrator: str
-    time_range: tuple[float, float]
-    default_time_to_go: float | None
-    source: str
-    fingerprint: str
-    raw: dict[str, Any]
-
-    @classmethod
-    def from_properties(cls, props: dict[str, str], where: str) -> FilterMetadata:
-        """Decode and check the ``reach.*`` properties; ``ValueError`` naming a missing or bad one."""
-        raw: dict[str, Any] = {}
-        for key, text in props.items():
-            if key.startswith("reach."):
-                try:
-                    raw[key[len("reach.") :]] = json.loads(text)
-                except json.JSONDecodeError as error:
-                    raise ValueError(f"{where}: metadata {key} is not JSON ({error})") from None
-        if raw.get("format") != FORMAT:
-            raise ValueError(
-                f"{where}: not a reach filter of format {FORMAT!r} (reach.format = {raw.get('format')!r}); "
-                "export it with `reach export`"
-            )
-        needed = (
-            "system_name", "system", "problem", "state_dim", "control_dim", "domain", "control_set",
-            "settings", "threshold", "dt", "integrator", "time_range", "default_time_to_go", "source", "fingerprint",
-        )  # fmt: skip
-        missing = [k for k in needed if k not in raw]
-        if missing:
-            raise ValueError(f"{where}: metadata lacks {', '.join('reach.' + k for k in missing)}")
-        low, high = (float(v) for v in raw["time_range"])
-        return cls(
-            system_name=str(raw["system_name"]),
-            system=dict(raw["system"]),
-            problem=str(raw["problem"]),
-            state_dim=int(raw["state_dim"]),
-            control_dim=int(raw["control_dim"]),
-            domain=tuple((float(a), float(b)) for a, b in raw["domain"]),
-            control_set=dict(raw["control_set"]),
-            kind=str(raw["settings"]["kind"]),
-            settings=dict(raw["settings"]),
-            threshold=float(raw["threshold"]),
-            dt=None if raw["dt"] is None else float(raw["dt"]),
-            integrator=str(raw["integrator"]),
-            time_range=(low, high),
-            default_time_to_go=None if raw["default_time_to_go"] is None else float(raw["default_time_to_go"]),
-            source=str(raw["source"]),
-            fingerprint=str(raw["fingerprint"]),
-            raw=raw,
-        )
-
-    def accepted_times(self) -> tuple[float, float]:
-        """The times-to-go a call may give: :attr:`time_range` widened by the float32 slack
-        (:data:`_TIME_TOLERANCE`, relative)."""
-        low, high = self.time_range
-        tol = _TIME_TOLERANCE * max(1.0, abs(high))
-        return low - tol, high + tol
 
 
 @dataclass(frozen=True)
@@ -133,22 +59,20 @@ class Filter:
         self.engine = "onnxruntime" if native is None else "native"
         self._native = native
         self._outputs = [o.name for o in session.get_outputs()]
-        names = [i.name for i in session.get_inputs()]
-        if names != ["state", "time_to_go", "u_nominal"]:
-            raise ValueError(f"the graph's inputs are {names}, not ['state', 'time_to_go', 'u_nominal']")
-        expected = {"control", "value", "gradient", "intervened", "infeasible", "outside_domain", "untrusted"}
-        if not expected <= set(self._outputs):
-            raise ValueError(f"the graph lacks outputs {sorted(expected - set(self._outputs))}")
         # one state on the native engine: (state shape, control shape, times that need no second look)
         self._row_ok: tuple[tuple[int], tuple[int], tuple[float, float]] | None = None
         if native is not None and getattr(native, "_row", None) is not None:
             self._row_ok = ((metadata.state_dim,), (metadata.control_dim,), metadata.accepted_times())
-            order = ("control", "value", "gradient", "intervened", "infeasible", "outside_domain", "untrusted")
-            self._row_order = [native.output_names.index(name) for name in order]
+            self._row_order = [native.output_names.index(name) for name in OUTPUTS]
 
     @classmethod
     def load(cls, path: str | os.PathLike, threads: int = 1, engine: str = "onnxruntime") -> Filter:
-        """Open an exported filter; ``ValueError`` names a missing, unreadable or foreign file.
+        """Open an exported filter; ``ValueError`` names a missing, unreadable, foreign or changed file.
+
+        The file is read once: its digest (``reach.digest``, :mod:`reach_runtime.digest`) must match
+        its contents, and the graph must be the filter's, with a free batch dimension and the widths
+        its metadata declares, and follow its metadata on sampled states
+        (:mod:`reach_runtime.load_checks`).
 
         ``engine``: ``"onnxruntime"`` (the default) runs the graph with ONNX Runtime; ``"native"``
         compiles it to C with the system's C compiler (once, cached; it needs the ``onnx`` package
@@ -160,25 +84,33 @@ class Filter:
             raise ValueError(f"{where}: no such file (an exported filter is one .onnx file)")
         if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
             raise ValueError(f"threads must be a positive integer, got {threads!r}")
+        model = read_model(where)
+        check_format(model.metadata, where)
+        digest = model.verify()  # before anything in the file is decoded or used
+        metadata = FilterMetadata.from_properties(model.metadata, where)
         options = onnxruntime.SessionOptions()
         options.intra_op_num_threads = threads
         options.inter_op_num_threads = 1
         options.execution_mode = onnxruntime.ExecutionMode.ORT_SEQUENTIAL
         options.log_severity_level = 3
-        try:
-            session = onnxruntime.InferenceSession(where, options, providers=["CPUExecutionProvider"])
+        try:  # the bytes whose digest was checked, not the file again
+            session = onnxruntime.InferenceSession(model.data, options, providers=["CPUExecutionProvider"])
         except Exception as error:  # ONNX Runtime raises its own exception types for unreadable files
             raise ValueError(f"{where}: not a readable ONNX model ({type(error).__name__}: {error})") from None
-        props = session.get_modelmeta().custom_metadata_map
-        metadata = FilterMetadata.from_properties(props, where)
+        check_interface(session, metadata, where)
+        feeds = sampled_feeds(metadata)
+        expected = dict(zip([o.name for o in session.get_outputs()], session.run(None, feeds)))
+        check_follows_metadata(feeds, expected, metadata, where)
         native = None
         if engine == "native":
             from reach_runtime.native import NativeGraph  # lazy: only this engine reads the graph (onnx) and compiles
 
             native = NativeGraph(where)
+            if native.digest != digest:
+                raise ValueError(f"{where}: the file changed while it was loaded (its digest differs between reads)")
             if native.input_names != ["state", "time_to_go", "u_nominal"]:
                 raise ValueError(f"{where}: the compiled graph's inputs are {native.input_names}")
-            _check_native(session, native, metadata, where)
+            check_native(feeds, expected, native, where)
         return cls(session, metadata, native)
 
     # ------------------------------------------------------------------ deciding
@@ -238,6 +170,8 @@ class Filter:
         meta = self.metadata
         xs = self._array(x, meta.state_dim, "states")
         batch = xs.shape[:-1]
+        if xs.size == 0:
+            raise ValueError(f"an empty batch of states (shape {xs.shape}): there is no state to decide")
         us = self._array(u_nominal, meta.control_dim, "u_nominal")
         if us.shape[:-1] != batch:
             raise ValueError(f"u_nominal must have shape {(*batch, meta.control_dim)}, got {us.shape}")
@@ -247,7 +181,13 @@ class Filter:
             "time_to_go": ts.reshape(-1),
             "u_nominal": us.reshape(-1, meta.control_dim),
         }
-        results = self.session.run(None, flat) if self._native is None else self._native.run(flat)
+        if self._native is not None:
+            results = self._native.run(flat)
+        else:
+            try:
+                results = self.session.run(None, flat)
+            except Exception as error:  # ONNX Runtime's own types; the checks above should leave none
+                raise ValueError(f"ONNX Runtime refused the inputs ({type(error).__name__}: {error})") from None
         out = dict(zip(self._outputs, results))
         if bool(np.asarray(out["untrusted"]).any()):
             raise ValueError(
@@ -302,7 +242,11 @@ class Filter:
         low, high = meta.time_range
         first, last = meta.accepted_times()
         if type(t) is float or type(t) is int:  # one number (the common call at batch 1): checked without NumPy
-            if not (math.isfinite(t) and first <= t <= last):
+            if type(t) is int and abs(t) > 2**1023:  # float(t) would overflow
+                raise ValueError(f"time-to-go t is an integer of {t.bit_length()} bits: not a time-to-go in seconds")
+            if not math.isfinite(t):
+                raise ValueError(f"time-to-go t = {t} is not a finite number of seconds")
+            if not first <= t <= last:
                 raise ValueError(
                     f"time-to-go t = {float(t)} lies outside [{low:g}, {high:g}], the times this value function covers"
                 )
@@ -312,8 +256,12 @@ class Filter:
             raise ValueError(f"t must be real numbers, got dtype {times.dtype}")
         if times.ndim and times.shape != batch and times.size != 1:
             raise ValueError(f"a per-state t must have shape {batch} (one per state), got {times.shape}")
-        times = np.broadcast_to(times.astype(np.float64).reshape(() if times.size == 1 else batch), batch)
-        bad = ~np.isfinite(times) | (times < first) | (times > last)
+        with np.errstate(over="ignore"):
+            times = np.broadcast_to(times.astype(np.float64).reshape(() if times.size == 1 else batch), batch)
+        if not np.isfinite(times).all():
+            value = float(times[~np.isfinite(times)].reshape(-1)[0])
+            raise ValueError(f"time-to-go t = {value} is not a finite number of seconds")
+        bad = (times < first) | (times > last)
         if bad.any():
             value = float(times[bad].reshape(-1)[0])
             raise ValueError(
@@ -325,59 +273,3 @@ class Filter:
         meta = self.metadata
         dt = "" if meta.dt is None or math.isnan(meta.dt) else f", dt={meta.dt:g}"
         return f"Filter({meta.kind} of {meta.system_name}, threshold={meta.threshold:g}{dt}, source={meta.source!r})"
-
-
-#: states on which a compiled filter is checked against ONNX Runtime when it is loaded
-NATIVE_CHECK_STATES = 256
-
-
-def _check_native(session: onnxruntime.InferenceSession, native: Any, meta: FilterMetadata, where: str) -> None:
-    """Refuse a compiled graph that does not decide as ONNX Runtime does on sampled states.
-
-    ``NATIVE_CHECK_STATES`` states drawn uniformly from the domain (and a little beyond it, where the
-    filter must intervene), times-to-go over the range, nominal inputs over the input set, one
-    batch: so a graph that mixes rows, or any miscompilation, is caught before the first decision.
-    Values and gradients must agree to float32 rounding (matrix sums run in another order), the
-    flags exactly, and the decision on all but 1 % of the states (a state within rounding of the
-    threshold may go either way)."""
-    rng = np.random.default_rng(0)
-    count = NATIVE_CHECK_STATES
-    low, high = np.array(meta.domain, dtype=np.float64).T
-    span = high - low
-    x = rng.uniform(low - 0.05 * span, high + 0.05 * span, size=(count, meta.state_dim))
-    t = rng.uniform(*meta.time_range, size=count)
-    box = meta.control_set.get("box")
-    if box is not None:
-        u = rng.uniform(
-            np.array(box["low"], dtype=np.float64),
-            np.array(box["high"], dtype=np.float64),
-            size=(count, meta.control_dim),
-        )
-    else:
-        ball = meta.control_set["ball"]
-        direction = rng.normal(size=(count, meta.control_dim))
-        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-        u = np.array(ball["center"]) + float(ball["radius"]) * rng.uniform(0, 1, (count, 1)) * direction
-    feeds = {"state": x.astype(np.float32), "time_to_go": t.astype(np.float32), "u_nominal": u.astype(np.float32)}
-    names = [o.name for o in session.get_outputs()]
-    expected = dict(zip(names, session.run(None, feeds)))
-    got = dict(zip(names, native.run(feeds)))
-    trusted = not bool(expected["untrusted"]) and not bool(got["untrusted"])
-    problems = []
-    if bool(expected["untrusted"]) != bool(got["untrusted"]):
-        problems.append("its untrusted flag")
-    if trusted:
-        if not np.allclose(got["value"], expected["value"], rtol=1e-4, atol=1e-4):
-            problems.append("values")
-        if not np.allclose(got["gradient"], expected["gradient"], rtol=1e-3, atol=1e-3):
-            problems.append("gradients")
-        for flag in ("outside_domain", "infeasible"):
-            if not np.array_equal(got[flag], expected[flag]):
-                problems.append(flag)
-        if (got["intervened"] != expected["intervened"]).mean() > 0.01:
-            problems.append("decisions")
-    if problems:
-        raise ValueError(
-            f"{where}: the compiled filter disagrees with ONNX Runtime on {', '.join(problems)} over "
-            f"{count} sampled states; it is not used (load it with engine='onnxruntime')"
-        )

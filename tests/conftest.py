@@ -114,9 +114,12 @@ def lockstep():
 
 def nan_weight_copy(source: Path, target: Path) -> Path:
     """A copy of an exported ONNX filter with every weight matrix set to NaN (at least two), written
-    to ``target``: a value function the runtimes must refuse to trust."""
+    to ``target`` with its digest sealed again (as an export of a NaN network would carry): a value
+    function the runtimes must refuse to trust, in a file they accept as exported."""
     import onnx  # lazy: the export tests' dependency (the dev extra), not every test's
     from onnx import numpy_helper
+
+    from reach_runtime.digest import seal  # lazy: loads ONNX Runtime, the export tests' dependency
 
     model = onnx.load(source)
     edited = 0
@@ -126,7 +129,7 @@ def nan_weight_copy(source: Path, target: Path) -> Path:
             tensor.CopyFrom(numpy_helper.from_array(np.full_like(array, np.nan), tensor.name))
             edited += 1
     assert edited >= 2
-    onnx.save(model, target)
+    target.write_bytes(seal(model.SerializeToString(), str(target)))
     return target
 
 

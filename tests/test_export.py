@@ -86,7 +86,8 @@ def _check_equivalence(air3d, result, kind: str) -> None:
     meta = result.metadata
     assert meta["settings"]["kind"] == kind and meta["system_name"] == "air3d" and meta["dt"] == DT
     assert meta["fingerprint"].startswith("sha256:") and meta["settings"]["outside_domain"] == "backup"
-    torch_filter = SafetyFilter(air3d, meta["threshold"], settings=FilterSettings(**meta["settings"]), dt=DT)
+    threshold = meta["settings"]["threshold"]
+    torch_filter = SafetyFilter(air3d, threshold, settings=FilterSettings(**meta["settings"]), dt=DT)
     runtime = Filter.load(result.path)
     x, t, u = _inputs(air3d.system, 2000, 1)
     applied, info = torch_filter(x, t, u)
@@ -95,7 +96,7 @@ def _check_equivalence(air3d, result, kind: str) -> None:
     np.testing.assert_allclose(got_info.gradient, info.gradient.numpy(), atol=2e-4, rtol=1e-4)
     differ = got_info.intervened != info.intervened.numpy()
     if kind != "lookahead":  # the lookahead's verdict is its rollout's minimum, not V here
-        assert not (differ & (np.abs(info.value.numpy() - meta["threshold"]) > 1e-4)).any()
+        assert not (differ & (np.abs(info.value.numpy() - threshold) > 1e-4)).any()
     assert differ.mean() < 1e-3
     agree = ~differ
     same = np.isclose(got[agree], applied.numpy()[agree], atol=1e-5).all(-1)
@@ -231,7 +232,8 @@ def _run_in_fresh_venv(venv: Path, app: Path, onnx_file: Path) -> None:
 def test_the_runtime_runs_in_a_fresh_venv_without_torch(exported, tmp_path):
     """A new virtual environment that sees only the runtime's folder, NumPy and ONNX Runtime (with
     what ONNX Runtime needs), linked from this one so that the default suite downloads nothing:
-    no torch, no reach. (The same with a real ``pip install``: the slow test below.)"""
+    no torch, no reach. (The same with the documented ``pip install`` line, both engines: the slow
+    test at the end.)"""
     import importlib.util
     import sysconfig
 
@@ -253,16 +255,6 @@ def test_the_runtime_runs_in_a_fresh_venv_without_torch(exported, tmp_path):
         (linked / "numpy.libs").symlink_to(libs)
     site = next((venv / "lib").glob("python*/site-packages"))
     (site / "runtime_packages.pth").write_text(str(linked) + "\n")
-    _run_in_fresh_venv(venv, tmp_path / "app", exported["switch"].path)
-
-
-@pytest.mark.slow
-def test_the_runtime_installs_with_pip_in_a_fresh_venv(exported, tmp_path):
-    """``pip install numpy onnxruntime`` in a new virtual environment, then the runtime's folder."""
-    venv = tmp_path / "venv"
-    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
-    pip = [str(venv / "bin" / "python"), "-m", "pip", "install", "-q", "--disable-pip-version-check"]
-    subprocess.run([*pip, "numpy", "onnxruntime"], check=True, timeout=600)
     _run_in_fresh_venv(venv, tmp_path / "app", exported["switch"].path)
 
 
@@ -380,3 +372,52 @@ def test_one_float32_state_on_the_native_engine_decides_as_the_general_path(expo
     monkeypatch.setattr(native_module.NativeGraph, "checked_row", lambda self, *a: (4, []))
     with pytest.raises(ValueError, match=r"refused this state \(status 4\)"):
         native(xs[0], us[0], 0.5)
+
+
+#: the native engine in the fresh environment: compiled there, checked against ONNX Runtime, deciding
+_NATIVE_SCRIPT = """
+import importlib.util, sys
+assert importlib.util.find_spec("torch") is None, "torch is importable"
+from reach_runtime import Filter
+f = Filter.load(sys.argv[1], engine="native")
+u, info = f([0.1, 0.0, 0.0], [1.0])
+print(f.engine, bool(info.intervened), float(info.value))
+"""
+
+
+def documented_install_line() -> list[str]:
+    """The packages of the robot's install line in docs/export.md (``python -m pip install ...``)."""
+    for line in (ROOT / "docs" / "export.md").read_text().splitlines():
+        if "# the robot's install line" in line:
+            command = line.split("#")[0].split()
+            assert command[:4] == ["python", "-m", "pip", "install"], line
+            return command[4:]
+    raise AssertionError("docs/export.md has no line marked '# the robot's install line'")
+
+
+@needs_compiler
+@pytest.mark.slow
+def test_the_documented_install_line_runs_both_engines_in_a_fresh_venv(exported, tmp_path):
+    """A plain new virtual environment (no system site packages), the docs' install line with
+    ``pip`` and nothing else, the runtime's folder copied beside: both engines load the export and
+    decide there, torch and reach not importable."""
+    assert "onnx" in documented_install_line()  # the native engine reads the graph with it
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    python = str(venv / "bin" / "python")
+    pip = [python, "-m", "pip", "install", "-q", "--disable-pip-version-check"]
+    subprocess.run([*pip, *documented_install_line()], check=True, timeout=600)
+    app = tmp_path / "app"
+    _run_in_fresh_venv(venv, app, exported["switch"].path)
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache")}
+    done = subprocess.run(
+        [python, "-c", _NATIVE_SCRIPT, str(exported["switch"].path)],
+        cwd=app,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
+    assert done.returncode == 0, done.stderr
+    engine, intervened, value = done.stdout.split()
+    assert engine == "native" and intervened == "True" and float(value) < 0

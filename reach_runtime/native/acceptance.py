@@ -1,6 +1,6 @@
 """What graphs the native engine accepts, checked before any C is written.
 
-An exported filter is one readable ONNX file (:func:`load_model`), whose inputs have element types
+An exported filter is one readable ONNX file whose digest matches (:func:`load_model`), whose inputs have element types
 the compiler handles and whose operators are all in
 :data:`~reach_runtime.native.operators.SUPPORTED_OPS` (:func:`check_graph`), and whose every input
 and output is one row per state or a scalar flag (:func:`check_row_shapes`), so that deciding row
@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from reach_runtime.digest import read_model
 from reach_runtime.native.folding import Tensor
 from reach_runtime.native.operators import DTYPES, SUPPORTED_OPS
 
@@ -22,7 +23,10 @@ __all__ = ["check_graph", "check_row_shapes", "load_model"]
 
 
 def load_model(path: str | os.PathLike) -> tuple[Any, str]:
-    """The ONNX model at ``path``, and the path as a string (errors name it)."""
+    """The ONNX model at ``path``, and the path as a string (errors name it). The file is read once;
+    one that carries ``reach.*`` metadata (an exported filter) is refused unless its digest matches
+    (:mod:`reach_runtime.digest`), as ``Filter.load`` refuses it; a graph without them (a test's,
+    a user's) is compiled as it is."""
     try:
         import onnx  # lazy: only reading the graph needs onnx
     except ImportError:
@@ -30,8 +34,11 @@ def load_model(path: str | os.PathLike) -> tuple[Any, str]:
     where = os.fspath(path)
     if not os.path.isfile(where):
         raise ValueError(f"{where}: no such file (an exported filter is one .onnx file)")
+    read = read_model(where)
+    if any(key.startswith("reach.") for key in read.metadata):
+        read.verify()  # an exported filter: compiled only where its digest matches
     try:
-        model = onnx.load(where)
+        model = onnx.load_from_string(read.data)
     except Exception as error:  # onnx raises protobuf's own errors for a file it cannot parse
         raise ValueError(f"{where}: not a readable ONNX model ({type(error).__name__}: {error})") from None
     return model, where

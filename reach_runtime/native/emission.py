@@ -201,7 +201,7 @@ def _checked_entry(emitter: Emitter, function: str) -> str:
     ):
         return ""
     low, high = (float(v) for v in json.loads(meta["reach.time_range"]))
-    tol = 1e-6 * max(1.0, abs(high))  # as the Python runtime's _TIME_TOLERANCE
+    tol = 1e-6 * max(1.0, abs(high))  # as the Python runtime's TIME_TOLERANCE
     n_state, n_control = emitter.inputs[0].value.shape[1], emitter.inputs[2].value.shape[1]
     untrusted = names_out.index("untrusted")
     params = ", ".join(f"{t.ctype} *out_{k}" for k, t in enumerate(emitter.outputs))

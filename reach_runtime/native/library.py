@@ -9,6 +9,7 @@ damaged file is rebuilt rather than loaded.
 from __future__ import annotations
 
 import ctypes
+import json
 import os
 import threading
 from pathlib import Path
@@ -16,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from reach_runtime.digest import DIGEST_KEY
 from reach_runtime.native.build import build
 from reach_runtime.native.emission import c_file, emitter_for
 
@@ -27,6 +29,9 @@ class NativeGraph:
 
     def __init__(self, path: str | os.PathLike, cache: str | os.PathLike | None = None) -> None:
         emitter = emitter_for(path)  # read and emitted once: the library is built from the same emitter
+        stored = emitter.metadata.get(DIGEST_KEY)
+        #: the digest of the file compiled (checked when read), or None for a graph that is no exported filter
+        self.digest: str | None = None if stored is None else json.loads(stored)
         self._library_path = build(c_file(emitter, path, "reach_filter"), path, cache)
         try:
             self._lib = ctypes.CDLL(str(self._library_path))

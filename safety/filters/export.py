@@ -4,7 +4,10 @@
 file: the filter's whole decision for a batch of states, time-to-go and nominal inputs, with the
 value, its gradient and the decision's flags as outputs, and in its metadata everything the runtime
 needs to check its inputs and everything a reader needs to know what it holds (the system and its
-parameters, the settings in force, ``dt`` and the integrator, the source and its fingerprint).
+parameters, the settings in force, ``dt`` and the integrator, the source and its fingerprint, and
+whether the source passed its trust bar: :func:`source_verdict`). Each fact is stored once (the
+threshold is the settings'), and the file is sealed with the SHA-256 of everything in it
+(``reach.digest``, :mod:`reach_runtime.digest`): the runtime refuses a file changed after export.
 
 **One implementation.** The graph is not a second filter written for ONNX: it is
 :meth:`safety.filters.base.SafetyFilter.decide` itself, traced by ``make_fx`` into ATen operations
@@ -19,9 +22,12 @@ gradients and optimal inputs (``untrusted``: the runtime raises) and states outs
 
 **Refused**, naming what: a value function that is not a network or a minimum of networks (a grid's
 interpolation is not traced), a network multiplying in reduced precision, an output path that is not
-a writable ``.onnx`` file, and every setting :class:`SafetyFilter` refuses. After writing, the file
-is run with ONNX Runtime on sampled states and compared with the eager filter; an export whose
-decisions differ away from the threshold is removed and refused.
+a writable ``.onnx`` file, a default time-to-go outside the times the value function covers, and
+every setting :class:`SafetyFilter` refuses. The decision is traced at a batch size that is no
+input's width (:func:`example_batch`), and a converted graph without one free batch dimension is
+refused. After writing, the file is loaded as the runtime loads it, run with ONNX Runtime on sampled
+states and compared with the eager filter; an export whose decisions differ away from the threshold
+is removed and refused.
 """
 
 from __future__ import annotations
@@ -46,11 +52,17 @@ from safety.tracing import recording_trust
 from safety.value_loading import as_value_function
 from training.checkpoint import network_digest
 from training.network import NeuralValueFunction
+from training.pretrained import PREFIX, card, is_pretrained
 
-__all__ = ["FORMAT", "INPUTS", "OUTPUTS", "ExportedFilter", "export_filter", "graph_value_function"]
-
-#: the format tag in an exported file's metadata (``reach.format``); the runtime refuses others
-FORMAT = "reach-filter/1"
+__all__ = [
+    "INPUTS",
+    "OUTPUTS",
+    "ExportedFilter",
+    "example_batch",
+    "export_filter",
+    "graph_value_function",
+    "source_verdict",
+]
 
 #: the graph's inputs: states ``(B, n)``, times-to-go ``(B,)`` and nominal inputs ``(B, m_u)``, float32
 INPUTS = ("state", "time_to_go", "u_nominal")
@@ -133,6 +145,8 @@ def _metadata(
     integrator: str,
     label: str,
 ) -> dict[str, Any]:
+    from reach_runtime.metadata import FORMAT  # lazy: the runtime's package loads ONNX Runtime (the export extra)
+
     system = filt.system
     low, high = time_range(vf) or (0.0, float(system.horizon))
     return {
@@ -146,7 +160,6 @@ def _metadata(
         "wrapped_dims": list(system.periodic_dims),
         "control_set": _input_set(system.control_bounds),
         "settings": {**filt.settings.keywords(), "policy": settings.backup_policy},
-        "threshold": filt.threshold,
         "dt": dt,
         "integrator": integrator,
         "time_range": [float(low), float(high)],
@@ -156,8 +169,45 @@ def _metadata(
         "outputs": list(OUTPUTS),
         "source": label,
         "fingerprint": _fingerprint(vf),
+        "source_verdict": source_verdict(label),
         "torch": torch.__version__,
     }
+
+
+def source_verdict(source: str) -> dict[str, Any]:
+    """Whether the exported source passed its trust bar, as the file records it: for
+    ``pretrained:NAME``, its model card's verdict (``passes`` and its line); for any other source,
+    the user's own value function, which carries no verdict (``passes`` None)."""
+    if is_pretrained(source):
+        verdict = card(source[len(PREFIX) :]).verdict
+        return {"passes": bool(verdict.passes), "line": f"{source} {verdict.line()}"}
+    return {"passes": None, "line": f"{source}: the user's own value function, no trust verdict (yours to judge)"}
+
+
+def _check_default_time(metadata: dict[str, Any]) -> None:
+    """Refuse a default time-to-go (``time_to_go=T``, or the horizon) outside the times the value
+    function covers: the runtime would refuse every call that relies on it."""
+    default, (low, high) = metadata["default_time_to_go"], metadata["time_range"]
+    if default is not None and not low <= default <= high:
+        raise ValueError(
+            f"time-to-go {default:g} lies outside [{low:g}, {high:g}], the times the value function covers; "
+            "give a time-to-go in that range, or 'remaining' (the caller passes it)"
+        )
+
+
+def _check_free_batch(model: Any) -> None:
+    """Refuse a converted graph whose inputs or outputs do not all share one free batch dimension."""
+    names = []
+    for value in [*model.graph.input, *model.graph.output]:
+        if value.name not in INPUTS + OUTPUTS[:-1]:
+            continue
+        dims = value.type.tensor_type.shape.dim
+        names.append(dims[0].dim_param if dims and dims[0].HasField("dim_param") else None)
+    if None in names or len(set(names)) != 1:
+        raise ValueError(
+            "the converted graph does not keep one free batch dimension for its inputs and outputs "
+            f"(leading dimensions: {names}); this is a bug of the export"
+        )
 
 
 def _decision(filt: SafetyFilter) -> Any:
@@ -194,11 +244,23 @@ def _example(filt: SafetyFilter, batch: int) -> tuple[torch.Tensor, torch.Tensor
     return x, t, u
 
 
+def example_batch(system: ControlAffineSystem) -> int:
+    """The batch size the decision is traced at: 4, or the next size that is no input's width.
+
+    A symbolic trace gives equal sizes of its inputs one symbol; a batch equal to the state or
+    input width would then be tied to it, and the first operation that fixes the width fixes the
+    batch too (a 4-input system traced at batch 4 exported a graph for batches of 4 only)."""
+    batch = 4
+    while batch in (system.state_dim, system.control_dim):
+        batch += 1
+    return batch
+
+
 def _trace_and_convert(filt: SafetyFilter, path: str) -> None:
     """Trace the decision with symbolic batch size and write it as ONNX to ``path``."""
     from torch.fx.experimental.proxy_tensor import make_fx  # lazy: tracing machinery, export only
 
-    example = _example(filt, 4)
+    example = _example(filt, example_batch(filt.system))
     graph = make_fx(
         _decision(filt), tracing_mode="symbolic", decomposition_table=_DECOMPOSITIONS, _allow_non_fake_inputs=True
     )(*example)
@@ -218,13 +280,17 @@ def _trace_and_convert(filt: SafetyFilter, path: str) -> None:
 
 
 def _self_check(filt: SafetyFilter, path: Path, states: int) -> tuple[int, int]:
-    """Run the written file with ONNX Runtime on sampled inputs and compare with the eager filter:
-    ``(checked, differing)``; raises where a decision differs away from the threshold."""
+    """Load the written file with the runtime (:meth:`reach_runtime.Filter.load`: its checks), run
+    it with ONNX Runtime on sampled inputs and compare with the eager filter: ``(checked,
+    differing)``; raises where the runtime refuses the file or a decision differs away from the
+    threshold."""
     import numpy as np  # lazy: the self-check only
-    import onnxruntime  # lazy: an optional dependency (the export extra)
+
+    from reach_runtime import Filter  # lazy: loads ONNX Runtime, an optional dependency (the export extra)
 
     x, t, u = _example(filt, states)
-    session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    # loaded as a robot loads it: its digest, its interface, and its graph following its metadata checked
+    session = Filter.load(path).session
     out = dict(zip(OUTPUTS, session.run(None, {"state": x.numpy(), "time_to_go": t.numpy(), "u_nominal": u.numpy()})))
     if bool(out["untrusted"]):
         raise ValueError(f"the exported filter flags untrusted values on states sampled from the domain ({path})")
@@ -276,18 +342,22 @@ def export_filter(
     filt = SafetyFilter(graph_vf, threshold, settings=settings, dt=dt, integrator=integrator, system=system)
     label = str(source) if isinstance(source, (str, os.PathLike)) else type(vf).__name__
     metadata = _metadata(vf, filt, settings, dt, integrator, label)
+    _check_default_time(metadata)
     import onnx  # lazy: an optional dependency (the export extra)
+
+    from reach_runtime.digest import seal  # lazy: the runtime's package loads ONNX Runtime (the export extra)
 
     with tempfile.TemporaryDirectory() as scratch:
         raw = os.path.join(scratch, "graph.onnx")
         _trace_and_convert(filt, raw)
         model = onnx.load(raw)
+    _check_free_batch(model)
     for key, value in metadata.items():
         entry = model.metadata_props.add()
         entry.key, entry.value = f"reach.{key}", json.dumps(value)
     model.doc_string = f"reach safety filter ({settings.kind}) of {metadata['system_name']} from {label}"
     with atomic_path(out_path) as tmp:
-        onnx.save(model, tmp)
+        Path(tmp).write_bytes(seal(model.SerializeToString(), str(out_path)))
     checked, differing = 0, 0
     if check_states:
         try:
