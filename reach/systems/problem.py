@@ -226,7 +226,7 @@ def require_finite_margin(
 
 
 def _parameters(system: Any) -> str:
-    """The system's parameters in words, its non-finite numbers named first (a NaN radius, say)."""
+    """The system's parameters in words, naming its non-finite numbers (a NaN radius, say)."""
     params = dict(system.parameters())
     for key, value in vars(system).items():  # a user system may keep numbers it does not list
         if not key.startswith("_") and isinstance(value, float) and key not in params:
