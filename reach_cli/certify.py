@@ -142,13 +142,13 @@ def run(args: argparse.Namespace) -> int:
     system = value_function.system
     # the system's certification defaults (declared beside its lemmas, or derived from them) fill what
     # the options leave out; the options stay for experts
-    defaults = certify_defaults(system, args.dt, given.get("integrator", default(CertifySettings, "integrator")))
-    used = {k: v for k, v in defaults.items() if k not in given}
+    integrator = given.get("integrator", default(CertifySettings, "integrator"))
+    used = certify_defaults(system, args.dt, integrator, given)
     if used:
         shown = ", ".join(f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}" for k, v in used.items())
         print(f"{system.name}'s certification defaults: {shown}")
     time_to_go = args.time_to_go if args.time_to_go is not None else system.horizon
-    settings = CertifySettings(time_to_go=time_to_go, dt=args.dt, **{**defaults, **given})
+    settings = CertifySettings(time_to_go=time_to_go, dt=args.dt, **{**used, **given})
     network_of(value_function)  # a grid or a composition is refused before any work, naming what it takes
     result = certify(value_function, settings, device=args.device, resume=args.resume)
     certificate = certified_set(value_function, result)
@@ -173,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
         f"wrote {path}: {len(certificate.kept)} boxes, {share:.4f} of the state box"
         + (f" (and {beyond} of the boxes beyond it)" if beyond else "")
         + ", "
-        f"certified invariant and safe where V >= {args.level:g}{escape}"
+        f"certified invariant and safe where V >= {settings.level:g}{escape}"
         + ("" if result.certified else " (the rest of {V >= c} is not certified)")
     )
     return 0 if len(certificate.kept) else EXIT_PARTIAL

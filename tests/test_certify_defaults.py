@@ -89,3 +89,12 @@ def test_reach_certify_with_no_options_reaches_ninety_percent_of_the_largest_inv
         capture_output=True, text=True, cwd=ROOT,
     )  # fmt: skip
     assert check.returncode == 0 and "holds for pretrained:air3d" in check.stdout, check.stderr
+
+
+def test_an_option_given_alone_keeps_the_other_defaults_consistent():
+    """--closure-scale alone moves the default escape set with it (as far out as the lemmas allow at
+    that scale); every field given is left to the caller."""
+    scaled = certify_defaults(Air3D(), 0.02, given={"closure_scale": 1})
+    assert scaled["escape_margin"] == Air3D().margin_outside_domain(1.0) == 0.75 and "closure_scale" not in scaled
+    assert "escape_margin" not in certify_defaults(Air3D(), 0.02, given={"closure_scale": 2, "escape_margin": 1.0})
+    assert certify_defaults(Air3D(), 0.02, given={"level": 0.1})["closure_scale"] == 4

@@ -237,17 +237,36 @@ def derived_defaults(system: ControlAffineSystem, dt: float, integrator: str = "
     return out
 
 
-def certify_defaults(system: ControlAffineSystem, dt: float, integrator: str = "euler") -> dict[str, object]:
-    """The proof settings ``reach certify`` uses where none are given: the system's own
+def certify_defaults(
+    system: ControlAffineSystem, dt: float, integrator: str = "euler", given: dict[str, object] | None = None
+) -> dict[str, object]:
+    """The proof settings ``reach certify`` uses for the fields not ``given``: the system's own
     (:meth:`~reach.systems.margins.MarginBounds.certification_defaults`), else :func:`derived_defaults`.
-    A declared field outside :data:`DEFAULT_FIELDS` is refused, naming it."""
+    A declared field outside :data:`DEFAULT_FIELDS` is refused, naming it. Where ``given`` sets the
+    closure's scale but not the escape margin, the default margin follows that scale (as far out as
+    :meth:`~reach.systems.margins.MarginBounds.margin_outside_domain` allows there), so that one
+    option can be changed alone."""
+    given = dict(given or {})
     declared = system.certification_defaults()
     if declared is None:
-        return derived_defaults(system, dt, integrator)
-    unknown = sorted(set(declared) - set(DEFAULT_FIELDS))
-    if unknown:
-        raise ValueError(f"{system.name}.certification_defaults names fields no proof takes: {unknown}")
-    return dict(declared)
+        defaults = derived_defaults(system, dt, integrator)
+    else:
+        unknown = sorted(set(declared) - set(DEFAULT_FIELDS))
+        if unknown:
+            raise ValueError(f"{system.name}.certification_defaults names fields no proof takes: {unknown}")
+        defaults = dict(declared)
+    if "closure_scale" in given and "escape_margin" not in given and defaults.get("escape_margin") is not None:
+        scale = given["closure_scale"]
+        takes_scale = "scale" in inspect.signature(system.margin_outside_domain).parameters
+        if takes_scale:
+            margin = system.margin_outside_domain(scale)
+        else:  # a bound for the domain itself only
+            margin = system.margin_outside_domain() if scale == 1 else None
+        if margin is None or not margin > 0:
+            defaults.pop("escape_margin")
+        else:
+            defaults["escape_margin"] = float(margin)
+    return {k: v for k, v in defaults.items() if k not in given}
 
 
 def closure_domain(system: ControlAffineSystem, scale: int = 1, device: str | torch.device = "cpu") -> torch.Tensor:
