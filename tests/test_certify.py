@@ -350,6 +350,9 @@ def test_the_command_line_certifies_and_checks_in_one_line_errors(network, tmp_p
     save_checkpoint(source, network.float())
     out = tmp_path / "cert.npz"
     args = ["certify", str(source), "--level", "0.3", "--dt", "0.05", "--initial-splits", "4", "--min-width", "0.125"]
+    # a quick closure: the network's own box, cells of its finest boxes, no refinements (Air3D's
+    # certification defaults close over a box four times wider, refined three times)
+    args += ["--closure-scale", "1", "--closure-width", "0.125", "--closure-refinements", "0"]
     assert main([*args, "--out", str(out)]) in (0, 3)
     assert "wrote" in capsys.readouterr().out and out.exists()
     assert main(["certify", str(source), "--check", str(out)]) == 0
@@ -594,11 +597,12 @@ def test_a_certify_run_that_cannot_fit_or_write_is_refused_before_it_starts(netw
     (tmp_path / "folder.npz").mkdir()
     (tmp_path / "a-file").write_text("not a folder")
     base = ["certify", str(source), "--level", "0.3", "--dt", "0.05"]
+    narrow = ["--closure-scale", "1", "--closure-refinements", "0"]  # not Air3D's wide, refined defaults
     progress = tmp_path / "p.npz"
     for extra, message in (
         (["--disturbance-splits", "100000", "--out", str(tmp_path / "a.npz")], "GiB, but"),
         (["--min-width", "1e-12", "--out", str(tmp_path / "a.npz")], "beyond what a 64-bit index holds"),
-        (["--closure-width", "1e-5", "--out", str(tmp_path / "a.npz")], "closure cover cut down to"),
+        (["--closure-width", "1e-5", *narrow, "--out", str(tmp_path / "a.npz")], "closure cover cut down to"),
         (["--out", str(tmp_path / "folder.npz")], "is a directory"),
         (["--out", str(tmp_path / "a-file" / "c.npz")], "--out path"),  # its folder cannot be made
         (["--out", str(progress), "--resume", str(progress)], "name the same file"),

@@ -272,12 +272,15 @@ def test_the_command_line_takes_an_escape_margin_and_refuses_a_bad_one(tmp_path,
     save_checkpoint(source, ValueNetwork(Air3D(), "ssl", width=16, w0=3.0))
     out = tmp_path / "cert.npz"
     args = ["certify", str(source), "--level", "0.3", "--dt", "0.05", "--initial-splits", "4", "--min-width", "0.125"]
-    assert main([*args, "--escape-margin", "0.7", "--closure-width", "0.0625", "--out", str(out)]) in (0, 3)
+    args += ["--closure-refinements", "0"]  # not Air3D's refined defaults
+    # the network's own box (Air3D's defaults close over a box four times wider)
+    own_box = ["--closure-scale", "1", "--escape-margin", "0.7", "--closure-width", "0.0625"]
+    assert main([*args, *own_box, "--out", str(out)]) in (0, 3)
     printed = capsys.readouterr().out
     assert "wrote" in printed and ("escape set" in printed), printed
     assert main(["certify", str(source), "--check", str(out)]) == 0
     for bad, named in (
-        ([*args, "--escape-margin", "0.9", "--out", str(out)], "above 0.75"),
+        ([*args, "--closure-scale", "1", "--escape-margin", "0.9", "--out", str(out)], "above 0.75"),
         ([*args, "--escape-margin", "0.7", "--integrator", "rk4", "--out", str(out)], "margin_step_bound"),
         ([*args, "--closure-width", "0", "--out", str(out)], "closure_relative_width"),
         ([*args, "--closure-scale", "3", "--closure-width", "0.125", "--out", str(out)], "power of two"),
