@@ -58,12 +58,12 @@ def main() -> None:
     vf = load_value_function(str(run)).value_function
     print("accuracy against the grid at t = 1.5:", ReferenceEvaluator(grid, 1.5)(vf))
 
-    # 3. verification: rollouts of the learned policy; certified set {V < -delta}
+    # 3. verification: rollouts of the learned policy; the scenario set {V < -delta}
     settings = VerifySettings(samples=300 if tiny else 20000, scenario_samples=100 if tiny else 20000, robust_samples=0)
     row = verify(vf, sample_states(system, settings.samples, 0), settings, progress=False)
     print(
         f"verification: false reachable {row['false_reachable_rate']:.2%}, failures {row['failure_rate']:.2%}, "
-        f"delta {row['delta']:.3f}, certified {row['scenario_volume']:.3f} of the domain, eps {row['eps']:.2e}"
+        f"delta {row['delta']:.3f}, scenario set {row['scenario_volume']:.3f} of the domain, eps {row['eps']:.2e}"
     )
 
     # 4. the environment under a safety filter: keep the task feasible, the deadline counting down
