@@ -3,11 +3,12 @@
 Each subcommand is one module of this package holding its parser beside its handler: ``envs``
 (list environments and scenes), ``pretrained`` (the shipped value networks and their cards),
 ``record`` (an episode as a GIF), ``groundtruth`` (grid BRT solve), ``train`` (value networks),
-``evaluate`` (rollout verification across checkpoints), ``filter-eval`` (what a safety filter
-changes in episodes of a task), ``export`` (a filter as one ONNX file for the torch-free
-runtime), ``certify`` (a formally certified safe set, or the check of its file), ``plot`` (BRT
-slices, union overlays, violation bars, filtered-episode GIFs), ``sweep`` (layouts x seeds on a
-budget, with a report) and ``demo`` (all of it on Air3D).
+``train-until`` (training in phases until the scenario bound holds), ``evaluate`` (rollout
+verification across checkpoints), ``filter-eval`` (what a safety filter changes in episodes of a
+task), ``export`` (a filter as one ONNX file for the torch-free runtime), ``certify`` (a formally
+certified safe set, or the check of its file), ``plot`` (BRT slices, union overlays, violation
+bars, filtered-episode GIFs), ``sweep`` (layouts x seeds on a budget, with a report) and ``demo``
+(all of it on Air3D).
 
 Handlers only parse and call library functions. Options that mirror a library setting default to
 ``None`` and fall back to the library's dataclass, so every default has one source; ``--help``
@@ -46,11 +47,26 @@ from reach_cli import (
     record,
     sweep,
     train,
+    train_until,
 )
 from reach_cli.options import OneLineParser, common_options, finish_namespace
 
 #: subcommand modules, in the order ``reach --help`` lists them
-COMMANDS = (envs, pretrained, record, groundtruth, train, evaluate, filter_eval, export, certify, plot, sweep, demo)
+COMMANDS = (
+    envs,
+    pretrained,
+    record,
+    groundtruth,
+    train,
+    train_until,
+    evaluate,
+    filter_eval,
+    export,
+    certify,
+    plot,
+    sweep,
+    demo,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

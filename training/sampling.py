@@ -54,6 +54,13 @@ class PointSampler:
         self.generator.manual_seed(self.seed)
         box = network.system.domain_tensor(torch.float32, device)
         self._low, self._span = box[:, 0], box[:, 1] - box[:, 0]
+        #: states where the network was found wrong (set by a caller such as studies.train_until, never
+        #: checkpointed: the caller keeps them): with :attr:`hard_fraction` > 0 each step replaces that
+        #: share of its uniform points by points near them (:meth:`mix_hard_states`)
+        self.hard_states: torch.Tensor | None = None
+        self.hard_fraction = 0.0
+        #: how near: a uniform offset of up to this share of the box's side, per dimension
+        self.hard_radius = 0.05
 
     def uniform(self, n: int, tmax: float) -> tuple[torch.Tensor, torch.Tensor]:
         """``n`` states uniform on the domain and times uniform on ``[0, tmax]``, from the run's generator
@@ -65,8 +72,28 @@ class PointSampler:
     def points(self, tmax: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """One step's ``config.points`` states and times (this process's share of them), and the vanilla
         parameterisation's boundary mask (its first ``boundary_fraction`` of points, at ``t = 0``;
-        ``None`` otherwise): :meth:`points_from` this step's :meth:`draws`."""
-        return self.points_from(self.draws(), tmax)
+        ``None`` otherwise): :meth:`points_from` this step's :meth:`draws`, then :meth:`mix_hard_states`."""
+        x, t, mask = self.points_from(self.draws(), tmax)
+        return self.mix_hard_states(x, mask), t, mask
+
+    def mix_hard_states(self, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+        """``x`` with ``hard_fraction`` of its points (the first after the vanilla boundary's; a
+        zero-level share at the end may be overlapped) moved near :attr:`hard_states`, drawn from the
+        run's generator after the step's other draws (a resumed run replays them); ``x`` itself
+        without hard states."""
+        hard = self.hard_states
+        count = int(self.hard_fraction * x.shape[0])
+        if hard is None or hard.shape[0] == 0 or count == 0:
+            return x
+        g = self.generator
+        start = 0 if mask is None else int(mask.sum())
+        count = min(count, x.shape[0] - start)
+        pick = torch.randint(hard.shape[0], (count,), generator=g, device=self.device)
+        offset = (torch.rand((count, x.shape[1]), generator=g, device=self.device) * 2 - 1) * self.hard_radius
+        near = hard.to(self.device, x.dtype)[pick] + offset * self._span
+        x = x.clone()
+        x[start : start + count] = torch.minimum(torch.maximum(near, self._low), self._low + self._span)
+        return x
 
     def draw_shapes(self) -> list[tuple[int, ...]]:
         """The shapes of one step's uniform draws on [0, 1), in the stream's order: the states and the

@@ -1,0 +1,75 @@
+"""``reach train-until``: train in phases, each verified on fresh states, until the scenario bound holds
+(:mod:`studies.train_until`)."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from reach.validation import (
+    check_output_dir,
+    positive_float_arg,
+    positive_int_arg,
+    seed_arg,
+    unit_interval_arg,
+)
+from reach_cli.options import add_subparser, default
+from training.config import TrainConfig, parse_duration
+
+#: the options that set TrainUntilSettings' fields: (flag, field, type, help)
+SETTINGS_OPTIONS = (
+    ("--phase-steps", "phase_steps", positive_int_arg, "training steps per phase"),
+    ("--max-phases", "max_phases", positive_int_arg, "at most this many phases"),
+    ("--target-eps", "target_eps", positive_float_arg, "the scenario bound to reach"),
+    ("--max-wrong-rate", "max_wrong_rate", unit_interval_arg, "the highest share of wrong claims that holds"),
+    ("--samples", "samples", positive_int_arg, "fresh states each phase's verification rolls out"),
+    ("--scenario-samples", "scenario_samples", positive_int_arg, "states that check the delta-level's bound"),
+    ("--final-samples", "final_samples", positive_int_arg, "the final verification's states"),
+    ("--verify-seed", "seed", seed_arg, "the verifications' seed"),
+    ("--hard-fraction", "hard_fraction", unit_interval_arg, "share of each step's points near the hard states"),
+    ("--dt", "dt", positive_float_arg, "the rollouts' step, in seconds"),
+)
+
+#: the options that set the run's TrainConfig (a new run; a resumed one keeps its own)
+CONFIG_OPTIONS = (
+    ("--system", "system", str, "system: a registered name or package.module:ClassName"),
+    ("--layout", "layout", str, "network layout"),
+    ("--width", "width", positive_int_arg, "hidden width"),
+    ("--points", "points", positive_int_arg, "points per step"),
+    ("--seed", "seed", seed_arg, "training seed"),
+)
+
+
+def add_parser(sub: Any) -> None:
+    from studies.train_until import TrainUntilSettings  # lazy: keeps `import reach_cli` light
+
+    p = add_subparser(
+        sub, "train-until", help="train in phases, each verified on fresh states, until the scenario bound holds"
+    )
+    p.add_argument("--out", required=True, help="run directory (run the command again to continue it)")
+    p.add_argument("--budget", default=None, help="wall-clock budget of training and verification, e.g. 30m")
+    for flag, field, kind, text in SETTINGS_OPTIONS:
+        p.add_argument(flag, type=kind, default=None, help=f"{text} (default: {default(TrainUntilSettings, field)})")
+    for flag, field, kind, text in CONFIG_OPTIONS:
+        p.add_argument(flag, type=kind, default=None, help=f"{text} (default: {default(TrainConfig, field)})")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from studies.train_until import TrainUntilSettings, train_until  # lazy: keeps `import reach_cli` light
+
+    chosen = {field: getattr(args, field) for _, field, _, _ in SETTINGS_OPTIONS}
+    if args.budget is not None:
+        chosen["budget_s"] = parse_duration(args.budget)
+    settings = TrainUntilSettings(**{k: v for k, v in chosen.items() if v is not None})
+    config_fields = {field: getattr(args, field) for _, field, _, _ in CONFIG_OPTIONS}
+    config = TrainConfig(**{k: v for k, v in config_fields.items() if v is not None}).validate()
+    check_output_dir(args.out, "--out")
+    record = train_until(config, args.out, settings, progress=True)
+    final = record["final"]["verification"]
+    print(
+        f"{len(record['phases'])} phases, stopped at the {record['stopped']}; final verification "
+        f"(seed {record['final']['seed']}, {final['samples']} fresh states): eps {final['eps']}, "
+        f"holds: {record['final']['holds']}; record: {args.out}/phases.json"
+    )
+    return 0

@@ -1,0 +1,110 @@
+"""studies.train_until: phases of training, each verified on fresh states, whose wrong claims become
+training points, until the scenario bound holds or the budget ends; resumable; the final bound on
+states no phase drew. A tiny network on Air3D, so that every test takes seconds."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import pytest
+import torch
+
+from reach_cli import main
+from safety.verification.verify import sample_states
+from studies.train_until import TrainUntilSettings, _verified, final_seed, phase_seed, train_until
+from training import TrainConfig, Trainer
+
+CONFIG = TrainConfig(system="air3d", width=16, points=256, log_every=1000, checkpoint_every_s=0.0, seed=0)
+#: small verifications with a coarse step; a target no tiny network meets
+SETTINGS = TrainUntilSettings(
+    phase_steps=40, max_phases=2, samples=300, scenario_samples=100, dt=0.01, target_eps=1e-6, seed=3
+)
+
+
+def _phases(run):
+    return json.loads((run / "phases.json").read_text())
+
+
+def test_settings_refuse_bad_values_naming_them():
+    for name, value in [("phase_steps", 0), ("target_eps", 1.5), ("hard_fraction", 1.0), ("samples", True)]:
+        with pytest.raises(ValueError, match=name):
+            replace(SETTINGS, **{name: value})
+    with pytest.raises(ValueError, match="dt"):
+        TrainUntilSettings(dt=-1.0)
+
+
+def test_planted_errors_are_found_and_phases_reduce_them(tmp_path):
+    run = tmp_path / "run"
+    trainer = Trainer(replace(CONFIG, steps=1), run, progress=False)
+    with torch.no_grad():  # planted: the network claims safe far into the collision set
+        trainer.network.output.bias += 0.5
+    trainer.run.write_config(trainer.config)
+    trainer.checkpointer.save(0, 0.0, None, None)
+    planted, wrong = _verified(trainer, SETTINGS.verify_settings(phase_seed(SETTINGS.seed, 0), "avoid"), tmp_path / "s")
+    assert planted["false_safe_rate"] > 0.05 and wrong.shape[0] == round(planted["false_safe_rate"] * 300)
+    record = train_until(CONFIG, run, replace(SETTINGS, phase_steps=150), progress=False)
+    phases = record["phases"]
+    assert [p["phase"] for p in phases] == [0, 1] and record["stopped"] == "budget"
+    assert all(p["hard_states_added"] == round(p["verification"]["false_safe_rate"] * 300) for p in phases)
+    assert phases[-1]["verification"]["false_safe_rate"] < planted["false_safe_rate"] / 2
+    hard = torch.load(run / "hard" / "phase-000.pt")
+    assert hard.shape == (phases[0]["hard_states_added"], 3)
+
+
+def test_stops_at_an_easy_target(tmp_path):
+    easy = replace(SETTINGS, target_eps=0.9, max_wrong_rate=1.0, max_phases=5)
+    record = train_until(CONFIG, tmp_path / "run", easy, progress=False)
+    assert record["stopped"] == "target" and len(record["phases"]) == 1 and record["phases"][0]["holds"]
+    assert record["final"]["steps"] == 40
+
+
+def test_stops_at_the_wall_budget(tmp_path):
+    record = train_until(CONFIG, tmp_path / "run", replace(SETTINGS, max_phases=5, budget_s=1e-3), progress=False)
+    assert record["stopped"] == "budget" and len(record["phases"]) == 1 and not record["final"]["holds"]
+
+
+def test_sampler_mixes_points_near_the_hard_states(tmp_path):
+    trainer = Trainer(replace(CONFIG, steps=1), tmp_path / "run", progress=False)
+    sampler = trainer.sampler
+    sampler.hard_states = torch.tensor([[0.1, -0.2, 0.3]])
+    sampler.hard_fraction, sampler.hard_radius = 0.25, 0.01
+    x, _, _ = sampler.points(1.0)
+    span = sampler._span
+    near = ((x - sampler.hard_states).abs() <= 0.01 * span + 1e-6).all(dim=1)
+    assert int(near[:64].sum()) == 64 and int(near[64:].sum()) < 5
+
+
+def test_resumes_after_an_interruption_without_repeating_a_phase(tmp_path):
+    run = tmp_path / "run"
+    first = train_until(CONFIG, run, SETTINGS, progress=False, stop_after_phases=1)
+    assert len(first["phases"]) == 1 and first["final"] is None
+    Trainer.resume(run, progress=False, steps=55).train()  # killed in the middle of phase 1
+    record = train_until(CONFIG, run, SETTINGS, progress=False)
+    assert [p["steps"] for p in _phases(run)["phases"]] == [40, 80] and _phases(run)["final"] is not None
+    assert [p["phase"] for p in record["phases"]] == [0, 1]
+    assert [p["steps"] for p in record["phases"]] == [40, 80]
+    assert record["phases"][0] == first["phases"][0]
+    with pytest.raises(ValueError, match="other settings"):
+        train_until(CONFIG, run, replace(SETTINGS, samples=301), progress=False)
+
+
+def test_final_bound_uses_states_no_phase_drew(tmp_path):
+    record = train_until(CONFIG, tmp_path / "run", SETTINGS, progress=False)
+    seeds = {p["seed"] for p in record["phases"]}
+    final = record["final"]["seed"]
+    assert final == final_seed(SETTINGS.seed) and final not in seeds
+    # every verification draws from seeds s..s+3: the final block meets no phase's, for any number of phases
+    blocks = [set(range(phase_seed(SETTINGS.seed, i), phase_seed(SETTINGS.seed, i) + 4)) for i in range(1000)]
+    assert all(not (set(range(final, final + 4)) & b) for b in blocks)
+    system = Trainer.resume(tmp_path / "run", progress=False).system
+    states = sample_states(system, 300, final)
+    assert not any(torch.equal(states, sample_states(system, 300, s)) for s in seeds)
+
+
+def test_cli_bad_input_is_one_line_exit_2(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train-until", "--out", "unused", "--target-eps", "-1"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "--target-eps" in err
