@@ -63,7 +63,9 @@ def run(args: argparse.Namespace) -> int:
         chosen["budget_s"] = parse_duration(args.budget)
     settings = TrainUntilSettings(**{k: v for k, v in chosen.items() if v is not None})
     config_fields = {field: getattr(args, field) for _, field, _, _ in CONFIG_OPTIONS}
-    config = TrainConfig(**{k: v for k, v in config_fields.items() if v is not None}).validate()
+    chosen_config = {k: v for k, v in config_fields.items() if v is not None}
+    # steps: a stop rule for validation's sake; each phase sets its own (studies.train_until)
+    config = TrainConfig(**chosen_config, steps=settings.phase_steps).validate()
     check_output_dir(args.out, "--out")
     record = train_until(config, args.out, settings, progress=True)
     final = record["final"]["verification"]

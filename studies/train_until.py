@@ -18,8 +18,10 @@ Files it adds to the run directory (:mod:`training.run_directory` holds the rest
                               found, hard states added) and the final verification; replaced atomically
     RUN/hard/phase-NNN.pt     the wrong states phase NNN found (read back on resume)
 
-Resumable: killed mid-phase, a second call continues the run from its last checkpoint and the
-recorded phases (none is repeated); a call on a finished run returns its record.
+Every phase trains without a CUDA graph (the hard states are mixed in outside it), and the run's
+stored configuration says so. Resumable: killed mid-phase, a second call continues the run from its
+last checkpoint and the recorded phases (none is repeated); a call on a finished run returns its
+record.
 """
 
 from __future__ import annotations
@@ -146,12 +148,17 @@ def _verified(trainer: Trainer, vs: VerifySettings, scratch: Path) -> tuple[dict
     it found wrong (claimed, and failed): the rollouts come back from a store, not simulated twice."""
     vf = NeuralValueFunction(trainer.network.eval())
     states = sample_states(trainer.system, vs.samples, vs.seed)
-    with RolloutStore(scratch, {"seed": vs.seed, "step": trainer.step, **vs.to_dict()}) as store:
+    # the rollouts go through a store: an interrupted verification resumes, and the samples' outcomes
+    # come back from it, not simulated twice; removed once the row is made
+    store = RolloutStore(scratch, {"seed": vs.seed, "step": trainer.step, **vs.to_dict()})
+    try:
         row = verify(vf, states, vs, device=trainer.device, progress=False, store=store)
-        horizon = trainer.system.horizon
-        result = store.rollout(
-            "samples", vf, states, vs.rollout_settings(horizon), device=trainer.device, progress=False
-        )
+        settings = vs.rollout_settings(trainer.system.horizon)
+        result = store.rollout("samples", vf, states, settings, device=trainer.device, progress=False)
+    except BaseException:
+        store.close()
+        raise
+    store.remove()
     trainer.network.train()
     wrong = (result.oriented_value > 0) & result.failed
     return row, states[wrong.cpu()]

@@ -108,3 +108,11 @@ def test_cli_bad_input_is_one_line_exit_2(capsys):
     assert exit_info.value.code == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "--target-eps" in err
+
+
+def test_cli_trains_until_and_records_the_phases(tmp_path, capsys):
+    out = tmp_path / "run"
+    args = ["--system", "air3d", "--width", "16", "--points", "256", "--phase-steps", "20", "--max-phases", "1"]
+    assert main(["train-until", "--out", str(out), *args, "--samples", "100", "--dt", "0.01"]) == 0
+    assert "1 phases, stopped at the budget" in capsys.readouterr().out
+    assert [p["steps"] for p in _phases(out)["phases"]] == [20] and not (out / "verify-store").exists()
