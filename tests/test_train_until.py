@@ -5,6 +5,7 @@ states no phase drew. A tiny network on Air3D, so that every test takes seconds.
 from __future__ import annotations
 
 import json
+import signal
 from dataclasses import replace
 
 import pytest
@@ -13,7 +14,7 @@ import torch
 from reach_cli import main
 from safety.verification.verify import sample_states
 from studies.train_until import TrainUntilSettings, _verified, final_seed, phase_seed, train_until
-from training import TrainConfig, Trainer
+from training import TrainConfig, Trainer, TrainingInterrupted
 
 CONFIG = TrainConfig(system="air3d", width=16, points=256, log_every=1000, checkpoint_every_s=0.0, seed=0)
 #: small verifications with a coarse step; a target no tiny network meets
@@ -87,6 +88,26 @@ def test_resumes_after_an_interruption_without_repeating_a_phase(tmp_path):
     assert record["phases"][0] == first["phases"][0]
     with pytest.raises(ValueError, match="other settings"):
         train_until(CONFIG, run, replace(SETTINGS, samples=301), progress=False)
+
+
+def test_resumes_after_sigint_in_the_middle_of_a_phase(tmp_path, monkeypatch):
+    run = tmp_path / "run"
+    optimise = Trainer._optimise
+
+    def interrupted(self):  # a real SIGINT, delivered to this process at step 55 (in phase 1)
+        record = optimise(self)
+        if self.step == 55:
+            signal.raise_signal(signal.SIGINT)
+        return record
+
+    monkeypatch.setattr(Trainer, "_optimise", interrupted)
+    with pytest.raises(TrainingInterrupted):
+        train_until(CONFIG, run, SETTINGS, progress=False)
+    monkeypatch.undo()
+    assert [p["steps"] for p in _phases(run)["phases"]] == [40] and _phases(run)["final"] is None
+    assert Trainer.resume(run, progress=False).step == 55
+    record = train_until(CONFIG, run, SETTINGS, progress=False)
+    assert [p["steps"] for p in record["phases"]] == [40, 80] and record["final"]["steps"] == 80
 
 
 def test_final_bound_uses_states_no_phase_drew(tmp_path):
