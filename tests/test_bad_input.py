@@ -599,3 +599,25 @@ def test_a_point_parameter_of_the_wrong_length_type_or_value_is_refused_by_name(
     with pytest.raises(ValueError, match=message):
         DubinsReachAvoid(**keywords)
     assert DubinsReachAvoid(goal=np.array([0.5, 0.1])).goal == (0.5, 0.1)
+
+
+def test_a_non_finite_input_the_filter_computed_never_blames_the_callers_action(monkeypatch):
+    """The wrapper checks the caller's action, then the filter's own input: a NaN the filter computed
+    (here planted in its decision) is refused saying the nominal action was not the cause."""
+    import torch
+
+    from safety import SafetyFilterWrapper
+
+    env = SafetyFilterWrapper(gym.make("Air3D-v0"))
+    env.reset(seed=0)
+    adapter = env._adapter
+
+    def nan_decision(x, elapsed, u_nominal):
+        _, info = type(adapter)._decide(adapter, x, elapsed, u_nominal)
+        return torch.full_like(u_nominal, float("nan")), info
+
+    monkeypatch.setattr(adapter, "_decide", nan_decision)
+    with pytest.raises(ValueError, match=r"the safety filter computed a non-finite input .* not the cause"):
+        env.step(np.zeros(1, dtype=np.float32))
+    with pytest.raises(ValueError, match="action contains a non-finite value"):  # the caller's own NaN
+        env.step(np.full(1, np.nan, dtype=np.float32))
