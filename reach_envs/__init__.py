@@ -9,7 +9,10 @@ Importing the package registers with Gymnasium (also reachable as ``gym.make("re
   ``Quadrotor-v0``, ``ParameterizedVertDrone2D-v0``, ``MultiVehicle12D-v0``, ``MultiVehicle15D-v0``,
   ``RocketLanding-v0`` and ``ReachAvoidRocketLanding-v0`` (thrust in a disc: an action outside the
   unit disc is scaled back onto it, :func:`reach_envs.spaces.inputs_of_actions`);
-* ``Reach-v0``, any system: ``gym.make("Reach-v0", system=DubinsAvoid(), dt=0.02)``.
+* ``Reach-v0``, any system: ``gym.make("Reach-v0", system=DubinsAvoid(), dt=0.02)``;
+* :data:`FLEET_ENVS`, fleets of N cars driving to goals (:mod:`reach_envs.fleet_envs`):
+  ``FleetCircleSwap-v0``, ``FleetRandomGoals-v0`` and ``FleetIntersection-v0``, with a PettingZoo
+  twin, :class:`reach_envs.fleet_envs.FleetParallelEnv`.
 
 Environments of reach and reach-avoid systems end on reaching the goal or on a collision, and report
 which in ``info["outcome"]`` (:mod:`reach_envs.env`). The multi-agent systems (the car scenes, the
@@ -60,6 +63,15 @@ SYSTEM_ENVS: dict[str, dict[str, Any]] = {
 #: Gymnasium id of the environment of any system, given as ``system=``.
 SYSTEM_ENV_ID = "Reach-v0"
 
+#: Gymnasium id -> layout of a fleet env (:class:`reach_envs.fleet_envs.FleetEnv`): N cars, 16 by
+#: default, ``gym.make("FleetCircleSwap-v0", n_cars=32)``; any :class:`~reach_envs.fleet_scenes.FleetScene`
+#: field passes through.
+FLEET_ENVS = {
+    "FleetCircleSwap-v0": "circle-swap",
+    "FleetRandomGoals-v0": "random-goals",
+    "FleetIntersection-v0": "intersection",
+}
+
 
 def _register() -> None:
     named = {env_id: {"scene": scene} for env_id, scene in ENV_SCENES.items()}
@@ -78,6 +90,9 @@ def _register() -> None:
             entry_point="reach_envs.env:ReachEnv",
             vector_entry_point="reach_envs.vector:ReachVectorEnv",
         )
+    for env_id, layout in FLEET_ENVS.items():
+        if env_id not in registry:
+            register(id=env_id, entry_point="reach_envs.fleet_envs:FleetEnv", kwargs={"layout": layout})
 
 
 def make_env(system: Any, render_mode: str | None = None, **scene_fields: Any) -> ReachEnv:
@@ -106,4 +121,4 @@ def make_vector_env(system: Any, num_envs: int, render_mode: str | None = None, 
 
 _register()
 
-__all__ = ["ENV_SCENES", "SYSTEM_ENVS", "SYSTEM_ENV_ID", "make_env", "make_vector_env"]
+__all__ = ["ENV_SCENES", "FLEET_ENVS", "SYSTEM_ENVS", "SYSTEM_ENV_ID", "make_env", "make_vector_env"]

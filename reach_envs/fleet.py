@@ -5,11 +5,12 @@ States follow :mod:`reach_envs.fleet_scenes`: ``x`` of shape ``(B, 3N)`` in
 bool, the cars still in the scene. Inputs are physical turn rates ``(B, N)``, ``|w_i| <= w_max_i``.
 
 :class:`FleetSimulator` advances a batch with the fleet's own ``MultiVehicle`` dynamics and the
-library's stepper (:func:`reach.integrators.make_stepper`, RK4 by default), so the car model lives in
-one place. It steps cars of one kind (speed, turn-rate bound) together: a MultiVehicle with one car
-per kind runs on columns ``(B, cars of that kind)``, the same arithmetic per car as the N-car system
-with a handful of tensor operations per stage instead of a few per car. A car that left the scene (arrived or crashed) stays where it stopped and takes no part in
-collision checks. After each step it judges, among the cars present before the step:
+library's stepper (:func:`reach.integrators.make_stepper`, RK4 by default), so the car model lives
+in one place. It steps cars of one kind (speed, turn-rate bound) together: a MultiVehicle with one
+car per kind runs on columns ``(B, cars of that kind)``, the same arithmetic per car as the N-car
+system with a handful of tensor operations per stage instead of a few per car. A car that left the
+scene (arrived or crashed) stays where it stopped and takes no part in collision checks. After each
+step it judges, among the cars present before the step:
 
 * **collided**: within ``collision_radius`` of another present car (both collide);
 * **arrived**: within ``goal_radius`` of its goal and not collided (a car that reaches its goal in a

@@ -22,12 +22,13 @@ Layouts (each for any N >= 2; the tests cover 2 to 64):
     diameter ``separation``) is beyond what random sequential placement can reach is refused on
     construction with a ``ValueError`` naming it; a draw that still fails raises one too.
 ``"intersection"``
-    A four-way crossing at the origin, arms east, north, west and south. Cars are dealt round-robin to
-    the arms and queued along them, ``separation`` apart from ``2 separation`` out, each heading in, in
-    the lane one collision radius to the right of its arm's centre line (opposing lanes two radii
-    apart). Per episode each arm's queue is shifted out by a uniform draw of up to one separation, so
-    crossing traffic reaches the conflict points at random relative times. ``exits="straight"``: each car's goal lies straight across, in the outbound lane at its
-    own queue distance; ``exits="random"``: per episode, the (up to) four cars of each queue rank exit
+    A four-way crossing at the origin, arms east, north, west and south. Cars are dealt round-robin
+    to the arms and queued along them, ``separation`` apart from ``2 separation`` out, each heading
+    in, in the lane one collision radius to the right of its arm's centre line (opposing lanes two
+    radii apart). Per episode each arm's queue is shifted out by a uniform draw of up to one
+    separation, so crossing traffic reaches the conflict points at random relative times.
+    ``exits="straight"``: each car's goal lies straight across, in the outbound lane at its own
+    queue distance; ``exits="random"``: per episode, the (up to) four cars of each queue rank exit
     by a random derangement of the arms (no car turns back), so each car may go right, straight or
     left while every exit lane still receives one car per rank and no two goals coincide. Starts are
     jittered along the arm.
