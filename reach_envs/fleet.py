@@ -198,7 +198,8 @@ def goal_seeking(x: torch.Tensor, goals: torch.Tensor, scene: FleetScene) -> tor
     """The nominal: each car steers its heading toward its goal, ``w = clip(e / tau, +-w_max)`` for
     heading error ``e`` and ``tau =`` :data:`HEADING_TIME`, turn rates ``(B, N)``.
 
-    A goal inside the turning circle on the side the car would turn to cannot be reached by turning
+    It steers at the goal from anywhere, not along the intersection's lanes: a car bound for a side
+    arm cuts the corner. A goal inside the turning circle on the side the car would turn to cannot be reached by turning
     (the car would circle it forever), so there the car drives straight until the goal falls outside
     that circle, then turns onto it."""
     n = scene.n_cars

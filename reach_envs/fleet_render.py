@@ -96,7 +96,7 @@ class FleetRenderer:
         self.circles.set_edgecolors(colours[shown])
         self.goal_marks.set_offsets(goal[here])
         self.goal_marks.set_color(self.colours[here])
-        clock = "" if time is None else f"   t = {time:6.2f} s, {int(here.sum())} of {n} cars on the road"
+        clock = "" if time is None else f", t = {time:6.2f} s, {int(here.sum())} left"
         self.clock.set_text(self.title + clock)
         self.canvas.draw()
         return np.asarray(self.canvas.buffer_rgba())[..., :3].copy()
