@@ -41,6 +41,28 @@ def pair_system(system: MultiVehicle, i: int, j: int, half_width: float = 1.6) -
     )
 
 
+def relative_state(p_i: torch.Tensor, p_j: torch.Tensor, th_i: torch.Tensor, th_j: torch.Tensor) -> torch.Tensor:
+    """``(..., 3)``: car ``j`` relative to car ``i`` in ``i``'s frame, ``(c dx + s dy, -s dx + c dy,
+    th_j - th_i)`` (heading wrapped), from positions ``(..., 2)`` and headings ``(...)``: the state of
+    their :class:`~reach.systems.RelativePair` (shared by :class:`PairwiseUnion` and :mod:`safety.fleet`)."""
+    dx = p_j[..., 0] - p_i[..., 0]
+    dy = p_j[..., 1] - p_i[..., 1]
+    c, s = torch.cos(th_i), torch.sin(th_i)
+    return torch.stack([c * dx + s * dy, -s * dx + c * dy, TORCH.wrap_angle(th_j - th_i)], dim=-1)
+
+
+def pull_back(
+    grad: torch.Tensor, rel: torch.Tensor, th_i: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A pair gradient ``grad = (g0, g1, g2)`` at relative state ``rel`` pulled back to the full
+    state: ``(gx, gy, g_th_i, g_th_j)``, car ``j``'s position components (car ``i``'s are their
+    negatives) and the two headings' (see :meth:`PairwiseUnion.gradient`). The heading components are
+    also the pair's switching functions: ``d V / dt`` gains ``g_th_i w_i + g_th_j w_j``."""
+    g0, g1, g2 = grad[..., 0], grad[..., 1], grad[..., 2]
+    c, s = torch.cos(th_i), torch.sin(th_i)
+    return g0 * c - g1 * s, g0 * s + g1 * c, g0 * rel[..., 1] - g1 * rel[..., 0] - g2, g2
+
+
 def _ordered_pairs(system: MultiVehicle) -> list[tuple[int, int]]:
     """Failure pairs with the control car first."""
     return [(i, j) if system.cars[i].role == "control" else (j, i) for i, j in system.failure_pairs]
@@ -115,14 +137,10 @@ class PairwiseUnion:
     def relative_states(self, x: torch.Tensor) -> torch.Tensor:
         """``(..., pairs, 3)``: car j relative to car i, in i's frame, for each failure pair."""
         n = self.system.num_cars
-        out = []
-        for i, j in self.pairs:
-            dx = x[..., 2 * j] - x[..., 2 * i]
-            dy = x[..., 2 * j + 1] - x[..., 2 * i + 1]
-            th = x[..., 2 * n + i]
-            c, s = torch.cos(th), torch.sin(th)
-            rel_th = TORCH.wrap_angle(x[..., 2 * n + j] - th)
-            out.append(torch.stack([c * dx + s * dy, -s * dx + c * dy, rel_th], dim=-1))
+        out = [
+            relative_state(x[..., 2 * i : 2 * i + 2], x[..., 2 * j : 2 * j + 2], x[..., 2 * n + i], x[..., 2 * n + j])
+            for i, j in self.pairs
+        ]
         return torch.stack(out, dim=-2)
 
     def _per_pair(self, method: str, rel: torch.Tensor, t: float | torch.Tensor, checked: bool = True):
@@ -155,7 +173,7 @@ class PairwiseUnion:
         car ``i``'s heading, the relative state is ``(c dx + s dy, -s dx + c dy, th_j - th)``, so a
         pair gradient ``(g0, g1, g2)`` gives car ``j``'s position ``(g0 c - g1 s, g0 s + g1 c)``, car
         ``i``'s the negative, ``th_j`` ``g2`` and ``th`` ``-g2 + g0 r1 - g1 r0`` (``r`` the relative
-        state). Tested against autograd through :meth:`relative_states`.
+        state; :func:`pull_back`). Tested against autograd through :meth:`relative_states`.
         """
         self._check(x)
         rel = self.relative_states(x)
@@ -165,16 +183,15 @@ class PairwiseUnion:
         g = torch.zeros_like(x)
         for k, (i, j) in enumerate(self.pairs):
             active = (best == k).to(grads.dtype)
-            g0, g1, g2 = (grads[..., k, d] * active for d in range(3))
-            th = x[..., 2 * n + i]
-            c, s = torch.cos(th), torch.sin(th)
-            gx, gy = g0 * c - g1 * s, g0 * s + g1 * c
+            gx, gy, g_th_i, g_th_j = pull_back(
+                grads[..., k, :] * active.unsqueeze(-1), rel[..., k, :], x[..., 2 * n + i]
+            )
             g[..., 2 * j] += gx
             g[..., 2 * j + 1] += gy
             g[..., 2 * i] -= gx
             g[..., 2 * i + 1] -= gy
-            g[..., 2 * n + j] += g2
-            g[..., 2 * n + i] += g0 * rel[..., k, 1] - g1 * rel[..., k, 0] - g2
+            g[..., 2 * n + j] += g_th_j
+            g[..., 2 * n + i] += g_th_i
         return g
 
     def value_where_known(self, x: torch.Tensor, t: float | torch.Tensor, checked: bool = True) -> torch.Tensor:
