@@ -1,0 +1,371 @@
+"""The fleet filter (safety.fleet): pairwise values for N cars, the conflict rule, the QP, the baselines."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from groundtruth.pairwise import PairwiseUnion, relative_state
+from groundtruth.solution import GridSolution
+from reach.systems import MultiVehicle, RelativePair
+from reach.systems.multivehicle import Car
+from safety.filters.base import SafetyFilter
+from safety.fleet import (
+    CBFSettings,
+    DistanceCBF,
+    FleetFilter,
+    FleetFilterSettings,
+    FleetValue,
+    NaiveUnionSwitch,
+)
+from safety.fleet.graph import components
+from safety.fleet.qp import ConflictQP, solve
+
+PAIR = "training/pretrained/relativepair.npz"
+F64 = torch.float64
+
+
+@pytest.fixture(scope="module")
+def pair() -> GridSolution:
+    return GridSolution.load(PAIR, outside="clamp")
+
+
+def fleet(n: int, half_width: float = 1.0, speed: float = 0.6, turn: float = 1.1) -> MultiVehicle:
+    return MultiVehicle([Car(speed, turn)] * n, half_width=half_width)
+
+
+def states(n: int, batch: int, spread: float, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    pos = (torch.rand(batch, 2 * n, generator=g, dtype=F64) * 2 - 1) * spread
+    th = (torch.rand(batch, n, generator=g, dtype=F64) * 2 - 1) * math.pi
+    return torch.cat([pos, th], 1)
+
+
+def nominal(n: int, batch: int, seed: int, scale: float = 1.5) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed + 1000)
+    return (torch.rand(batch, n, generator=g, dtype=F64) * 2 - 1) * scale
+
+
+class Smooth:
+    """A smooth value function of a RelativePair (not a safe set, a test of the calculus)."""
+
+    time_range = (0.0, 1.0)
+    times = torch.tensor([0.0, 1.0], dtype=torch.float64)
+
+    def __init__(self, system: RelativePair, tilt: float = 0.1) -> None:
+        self.system = system
+        self.tilt = tilt
+
+    def value(self, x: torch.Tensor, t: float) -> torch.Tensor:
+        r0, r1, r2 = x.unbind(-1)
+        return torch.hypot(r0, r1) - 0.55 + self.tilt * torch.sin(r2) + 0.05 * r0 * r1
+
+    def gradient(self, x: torch.Tensor, t: float) -> torch.Tensor:
+        with torch.enable_grad():
+            y = x.detach().requires_grad_(True)
+            return torch.autograd.grad(self.value(y, t).sum(), y)[0]
+
+    def value_and_gradient(self, x: torch.Tensor, t: float) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.value(x, t), self.gradient(x, t)
+
+
+# ---------------------------------------------------------------------------------------- N = 2
+@settings(max_examples=6, deadline=None)
+@given(seed=st.integers(0, 10_000), t=st.sampled_from([1.0, 0.55]), dt=st.sampled_from([0.05, 0.1]))
+def test_at_two_cars_the_fleet_filter_is_the_switch_filter_to_the_bit(pair, seed, t, dt):
+    system = fleet(2)
+    ff = FleetFilter(FleetValue(system, pair), FleetFilterSettings(dt=dt))
+    theta = float(ff.threshold[0, 1])
+    sf = SafetyFilter(PairwiseUnion(system, pair), threshold=theta, policy="gradient")
+    x, u_nom = states(2, 4000, 0.7, seed), nominal(2, 4000, seed)
+    u, info = ff(x, t, u_nom)
+    u_ref, ref = sf(x, t, u_nom)
+    assert torch.equal(u, u_ref)
+    assert torch.equal(info.intervened.any(1), ref.intervened)
+    assert 0.05 < float(ref.intervened.double().mean()) < 0.95  # both branches were exercised
+    assert torch.equal(info.nominal, ref.nominal)  # out-of-bound nominal inputs clipped alike
+
+
+@pytest.mark.parametrize("n", [3, 4])
+def test_the_naive_union_switch_is_the_switch_filter_on_the_pairwise_union(pair, n):
+    system = fleet(n)
+    naive = NaiveUnionSwitch(FleetValue(system, pair), FleetFilterSettings(dt=0.05))
+    sf = SafetyFilter(PairwiseUnion(system, pair), threshold=float(naive.threshold[0, 1]), policy="gradient")
+    x, u_nom = states(n, 5000, 0.9, n), nominal(n, 5000, n)
+    u, info = naive(x, 1.0, u_nom)
+    u_ref, ref = sf(x, 1.0, u_nom)
+    assert torch.equal(u, u_ref)
+    assert torch.equal(info.intervened.any(1), ref.intervened)
+    assert 0.05 < float(ref.intervened.double().mean()) < 0.95
+
+
+# ---------------------------------------------------------------------------------------- pairs
+def euler(x: torch.Tensor, w: torch.Tensor, speeds: torch.Tensor, h: float) -> torch.Tensor:
+    n = w.shape[1]
+    pos, th = x[:, : 2 * n].reshape(-1, n, 2), x[:, 2 * n :]
+    vel = speeds[None, :, None] * torch.stack([torch.cos(th), torch.sin(th)], -1)
+    return torch.cat([(pos + h * vel).reshape(-1, 2 * n), th + h * w], 1)
+
+
+def test_the_linearised_step_has_the_sign_and_size_of_a_finite_difference():
+    cars = [Car(0.6, 1.1), Car(0.5, 0.9), Car(0.6, 1.1, "disturbance")]
+    system = MultiVehicle(cars, half_width=1.0)
+    kinds = {(0.6, 0.5, 1.1, 0.9, "control"), (0.6, 0.6, 1.1, 1.1, "disturbance"), (0.5, 0.6, 0.9, 1.1, "disturbance")}
+    vfs = [Smooth(RelativePair(v1, v2, w1, w2, role)) for v1, v2, w1, w2, role in kinds]
+    fv = FleetValue(system, vfs)
+    x = states(3, 3000, 0.55, 7)  # relative positions inside the pair box (beyond it a value is clamped)
+    c = fv.candidates(x, 1.0, level=10.0)
+    assert c.count == 3 * 3000  # every pair within reach at this level
+    w = nominal(3, 3000, 7, 1.0) * fv.turn_bounds
+    # the disturbance car turns the worst way for each pair: test one pair kind at a time
+    for second_is_car_2 in (False, True):
+        rows = (c.second == 2) if second_is_car_2 else (c.second != 2)
+        b, f, s = c.batch[rows], c.first[rows], c.second[rows]
+        wk = w[b].clone()
+        if second_is_car_2:
+            wk[torch.arange(b.numel()), s] = -fv.turn_bounds[2] * torch.sign(c.gradient[rows, 2])
+        h = 1e-6
+        x1 = euler(x[b], wk, fv.speeds, h)
+        n = 3
+        idx = torch.arange(b.numel())
+        p1 = x1[:, : 2 * n].reshape(-1, n, 2)
+        rel = relative_state(p1[idx, f], p1[idx, s], x1[idx, 2 * n + f], x1[idx, 2 * n + s])
+        fd = torch.empty(b.numel(), dtype=F64)
+        for k, vf in enumerate(vfs):  # the kinds of these pairs
+            m = fv.pair_kind[f, s] == k
+            fd[m] = (vf.value(rel[m], 1.0) - c.value[rows][m]) / h
+        predicted = c.drift[rows] + c.switch_first[rows] * wk[idx, f] + c.switch_second[rows] * wk[idx, s]
+        err = (fd - predicted).abs()
+        assert float(err.max()) < 1e-4, (second_is_car_2, float(err.max()), int(err.argmax()))
+
+
+def test_the_pair_grid_steps_as_its_linearisation_says(pair):
+    """On the shipped grid: over a short step, the value moves as predicted, to the grid's resolution."""
+    fv = FleetValue(fleet(4, 1.0), pair)
+    x = states(4, 2000, 0.8, 3)
+    c = fv.candidates(x, 1.0, level=0.5)
+    w = nominal(4, 2000, 3, 1.0) * 1.1
+    b, f, s = c.batch, c.first, c.second
+    h = 0.01
+    x1 = euler(x[b], w[b], fv.speeds, h)
+    v1 = fv.pair_values(x1, 1.0, level=5.0)[torch.arange(b.numel()), f, s]
+    fd = (v1 - c.value) / h
+    predicted = c.drift + c.switch_first * w[b, f] + c.switch_second * w[b, s]
+    inside = (c.rel[:, :2].abs() < 1.5).all(-1)
+    err = (fd - predicted)[inside].abs()
+    assert float(err.median()) < 0.05
+    # the sign of the turn-rate terms: a step with the car's turn flipped moves V the predicted way
+    strong = inside & (c.switch_first.abs() > 0.3)
+    w2 = w.clone()
+    w2[b[strong], f[strong]] = -w[b[strong], f[strong]]
+    x2 = euler(x[b], w2[b], fv.speeds, h)
+    v2 = fv.pair_values(x2, 1.0, level=5.0)[torch.arange(b.numel()), f, s]
+    change = (v1 - v2)[strong]
+    expected = (c.switch_first * 2 * w[b, f] * h)[strong]
+    agree = torch.sign(change) == torch.sign(expected)
+    assert float(agree.double().mean()) > 0.95
+
+
+def test_heterogeneous_cars_use_each_pair_kind_and_the_swapped_one():
+    cars = [Car(0.6, 1.1), Car(0.4, 0.8), Car(0.6, 1.1), Car(0.4, 0.8)]
+    system = MultiVehicle(cars, half_width=1.0)
+    fast, slow = RelativePair(0.6, 0.6, 1.1, 1.1), RelativePair(0.4, 0.4, 0.8, 0.8)
+    mixed, mixed_back = RelativePair(0.6, 0.4, 1.1, 0.8), RelativePair(0.4, 0.6, 0.8, 1.1)
+    vfs = {
+        fast: Smooth(fast, 0.1),
+        slow: Smooth(slow, 0.2),
+        mixed: Smooth(mixed, 0.3),
+        mixed_back: Smooth(mixed_back, 0.4),
+    }
+    x = states(4, 500, 0.5, 11)
+    ours = FleetValue(system, vfs).pair_values(x, 1.0, level=10.0)
+    union = PairwiseUnion(system, vfs)
+    theirs = union.pair_values(x, 1.0)
+    for k, (i, j) in enumerate(union.pairs):
+        assert torch.equal(ours[:, i, j], theirs[:, k]), (i, j)
+    # without the slow-first problem, the (slow, fast) pairs swap roles and the fast car is the frame
+    swapped = FleetValue(system, [vfs[fast], vfs[slow], vfs[mixed]])
+    c = swapped.candidates(x, 1.0, level=10.0)
+    assert c.count == 6 * 500
+    assert bool((swapped.speeds[c.first] >= swapped.speeds[c.second]).all())
+    cross = swapped.speeds[c.first] != swapped.speeds[c.second]
+    assert torch.equal(c.value[cross], vfs[mixed].value(c.rel[cross], 1.0))
+    with pytest.raises(ValueError, match="no pair solution"):
+        FleetValue(system, [vfs[fast], vfs[slow]])
+
+
+# ---------------------------------------------------------------------------------------- the cull
+def test_a_culled_pair_never_matters_within_the_horizon(pair):
+    # the bound behind the cull, on the shipped grid: V(r, t) >= |r| - R - (v1 + v2) t inside its box
+    g = torch.Generator().manual_seed(0)
+    r = (torch.rand(200_000, 3, generator=g, dtype=F64) * 2 - 1) * torch.tensor([1.6, 1.6, math.pi], dtype=F64)
+    for t in (1.0, 0.5, 0.1):
+        assert bool((pair.value(r, t) >= r[:, :2].norm(dim=-1) - 0.25 - 1.2 * t - 1e-9).all())
+    # so a culled pair's value exceeds the activation level, at random fleet states
+    n = 8
+    system = fleet(n, 3.0)
+    fv = FleetValue(system, pair)
+    ff = FleetFilter(fv, FleetFilterSettings(dt=0.05))
+    x = states(n, 2000, 1.8, 1)
+    everything = PairwiseUnion(system, pair).pair_values(x, 1.0)
+    pairs = PairwiseUnion(system, pair).pairs
+    i, j = torch.tensor([p[0] for p in pairs]), torch.tensor([p[1] for p in pairs])
+    pos = x[:, : 2 * n].reshape(-1, n, 2)
+    dist = (pos[:, i] - pos[:, j]).norm(dim=-1)
+    culled = dist >= fv.cull_distance(1.0, ff.level)[i, j]
+    rel = PairwiseUnion(system, pair).relative_states(x)
+    in_box = (rel[..., :2].abs() <= 1.6).all(-1)
+    assert int((culled & in_box).sum()) > 1000
+    assert bool((everything[culled & in_box] > ff.level[i, j].expand_as(dist)[culled & in_box]).all())
+
+    # and the filter decides alike with no cull at all
+    class NoCull(FleetValue):
+        def cull_distance(self, t, level=0.0):
+            return torch.full_like(self.speed_sum, math.inf)
+
+    u_nom = nominal(n, 2000, 1)
+    u, info = ff(x, 1.0, u_nom)
+    u_all, info_all = FleetFilter(NoCull(system, pair), FleetFilterSettings(dt=0.05))(x, 1.0, u_nom)
+    assert torch.equal(u, u_all)
+    assert info.pairs < info_all.pairs
+    assert int(info.conflicts.sum()) > 0
+
+
+def test_a_fleet_of_64_evaluates_few_pairs(pair):
+    n = 64
+    side = torch.arange(8, dtype=F64) * 1.3
+    pos = torch.stack(torch.meshgrid(side, side, indexing="ij"), -1).reshape(1, -1)
+    x = torch.cat([pos, torch.zeros(1, n, dtype=F64)], 1)
+    ff = FleetFilter(FleetValue(fleet(n, 10.0), pair), FleetFilterSettings(dt=0.05))
+    u, info = ff(x, 1.0, torch.zeros(1, n, dtype=F64))
+    assert info.pairs < 2016 // 10
+    assert torch.equal(u, torch.zeros(1, n, dtype=F64))  # 1.3 m apart, side by side: no conflict
+
+
+# ---------------------------------------------------------------------------------------- the QP
+def pinch() -> torch.Tensor:
+    """Car 0 between car 1 (ahead, facing it) and car 2 (behind, chasing): no turn clears both."""
+    pos = [0.0, 0.0, 0.42, 0.0, -0.42, 0.02]
+    return torch.tensor([[*pos, 0.0, math.pi, 0.0]], dtype=F64)
+
+
+def test_an_infeasible_conflict_falls_back_to_each_cars_worst_pair_and_is_counted(pair):
+    system = fleet(3, 2.0)
+    fv = FleetValue(system, pair)
+    ff = FleetFilter(fv, FleetFilterSettings(dt=0.05))
+    x = pinch()
+    u, info = ff(x, 1.0, torch.zeros(1, 3, dtype=F64))
+    assert int(info.conflicts[0]) == 1 and int(info.solved[0]) == 1
+    assert int(info.infeasible[0]) == 1
+    c = fv.candidates(x, 1.0, level=ff.level)
+    for car in range(3):
+        mine = (c.first == car) | (c.second == car)
+        k = torch.nonzero(mine).squeeze(-1)[c.value[mine].argmin()]
+        s = c.switch_first[k] if int(c.first[k]) == car else c.switch_second[k]
+        assert float(u[0, car]) == 1.1 * float(torch.sign(s))
+    assert bool(info.intervened.all())
+
+
+def test_the_qp_solution_meets_every_condition_of_its_conflict(pair):
+    n = 4
+    fv = FleetValue(fleet(n, 2.0), pair)
+    settings_ = FleetFilterSettings(dt=0.05, gamma=0.2)
+    ff = FleetFilter(fv, settings_)
+    x, u_nom = states(n, 20_000, 1.1, 5), nominal(n, 20_000, 5, 1.0)
+    u, info = ff(x, 1.0, u_nom)
+    ok = (info.solved == 1) & (info.infeasible == 0) & (info.conflicts == 1)
+    assert int(ok.sum()) >= 5
+    c = fv.candidates(x, 1.0, level=ff.level)
+    theta = ff.threshold[c.first, c.second]
+    active = c.value <= theta + ff.band[c.first, c.second]
+    mine = active & ok[c.batch] & info.intervened[c.batch, c.first] & info.intervened[c.batch, c.second]
+    b, f, s = c.batch[mine], c.first[mine], c.second[mine]
+    after = c.value[mine] + 0.05 * (c.drift[mine] + c.switch_first[mine] * u[b, f] + c.switch_second[mine] * u[b, s])
+    need = theta[mine] + (1 - 0.2) * (c.value[mine] - theta[mine])
+    assert float((need - after).max()) < 1e-7
+    assert bool((u.abs() <= 1.1).all())
+
+
+def test_the_stacked_qp_is_the_closest_input_and_flags_the_infeasible_block():
+    # block 1 (vars 0, 1): w0 - w1 >= 1; block 2 (var 2): w2 >= 1 and -w2 >= -0.5 (infeasible)
+    qp = ConflictQP(
+        np.array([0.5, -0.2, 0.0]),
+        np.array([1.1, 1.1, 1.1]),
+        np.array([[0, 1], [2, -1], [2, -1]]),
+        np.array([[1.0, -1.0], [1.0, 0.0], [-1.0, 0.0]]),
+        np.array([1.0, 1.0, -0.5]),
+    )
+    out = solve(qp)
+    assert out.solved
+    assert np.allclose(out.w[:2], [0.65, -0.35], atol=1e-7)  # the projection onto w0 - w1 = 1
+    assert out.slack[0] < 1e-7 and out.slack[1:].sum() > 0.4
+
+
+def test_label_propagation_finds_the_components():
+    src = torch.tensor([0, 2, 3, 6, 8])
+    dst = torch.tensor([1, 1, 4, 7, 7])
+    assert components(10, src, dst).tolist() == [0, 0, 0, 3, 3, 5, 6, 6, 6, 9]
+
+
+def test_the_distance_cbf_meets_its_conditions_where_feasible(pair):
+    n = 4
+    cbf = DistanceCBF(FleetValue(fleet(n, 2.0), pair), CBFSettings(dt=0.05, gamma=0.5))
+    x, u_nom = states(n, 2000, 1.2, 9), nominal(n, 2000, 9, 1.0)
+    u, info = cbf(x, 1.0, u_nom)
+    assert bool((u.abs() <= 1.1 + 1e-12).all())
+    assert int(info.conflicts.sum()) > 0 and int(info.solved.sum()) == int(info.conflicts.sum())
+    calm = info.conflicts == 0
+    assert torch.equal(u[calm], info.nominal[calm])
+
+
+# ---------------------------------------------------------------------------------------- refusals
+def test_bad_input_is_refused_naming_it(pair):
+    ff = FleetFilter(FleetValue(fleet(3, 2.0), pair), FleetFilterSettings(dt=0.05))
+    x, u_nom = states(3, 4, 0.5, 0), nominal(3, 4, 0, 1.0)
+    bad = x.clone()
+    bad[1, 2] = math.nan
+    with pytest.raises(ValueError, match="states contain NaN or inf"):
+        ff(bad, 1.0, u_nom)
+    for value in (math.nan, math.inf):
+        u_bad = u_nom.clone()
+        u_bad[0, 1] = value
+        with pytest.raises(ValueError, match="u_nominal contains NaN or inf"):
+            ff(x, 1.0, u_bad)
+    with pytest.raises(ValueError, match="shape"):
+        ff(x[:, :-1], 1.0, u_nom)
+    with pytest.raises(ValueError, match="u_nominal must have shape"):
+        ff(x, 1.0, u_nom[:, :2])
+    with pytest.raises(ValueError, match="present must be a bool"):
+        ff(x, 1.0, u_nom, torch.ones(4, 3))
+    with pytest.raises(ValueError, match="time-to-go"):
+        ff(x, math.nan, u_nom)
+    with pytest.raises(ValueError, match="dt"):
+        FleetFilterSettings(dt=0.0)
+    # a nominal input beyond the turn bound is clipped, as SafetyFilter clips it
+    _, info = ff(x, 1.0, torch.full((4, 3), 5.0, dtype=F64))
+    assert bool((info.nominal == 1.1).all())
+
+
+def test_a_non_finite_pair_value_is_refused():
+    class Broken(Smooth):
+        def value(self, x, t):
+            return super().value(x, t) * math.nan
+
+    system = fleet(3)
+    ff = FleetFilter(FleetValue(system, Broken(RelativePair())), FleetFilterSettings(dt=0.05))
+    with pytest.raises(ValueError, match="non-finite value or gradient"):
+        ff(states(3, 4, 0.5, 0), 1.0, nominal(3, 4, 0, 1.0))
+
+
+def test_absent_cars_take_part_in_no_pair(pair):
+    ff = FleetFilter(FleetValue(fleet(3, 2.0), pair), FleetFilterSettings(dt=0.05))
+    x = pinch()
+    present = torch.tensor([[True, True, False]])
+    u, info = ff(x, 1.0, torch.zeros(1, 3, dtype=F64), present)
+    assert int(info.solved[0]) == 0 and int(info.conflicts[0]) == 1  # a lone pair now: the switch rule
+    assert not bool(info.intervened[0, 2]) and float(u[0, 2]) == 0.0
