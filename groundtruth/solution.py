@@ -191,9 +191,10 @@ class GridSolution:
         lin = torch.zeros(m, 1, dtype=torch.long, device=x.device)
         for i in range(n):
             stride = int(np.prod(self.grid.shape[i + 1 :]))
-            w = (w[:, :, None] * torch.stack([1 - frac[i], frac[i]], -1)[:, None, :]).reshape(m, -1)
+            # explicit sizes, not -1: an empty batch (m = 0) must reshape too
+            w = (w[:, :, None] * torch.stack([1 - frac[i], frac[i]], -1)[:, None, :]).reshape(m, 2 ** (i + 1))
             nodes = torch.stack([idx0[i][0], idx0[i][1]], -1) * stride
-            lin = (lin[:, :, None] + nodes[:, None, :]).reshape(m, -1)
+            lin = (lin[:, :, None] + nodes[:, None, :]).reshape(m, 2 ** (i + 1))
         flat = table.reshape(len(self.times), -1, *table.shape[1 + n :])
         extra = (1,) * (flat.ndim - 2)  # a table's own trailing dimensions (the gradient's components)
         if lookup.shape[0] == 1 and m * 2**n >= flat[0].numel():
