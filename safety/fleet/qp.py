@@ -67,15 +67,18 @@ class ConflictQP:
         rows are the conditions, the slacks' signs, then the upper and lower bounds."""
         nv, nc = self.sizes
         coef, rhs = self.scaled()
-        p = sparse.diags(np.r_[np.full(nv, 2.0), np.zeros(nc)], format="csc")
+        p = sparse.csc_matrix(
+            (np.full(nv, 2.0), np.arange(nv), np.r_[np.arange(nv + 1), np.full(nc, nv)]), shape=(nv + nc, nv + nc)
+        )
         q = np.r_[-2.0 * self.nominal, np.full(nc, float(self.penalty))]
         used = self.columns >= 0
         rows = np.broadcast_to(np.arange(nc)[:, None], self.columns.shape)[used]
-        # -c . w - s <= -rhs
-        cond = sparse.coo_matrix((-coef[used], (rows, self.columns[used])), shape=(nc, nv + nc))
-        slack = sparse.coo_matrix((-np.ones(nc), (np.arange(nc), nv + np.arange(nc))), shape=(nc, nv + nc))
-        eye = sparse.eye(nv, nv + nc, format="coo")
-        a = sparse.vstack([cond + slack, slack, eye, -eye], format="csc")
+        # one set of triplets, converted once: -c . w - s <= -rhs; -s <= 0; w <= bound; -w <= bound
+        ar, av = np.arange(nc), np.arange(nv)
+        r = np.concatenate([rows, ar, nc + ar, 2 * nc + av, 2 * nc + nv + av])
+        c = np.concatenate([self.columns[used], nv + ar, nv + ar, av, av])
+        v = np.concatenate([-coef[used], -np.ones(2 * nc), np.ones(nv), -np.ones(nv)])
+        a = sparse.csc_matrix((v, (r, c)), shape=(2 * nc + 2 * nv, nv + nc))
         b = np.r_[-rhs, np.zeros(nc), self.bound, self.bound]
         return p, q, a, b
 
