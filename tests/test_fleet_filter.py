@@ -79,7 +79,7 @@ class Smooth:
 @given(seed=st.integers(0, 10_000), t=st.sampled_from([1.0, 0.55]), dt=st.sampled_from([0.05, 0.1]))
 def test_at_two_cars_the_fleet_filter_is_the_switch_filter_to_the_bit(pair, seed, t, dt):
     system = fleet(2)
-    ff = FleetFilter(FleetValue(system, pair), FleetFilterSettings(dt=dt))
+    ff = FleetFilter(FleetValue(system, pair), FleetFilterSettings(dt=dt, policy="gradient"))
     theta = float(ff.threshold[0, 1])
     sf = SafetyFilter(PairwiseUnion(system, pair), threshold=theta, policy="gradient")
     x, u_nom = states(2, 4000, 0.7, seed), nominal(2, 4000, seed)
@@ -257,7 +257,7 @@ def pinch() -> torch.Tensor:
 def test_an_infeasible_conflict_falls_back_to_each_cars_worst_pair_and_is_counted(pair):
     system = fleet(3, 2.0)
     fv = FleetValue(system, pair)
-    ff = FleetFilter(fv, FleetFilterSettings(dt=0.05))
+    ff = FleetFilter(fv, FleetFilterSettings(dt=0.05, policy="gradient"))
     x = pinch()
     u, info = ff(x, 1.0, torch.zeros(1, 3, dtype=F64))
     assert int(info.conflicts[0]) == 1 and int(info.solved[0]) == 1
@@ -271,10 +271,73 @@ def test_an_infeasible_conflict_falls_back_to_each_cars_worst_pair_and_is_counte
     assert bool(info.intervened.all())
 
 
+def _rel(x: torch.Tensor, n: int, i: int, j: int) -> torch.Tensor:
+    return relative_state(x[:, 2 * i : 2 * i + 2], x[:, 2 * j : 2 * j + 2], x[:, 2 * n + i], x[:, 2 * n + j])
+
+
+def _held_score(pair: GridSolution, rel: torch.Tensor, w: torch.Tensor, t: float) -> torch.Tensor:
+    """min(V, l) of relative states after the greedy step with turn rates ``w`` held (independent
+    of the filter: the pair system's own stepper)."""
+    from reach.integrators import make_stepper  # lazy: only these greedy checks step the pair
+    from reach.systems.arrays import TORCH  # lazy: as above
+    from safety.fleet.greedy import SUBSTEP  # lazy: as above
+    from safety.value_policies import GREEDY_STEP  # lazy: as above
+
+    ps = pair.system
+    k = max(1, math.ceil(GREEDY_STEP / SUBSTEP - 1e-9))
+    step = make_stepper(ps, GREEDY_STEP / k, "euler", TORCH)
+    cols, low = TORCH.unbind(rel), ps.failure_margin(rel)
+    uc = ps.input_columns(w, ps.control_bounds, "u")
+    dc = ps.input_columns(w[:, :0], ps.disturbance_bounds, "d")
+    for _ in range(k):
+        cols = step(cols, uc, dc)
+        low = torch.minimum(low, ps.failure_margin_columns(cols, TORCH))
+    return torch.minimum(pair.value(TORCH.stack(cols, like=low), t), low)
+
+
+def test_the_greedy_infeasible_conflict_takes_the_held_input_that_leaves_its_least_pair_highest(pair):
+    fv = FleetValue(fleet(3, 2.0), pair)
+    ff = FleetFilter(fv, FleetFilterSettings(dt=0.05))  # policy "greedy", the default
+    x = pinch()
+    u, info = ff(x, 1.0, torch.zeros(1, 3, dtype=F64))
+    assert int(info.infeasible[0]) == 1 and bool(info.intervened.all())
+    pairs = [(0, 1), (0, 2), (1, 2)]
+
+    def least(w: torch.Tensor) -> float:  # the least score over the three pairs under held rates w (3,)
+        scores = []
+        for i, j in pairs:
+            rel = _rel(x, 3, i, j)
+            scores.append(float(_held_score(pair, rel, torch.stack([w[i], w[j]])[None], 1.0)[0]))
+        return min(scores)
+
+    import itertools  # lazy: only this brute force enumerates the candidates
+
+    options = [torch.zeros(3, dtype=F64)] + [
+        torch.tensor(c, dtype=F64) * 1.1 for c in itertools.product((-1, 1), repeat=3)
+    ]
+    best = max(least(w) for w in options)
+    assert least(u[0]) == pytest.approx(best, abs=1e-12)
+    assert best > least(torch.zeros(3, dtype=F64)) or torch.equal(u[0], torch.zeros(3, dtype=F64))
+
+
+def test_at_two_cars_the_greedy_fleet_filter_commits_a_head_on_pair_to_one_manoeuvre(pair):
+    # head-on, nearly in line: u* of the kink's blended gradient turns both cars to the same side
+    # of the world (they stay in line); the greedy step turns both to their own right or own left
+    system = fleet(2, 2.0)
+    x = torch.tensor([[0.0, 0.0, 0.9, 0.004, 0.0, math.pi]], dtype=F64)
+    u, info = FleetFilter(FleetValue(system, pair), FleetFilterSettings(dt=0.05))(x, 1.0, torch.zeros(1, 2, dtype=F64))
+    assert bool(info.intervened.all())
+    assert float(u[0, 0]) == float(u[0, 1]) != 0.0  # both own-left or both own-right: they part
+    rel = _rel(x, 2, 0, 1)
+    assert float(_held_score(pair, rel, u[0][None], 1.0)[0]) > float(
+        _held_score(pair, rel, -u[0][None] * torch.tensor([1.0, -1.0], dtype=F64), 1.0)[0]
+    )
+
+
 def test_the_qp_solution_meets_every_condition_of_its_conflict(pair):
     n = 4
     fv = FleetValue(fleet(n, 2.0), pair)
-    settings_ = FleetFilterSettings(dt=0.05, gamma=0.2)
+    settings_ = FleetFilterSettings(dt=0.05, gamma=0.2, threshold=2 * 1.2 * 0.05, policy="gradient")
     ff = FleetFilter(fv, settings_)
     x, u_nom = states(n, 20_000, 1.1, 5), nominal(n, 20_000, 5, 1.0)
     u, info = ff(x, 1.0, u_nom)

@@ -180,7 +180,7 @@ class DistanceCBF:
             edges,
             g.edge_label[edges],
             (torch.stack([c_i, c_j], -1)[edges], rhs[edges]),
-            h,
+            lambda bad: fallback_inputs(pairs, bad, h, n, batch),
             nominal,
             (wmax, control.repeat(batch)),
             self.settings,

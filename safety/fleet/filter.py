@@ -6,25 +6,29 @@ order), nominal turn rates ``u_nominal: (B, N)`` and presence masks ``present: (
 left the scene take part in no pair). The rule, per state:
 
 1. Each pair ``(i, j)`` of present cars has a value ``V_ij`` (:class:`~safety.fleet.value.FleetValue`,
-   culled by distance), a threshold ``theta_ij`` (default: the switch filter's default for the pair
-   problem at the filter's ``dt``, :func:`~safety.filters.settings.default_threshold`) and an
+   culled by distance), a threshold ``theta_ij`` (default: the larger of the switch filter's default
+   for the pair problem at the filter's ``dt``, :func:`~safety.filters.settings.default_threshold`,
+   and :data:`REACTION_TIME` seconds of the pair's closing speed) and an
    activation band ``band_ij`` (default ``dt (v_i + v_j)``, what ``V`` can lose in one held step).
    It is *active* where ``V_ij <= theta_ij + band_ij`` and *threatened* where ``V_ij <= theta_ij``.
 2. Active pairs join cars into groups (:mod:`safety.fleet.graph`); a group with a threatened pair is
    a *conflict*. Cars outside conflicts keep their nominal input.
-3. A conflict of one active pair takes the switch filter's rule: both cars apply the pair's optimal
-   input ``u*`` (the bang-bang input of the gradient, 0 where a switching function is 0, as
-   :meth:`~reach.systems.base.ControlAffineSystem.optimal_control` breaks ties). At two cars the fleet
-   filter therefore is ``SafetyFilter(PairwiseUnion(system, pair), threshold=theta, policy="gradient")``,
+3. A conflict of one active pair takes the switch filter's rule: both cars apply the policy's input
+   for the pair. ``policy="greedy"`` (default): the held input that leaves the pair's value highest
+   after a short step (:mod:`safety.fleet.greedy`), which commits a head-on pair to one manoeuvre
+   where the gradient's blend turns the two cars to the same side. ``policy="gradient"``: the pair's
+   ``u*`` (0 where a switching function is 0, as
+   :meth:`~reach.systems.base.ControlAffineSystem.optimal_control` breaks ties); at two cars the fleet
+   filter is then ``SafetyFilter(PairwiseUnion(system, pair), threshold=theta, policy="gradient")``,
    to the bit (tested).
 4. A conflict of several active pairs chooses its cars' turn rates together: the closest to the
    nominal ones such that every active pair's value, linearised over one step of ``dt``, stays at
    its threshold, ``V + dt (a + b_i w_i + b_j w_j) >= theta`` (:class:`~safety.fleet.value.PairCandidates`;
    a disturbance car's worst turn rate is in ``a``), within the turn bounds. Every such conflict of
    the batch is one block of one sparse QP, solved in one call (:mod:`safety.fleet.qp`).
-5. Where a conflict's conditions cannot all be met (a positive slack), the fallback: each of its cars
-   applies the optimal input of its worst active pair (the one of least value). It is counted in
-   ``FleetInfo.infeasible``.
+5. Where a conflict's conditions cannot all be met (a positive slack), the fallback: the policy's
+   input for the conflict (greedy: the joint held input that leaves its least pair value highest;
+   gradient: each car on the ``u*`` of its worst active pair). It is counted in ``FleetInfo.infeasible``.
 
 Fail closed: non-finite or misshapen states, nominal inputs, values or gradients raise ``ValueError``
 naming them. A nominal input beyond a car's turn bound is clipped to it first, as
@@ -36,6 +40,7 @@ pair's relative state beyond its grid's box reads the edge value (conservative, 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -44,10 +49,20 @@ import torch
 from reach.validation import check_float, positive_finite
 from safety.filters.settings import default_threshold
 from safety.fleet.graph import Conflicts, conflicts
+from safety.fleet.greedy import joint_greedy
 from safety.fleet.qp import ConflictQP, solve
 from safety.fleet.value import FleetValue, PairCandidates, check_fleet_state, check_present
 
+#: seconds of closing speed (``v_i + v_j``) the default threshold keeps in hand, at least: a fleet's
+#: pair reacts earlier than the switch filter's one-step default (``2 (v_i + v_j) dt``), as its
+#: cars may be busy with other pairs (measured against the one-step default: docs/results/fleets.md)
+REACTION_TIME = 0.25
+
+#: the fleet filter's rules for a lone pair and an infeasible conflict (FleetFilterSettings.policy)
+FLEET_POLICIES = ("greedy", "gradient")
+
 __all__ = [
+    "FLEET_POLICIES",
     "FleetFilter",
     "FleetFilterSettings",
     "FleetInfo",
@@ -65,8 +80,8 @@ class FleetFilterSettings:
 
     Attributes:
         dt: the control period (s): one held step the conditions look over.
-        threshold: ``theta`` for every pair (>= 0); ``None``: per pair kind, the switch filter's
-            default at ``dt`` (``2 (v_i + v_j) dt``).
+        threshold: ``theta`` for every pair (>= 0); ``None``: per pair, the larger of the switch
+            filter's default at ``dt`` (``2 (v_i + v_j) dt``) and ``REACTION_TIME (v_i + v_j)``.
         band: the activation band above the threshold (>= 0); ``None``: ``dt (v_i + v_j)`` per pair.
         penalty: the L1 price of a slack in the QP (:mod:`safety.fleet.qp`).
         slack_tolerance: a slack above this (unit-scaled rows) marks a conflict infeasible.
@@ -74,6 +89,12 @@ class FleetFilterSettings:
             (V - theta)``, linearised. 1 (default) is the rule above, ``V(next) >= theta``; below 1
             a threatened pair need only recover part of its gap per step (and an active one may
             lose part of its room), which more conflicts can meet.
+        policy: the input of a lone pair and of an infeasible conflict: ``"greedy"`` (default), the
+            joint held input that leaves the conflict's least pair value highest
+            (:mod:`safety.fleet.greedy`; a conflict of more than
+            :data:`~safety.fleet.greedy.MAX_JOINT_CARS` cars weighs a few structured inputs), or
+            ``"gradient"``, each car on its worst pair's ``u*`` (at two cars, the switch filter with
+            ``policy="gradient"`` to the bit).
     """
 
     dt: float
@@ -82,9 +103,12 @@ class FleetFilterSettings:
     penalty: float = 1e3
     slack_tolerance: float = 1e-6
     gamma: float = 1.0
+    policy: str = "greedy"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dt", positive_finite("dt", self.dt))
+        if self.policy not in FLEET_POLICIES:
+            raise ValueError(f"policy must be one of {FLEET_POLICIES}, got {self.policy!r}")
         gamma = check_float("gamma", self.gamma, 0)
         if not 0 < gamma <= 1:
             raise ValueError(f"gamma must lie in (0, 1], got {self.gamma!r}")
@@ -204,7 +228,7 @@ def qp_conflicts(
     edges: torch.Tensor,
     labels: torch.Tensor,
     conditions: tuple[torch.Tensor, torch.Tensor],
-    score: torch.Tensor,
+    fallback: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
     inputs: torch.Tensor,
     cars: tuple[torch.Tensor, torch.Tensor],
     rule: FleetFilterSettings,
@@ -213,8 +237,10 @@ def qp_conflicts(
     one QP: ``conditions = (coef (E, 2), rhs (E,))`` read ``coef . (w_first, w_second) >= rhs``;
     ``inputs`` ``(B, N)`` the inputs so far (returned with these conflicts' cars decided),
     ``cars = (turn bounds, controlled)`` per car node, ``rule`` the penalty and slack tolerance. A
-    conflict with a positive slack (or all, if the solver fails) falls back: each car takes the
-    sign of its worst pair (least ``score``). Returns ``(inputs, solved (B,), infeasible (B,))``."""
+    conflict with a positive slack (or all, if the solver fails) falls back:
+    ``fallback(edges)`` gives the turn-rate sign of each car of those conflicts' pairs and a mask of
+    the cars it decided (``(B * N,)`` each; :func:`fallback_inputs`, the worst pair's sign).
+    Returns ``(inputs, solved (B,), infeasible (B,))``."""
     wmax, control = cars
     batch, n = inputs.shape
     dev = inputs.device
@@ -233,7 +259,7 @@ def qp_conflicts(
     w, slack, ok = solve_conflicts((u, torch.where(control[v], v, -1), coef, rhs), mask, inputs, wmax, rule.penalty)
     bad = torch.zeros(batch * n, dtype=torch.bool, device=dev)
     bad[labels[slack > rule.slack_tolerance] if ok else roots] = True
-    sign, has = fallback_inputs(c, edges[bad[labels]], score, n, batch)
+    sign, has = fallback(edges[bad[labels]])
     out = torch.where(mask, w, inputs)
     out = torch.where(has & control, wmax * sign, out)
     return out.reshape(batch, n), solved, bad.reshape(batch, n).sum(1)
@@ -260,7 +286,9 @@ class FleetFilter:
             per_kind = torch.tensor(
                 [default_threshold(s.system, dt) for s in fleet_value.solutions], dtype=torch.float64
             )
-            self.threshold = per_kind[fleet_value.pair_kind.clamp(min=0)]
+            # a pair must react earlier than a lone pair would: its cars may be busy with another
+            # pair when it needs them, so the default holds REACTION_TIME of closing speed in hand
+            self.threshold = torch.maximum(per_kind[fleet_value.pair_kind.clamp(min=0)], REACTION_TIME * speed_sum)
         else:
             self.threshold = torch.full_like(speed_sum, settings.threshold)
         self.band = dt * speed_sum if settings.band is None else torch.full_like(speed_sum, settings.band)
@@ -282,7 +310,7 @@ class FleetFilter:
         threatened = c.value <= theta
         idx = torch.nonzero(active).squeeze(-1)
         g = conflicts(batch, n, (c.batch[idx], c.first[idx], c.second[idx]), threatened[idx])
-        applied, solved, infeasible = self._decide(c, idx, g, given.to(dt), theta)
+        applied, solved, infeasible = self._decide(c, idx, g, given.to(dt), theta, t)
         # a disturbance car's turn rate is not the filter's to choose: it keeps its nominal input
         intervened = g.car_in_conflict & fv.control.to(dev)
         u = torch.where(intervened, applied.to(given.dtype), given)
@@ -291,7 +319,13 @@ class FleetFilter:
         return u, info
 
     def _decide(
-        self, c: PairCandidates, idx: torch.Tensor, g: Conflicts, nominal: torch.Tensor, theta: torch.Tensor
+        self,
+        c: PairCandidates,
+        idx: torch.Tensor,
+        g: Conflicts,
+        nominal: torch.Tensor,
+        theta: torch.Tensor,
+        t: float,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(applied (B, N), solved (B,), infeasible (B,))`` for the cars in conflicts."""
         fv = self.fleet_value
@@ -300,9 +334,19 @@ class FleetFilter:
         wmax = fv.turn_bounds.to(dev, dt).repeat(batch)
         control = fv.control.to(dev).repeat(batch)
         out = nominal.reshape(-1).clone()
-        # lone pairs: the switch rule, both cars on the pair's u*
+
+        def rule(edges: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            """The policy's signs for the conflicts of ``edges``: the worst pair's ``u*``, replaced by
+            the joint greedy input where the policy is greedy and the conflict small enough."""
+            sign, has = fallback_inputs(c, edges, c.value, n, batch)
+            if self.settings.policy == "greedy":
+                joint, decided = joint_greedy(fv, c, edges, t, torch.where(has, sign, 0.0))
+                sign, has = torch.where(decided, joint, sign), has | decided
+            return sign, has
+
+        # lone pairs: the switch rule, both cars on the policy's input for the pair
         lone = idx[g.in_conflict & (g.edges_in_group == 1)]
-        sign, has = fallback_inputs(c, lone, c.value, n, batch)
+        sign, has = rule(lone)
         out = torch.where(has & control, wmax * sign, out)
         # conflicts of several pairs: one QP for the whole batch
         group = g.in_conflict & (g.edges_in_group > 1)
@@ -315,7 +359,7 @@ class FleetFilter:
             qp_edges,
             g.edge_label[group],
             (coef, rhs),
-            c.value,
+            rule,
             out.reshape(batch, n),
             (wmax, control),
             self.settings,

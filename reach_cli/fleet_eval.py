@@ -1,0 +1,100 @@
+"""``reach fleet-eval``: fleet filters against the fleet's size, in every fleet scene
+(:mod:`studies.fleet_eval`); writes ``OUT.json``, ``.csv``, ``.md`` and, with ``--plot``, the figure."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from reach.validation import check_output_path, csv_items, positive_int_arg, seed_arg
+from reach_cli.options import add_subparser, default
+
+
+def _csv(name: str) -> Any:
+    def parse(text: str) -> tuple[str, ...]:
+        return tuple(csv_items(name, text))
+
+    return parse
+
+
+def _sizes(text: str) -> tuple[int, ...]:
+    out = []
+    for item in csv_items("--sizes", text):
+        try:
+            out.append(int(item))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"--sizes: {item!r} is not an integer") from None
+    return tuple(out)
+
+
+def add_parser(sub: Any) -> None:
+    from studies.fleet_eval import FleetEvalSettings  # lazy: keeps `import reach_cli` light
+
+    p = add_subparser(sub, "fleet-eval", help="collisions, goals and decision time of fleet filters against N")
+    p.add_argument("--out", required=True, help="results file stem: OUT.json, OUT.csv, OUT.md (a rerun continues it)")
+    p.add_argument(
+        "--layouts",
+        type=_csv("--layouts"),
+        default=None,
+        help=f"fleet scenes (default: {','.join(default(FleetEvalSettings, 'layouts'))})",
+    )
+    p.add_argument(
+        "--sizes",
+        type=_sizes,
+        default=None,
+        help=f"fleet sizes (default: {','.join(map(str, default(FleetEvalSettings, 'sizes')))})",
+    )
+    p.add_argument(
+        "--methods",
+        type=_csv("--methods"),
+        default=None,
+        help=f"methods (default: {','.join(default(FleetEvalSettings, 'methods'))})",
+    )
+    p.add_argument(
+        "--episodes",
+        type=positive_int_arg,
+        default=None,
+        help=f"episodes per cell (default: {default(FleetEvalSettings, 'episodes')})",
+    )
+    p.add_argument(
+        "--batch",
+        type=positive_int_arg,
+        default=None,
+        help=f"episodes simulated at once (default: {default(FleetEvalSettings, 'batch')})",
+    )
+    ticks = default(FleetEvalSettings, "timing_ticks")
+    p.add_argument(
+        "--timing-ticks",
+        type=int,
+        default=None,
+        help=f"decisions timed per cell at batch 1, one thread (default: {ticks})",
+    )
+    p.add_argument(
+        "--seed", type=seed_arg, default=None, help=f"episodes' seed (default: {default(FleetEvalSettings, 'seed')})"
+    )
+    p.add_argument("--plot", default=None, help="also draw collisions and goal rate against N to this PNG")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from studies.fleet_eval import FleetEvalSettings, run_fleet_eval  # lazy: keeps `import reach_cli` light
+    from studies.fleet_plots import plot_fleet_eval  # lazy: matplotlib only when asked
+
+    chosen = {
+        "layouts": args.layouts,
+        "sizes": args.sizes,
+        "methods": args.methods,
+        "episodes": args.episodes,
+        "batch": args.batch,
+        "timing_ticks": args.timing_ticks,
+        "seed": args.seed,
+    }
+    settings = FleetEvalSettings(**{k: v for k, v in chosen.items() if v is not None})
+    out = check_output_path(args.out + ".json", "--out").with_suffix("")
+    if args.plot is not None:
+        check_output_path(args.plot, "--plot")
+    rows = run_fleet_eval(settings, out, progress=lambda key: print(f"fleet-eval: {key}", flush=True))
+    if args.plot is not None:
+        plot_fleet_eval(rows, args.plot)
+    print(f"{len(rows)} rows: {out}.md")
+    return 0

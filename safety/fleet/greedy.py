@@ -1,0 +1,141 @@
+"""The joint greedy input of a conflict: the held turn rates that leave its least pair value highest.
+
+Why: at a kink of a pair's value two manoeuvres tie (two cars head-on can both turn left or both
+turn right), and the bang-bang ``u*`` of the interpolated gradient can pick neither: each car turns
+by the sign of its own partial derivative, and in a head-on pair one car turns left while the other
+turns right, so both drift to the same side and stay in line. The switch filter's greedy policy
+(:class:`~safety.value_policies.GreedyPolicy`) commits to one manoeuvre by trying held inputs; this is
+the same step for a group of cars, scored on every active pair of the group at once.
+
+For a conflict of ``k <= MAX_JOINT_CARS`` cars, each candidate gives every car a turn rate of
+``0`` (all cars, the box's centre) or ``+-w_max`` (the box's corners, ``2^k`` of them), held for
+:data:`~safety.value_policies.GREEDY_STEP` seconds. Each active pair's relative state is advanced by
+its pair problem's own stepper (:func:`~reach.integrators.make_stepper`, Euler substeps as the greedy
+policy takes), and scored as ``min(V(y), min over the substeps of l(y))``; where the pair's second car
+is a disturbance, against both of its extreme turn rates. The candidate whose least score over the
+group's pairs is highest is applied (ties: the first, the centre). A larger conflict weighs a
+few structured candidates: all straight, all turning left, all turning right (cars of equal speed
+and turn rate then circle in place, each on its own turning circle, a holding pattern), and each car
+on its worst pair's ``u*``. Batched: every conflict of the batch, every candidate and
+every pair in one evaluation per pair problem.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import torch
+
+from reach.integrators import make_stepper
+from reach.systems.arrays import TORCH
+from safety.fleet.graph import components
+from safety.fleet.value import FleetValue, PairCandidates
+from safety.value_policies import GREEDY_STEP
+
+__all__ = ["MAX_JOINT_CARS", "joint_greedy"]
+
+#: the largest conflict (cars) the joint greedy decides: ``2^k + 1`` candidates each
+MAX_JOINT_CARS = 6
+
+#: the greedy step's Euler substep (s), as :class:`~safety.value_policies.GreedyPolicy`'s default
+SUBSTEP = 0.0025
+
+
+def _candidates(k: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``(2^k + 1, k)`` turn-rate signs: the centre first, then every corner."""
+    corners = list(itertools.product((-1.0, 1.0), repeat=k))
+    return torch.tensor([[0.0] * k, *corners], dtype=dtype, device=device)
+
+
+def _pair_scores(fv: FleetValue, c: PairCandidates, edges: torch.Tensor, w: torch.Tensor, t: float) -> torch.Tensor:
+    """``(C, E)`` scores of the pairs ``edges`` under held turn rates ``w = (C, E, 2)`` (first car,
+    second car); a disturbance second car is taken at its worse extreme instead of ``w[..., 1]``."""
+    count, e = w.shape[0], edges.numel()
+    out = torch.full((count, e), math.inf, dtype=w.dtype, device=w.device)
+    kinds = fv.pair_kind[c.first[edges], c.second[edges]].to(w.device)
+    for kind, sol in enumerate(fv.solutions):
+        mine = torch.nonzero(kinds == kind).squeeze(-1)
+        if mine.numel() == 0:
+            continue
+        ps = sol.system
+        substeps = max(1, math.ceil(GREEDY_STEP / SUBSTEP - 1e-9))
+        advance = make_stepper(ps, GREEDY_STEP / substeps, "euler", TORCH)
+        rel = c.rel[edges[mine]].to(w.dtype).unsqueeze(0).expand(count, -1, -1).reshape(-1, 3)
+        held = w[:, mine].reshape(-1, 2)
+        if ps.disturbance_dim:  # the second car attacks: both extremes, the worse one counts
+            wd = ps.disturbance_bounds.high[0]
+            options = [(held[:, :1], torch.full_like(held[:, :1], s * wd)) for s in (-1.0, 1.0)]
+        else:
+            options = [(held, held[:, :0])]
+        scores = []
+        for u, d in options:
+            uc = ps.input_columns(u, ps.control_bounds, "u")
+            dc = ps.input_columns(d, ps.disturbance_bounds, "d")
+            low = ps.failure_margin(rel)
+            cols = TORCH.unbind(rel)
+            for _ in range(substeps):
+                cols = advance(cols, uc, dc)
+                low = torch.minimum(low, ps.failure_margin_columns(cols, TORCH))
+            y = TORCH.stack(cols, like=low)
+            value = sol.value(y, t).to(low.dtype)
+            if not bool(torch.isfinite(value).all() & torch.isfinite(low).all()):
+                raise ValueError(f"the fleet's joint greedy step met a non-finite pair value (t = {t})")
+            scores.append(torch.minimum(value, low))
+        out[:, mine] = torch.stack(scores).amin(0).reshape(count, -1)
+    return out
+
+
+def joint_greedy(
+    fv: FleetValue, c: PairCandidates, edges: torch.Tensor, t: float, gradient_sign: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(sign (B * N,), decided (B * N,) bool)``: the turn-rate sign each car of the conflicts
+    formed by the pairs ``edges`` (indices into ``c``; each conflict given whole) takes (module
+    docstring); ``gradient_sign`` ``(B * N,)`` is each car's worst-pair ``u*`` sign, the candidate a
+    conflict of more than :data:`MAX_JOINT_CARS` cars weighs beside all-straight, all-left and
+    all-right. ``decided`` marks the cars of the conflicts."""
+    n = fv.num_cars
+    nodes = gradient_sign.numel()
+    dev, dtype = c.value.device, c.value.dtype
+    sign = torch.zeros(nodes, dtype=dtype, device=dev)
+    decided = torch.zeros(nodes, dtype=torch.bool, device=dev)
+    if edges.numel() == 0:
+        return sign, decided
+    u = c.batch[edges] * n + c.first[edges]
+    v = c.batch[edges] * n + c.second[edges]
+    label = components(nodes, u, v)
+    cars = torch.unique(torch.cat([u, v]))
+    # each car's rank in its group (groups in label order, cars in node order)
+    cars = cars[torch.argsort(label[cars] * nodes + cars)]
+    group, compact = torch.unique(label[cars], return_inverse=True)
+    position = torch.arange(cars.numel(), device=dev)
+    start = torch.full((group.numel(),), cars.numel(), dtype=torch.long, device=dev)
+    start = start.scatter_reduce(0, compact, position, reduce="amin")
+    size = torch.zeros(group.numel(), dtype=torch.long, device=dev).scatter_add(0, compact, torch.ones_like(compact))
+    rank = torch.full((nodes,), -1, dtype=torch.long, device=dev)
+    rank[cars] = position - start[compact]
+    group_of = torch.full((nodes,), -1, dtype=torch.long, device=dev)
+    group_of[cars] = compact
+    k = int(size.max())
+    small = size <= MAX_JOINT_CARS
+    k_small = int(size[small].max()) if bool(small.any()) else 0
+    full = _candidates(k_small, dtype, dev)  # (2^k_small + 1, k_small)
+    count = max(full.shape[0], 4)
+    cand = torch.zeros(group.numel(), count, k, dtype=dtype, device=dev)  # rows past a group's own: straight
+    cand[small.nonzero().squeeze(-1)[:, None], : full.shape[0], :k_small] = full
+    large = (~small).nonzero().squeeze(-1)
+    if large.numel():
+        cand[large, 1] = 1.0
+        cand[large, 2] = -1.0
+        big = cars[~small[compact]]
+        cand[group_of[big], 3, rank[big]] = gradient_sign[big].to(dtype)
+    wmax = fv.turn_bounds.to(dev, dtype)
+    gu, gv = group_of[u], group_of[v]
+    w = torch.stack([cand[gu, :, rank[u]].T * wmax[c.first[edges]], cand[gv, :, rank[v]].T * wmax[c.second[edges]]], -1)
+    scores = _pair_scores(fv, c, edges, w, t)  # (C, E)
+    least = torch.full((count, group.numel()), math.inf, dtype=dtype, device=dev)
+    least = least.scatter_reduce(1, gu.expand(count, -1), scores, reduce="amin")
+    best = least.argmax(0)  # (G,): ties go to the first, the centre
+    sign[cars] = cand[compact, best[compact], rank[cars]]
+    decided[cars] = True
+    return sign, decided

@@ -1,0 +1,255 @@
+"""The fleet study: collisions, goals and decision time of fleet filters against the fleet's size.
+
+:func:`run_fleet_eval` rolls out ``episodes`` episodes of every fleet scene (:mod:`reach_envs.fleet_scenes`)
+at every size and under every method, the nominal input of every car steering it to its goal
+(:func:`reach_envs.fleet.goal_seeking`). The episodes of one cell run as one batch, the filter
+deciding for every episode at once. Methods (:data:`METHODS`):
+
+- ``"none"``: the nominal input, unfiltered;
+- ``"fleet"``: the fleet filter composed from pairs (:class:`safety.fleet.FleetFilter`);
+- ``"cbf"``: the distance CBF-QP, ``h = |p_i - p_j|^2 - R^2``, same solver (:class:`safety.fleet.DistanceCBF`);
+- ``"union"``: the switch filter on the union of pairwise values (:class:`safety.fleet.NaiveUnionSwitch`).
+
+Each row (one layout, size and method) holds the collision rate (episodes with any collision) with
+its 95 % Wilson interval and the scenario bound on the collision probability at confidence
+``1 - beta`` (:func:`~safety.verification.metrics.scenario_epsilon`: every episode an independent draw
+of the scene's initial states), the goal rate (share of cars that reach their goal) with its
+interval and its ratio to the unfiltered goal rate, the mean arrival time, the intervention rate
+(share of present car-decisions the filter changed), the infeasible share (conflicts decided by
+the fallback rule, of all conflicts), and the decision time per tick of one fleet (batch 1, one
+thread: :func:`decision_times`).
+
+Resumable and one owner at a time: every finished cell is merged into ``OUT.json`` (with ``.csv``
+and ``.md``) atomically under ``OUT.lock``; a rerun skips the cells stored with the same settings.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from reach.json_files import read_json
+from reach.locking import exclusive_lock
+from reach.validation import check_float, check_int, check_seed
+from reach_envs.fleet import FleetSimulator, goal_seeking, rollout
+from reach_envs.fleet_scenes import LAYOUTS, FleetScene
+from safety.verification.metrics import scenario_epsilon, wilson_interval
+from studies.fleet_methods import METHODS, make_method
+from studies.tables import columns_table, merge_rows, write_results
+
+__all__ = ["FleetEvalSettings", "decision_times", "run_cell", "run_fleet_eval"]
+
+
+@dataclass(frozen=True)
+class FleetEvalSettings:
+    """What :func:`run_fleet_eval` runs; refused at construction, naming the bad value."""
+
+    #: the fleet scenes' layouts
+    layouts: tuple[str, ...] = LAYOUTS
+    #: the fleet sizes (cars)
+    sizes: tuple[int, ...] = (4, 8, 16, 32, 64)
+    #: the methods compared
+    methods: tuple[str, ...] = METHODS
+    #: episodes per layout, size and method
+    episodes: int = 1000
+    #: episodes simulated at once (the episodes of a cell run in batches of this many)
+    batch: int = 250
+    #: the episodes' seed (the same initial states for every method of a layout and size)
+    seed: int = 0
+    #: the scenario bound's confidence is ``1 - beta``
+    beta: float = 1e-6
+    #: decisions timed per layout, size and method at batch 1 on one thread (0: not timed)
+    timing_ticks: int = 100
+
+    def __post_init__(self) -> None:
+        for name, known in (("layouts", LAYOUTS), ("methods", METHODS)):
+            values = tuple(getattr(self, name))
+            if not values or any(v not in known for v in values):
+                raise ValueError(f"FleetEvalSettings: {name} must be among {known}, got {values!r}")
+            object.__setattr__(self, name, values)
+        sizes = tuple(self.sizes)
+        if not sizes or any(isinstance(n, bool) or not isinstance(n, int) or n < 2 for n in sizes):
+            raise ValueError(f"FleetEvalSettings: sizes must be integers >= 2, got {self.sizes!r}")
+        object.__setattr__(self, "sizes", sizes)
+        check_int("FleetEvalSettings: episodes", self.episodes, low=1)
+        check_int("FleetEvalSettings: batch", self.batch, low=1)
+        check_int("FleetEvalSettings: timing_ticks", self.timing_ticks, low=0)
+        check_seed("FleetEvalSettings: seed", self.seed)
+        check_float("FleetEvalSettings: beta", self.beta, low=0.0, high=1.0, low_open=True, high_open=True)
+
+
+@dataclass
+class _Tally:
+    """What one batch of episodes of one cell adds up to."""
+
+    episodes: int = 0
+    collided: int = 0
+    cars: int = 0
+    arrived: int = 0
+    arrival_time: float = 0.0
+    decisions: int = 0
+    interventions: int = 0
+    conflicts: int = 0
+    infeasible: int = 0
+    ticks: int = 0
+
+
+def _rollout(scene: FleetScene, decide: Callable | None, episodes: int, seed: int, tally: _Tally) -> None:
+    """``episodes`` episodes of ``scene`` at once (:func:`reach_envs.fleet.rollout`), each car's input
+    decided by ``decide`` from the nominal one (``None``: the nominal input), added to ``tally``."""
+
+    def controller(x: torch.Tensor, goals: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+        u = goal_seeking(x, goals, scene)
+        if decide is not None:
+            u, info = decide(x, u, present)
+            tally.interventions += int((info.intervened & present).sum())
+            tally.conflicts += int(info.conflicts.sum())
+            tally.infeasible += int(info.infeasible.sum())
+        tally.decisions += int(present.sum())
+        tally.ticks += 1
+        return u
+
+    x0, goals = scene.sample(episodes, np.random.default_rng(seed))
+    outcome = rollout(scene, x0, goals, controller)
+    tally.episodes += episodes
+    tally.collided += int(outcome.any_collision.sum())
+    tally.cars += episodes * scene.n_cars
+    arrived = outcome.arrived
+    tally.arrived += int(arrived.sum())
+    tally.arrival_time += float(outcome.arrival_time[arrived].sum())
+
+
+def run_cell(settings: FleetEvalSettings, layout: str, n_cars: int, method: str) -> dict[str, Any]:
+    """One row of the study: ``settings.episodes`` episodes of ``layout`` with ``n_cars`` cars under
+    ``method`` (the module docstring lists its columns)."""
+    scene = FleetScene(layout=layout, n_cars=n_cars)
+    decide = make_method(method, scene)
+    tally = _Tally()
+    start = time.perf_counter()
+    batches = range(0, settings.episodes, settings.batch)
+    for b, first in enumerate(batches):
+        size = min(settings.batch, settings.episodes - first)
+        _rollout(scene, decide, size, settings.seed + 1000 * b, tally)
+    wall = time.perf_counter() - start
+    row = _row(settings, tally)
+    row.update(layout=layout, n_cars=n_cars, method=method, key=f"{layout}/{n_cars}/{method}", wall_s=wall)
+    if settings.timing_ticks and decide is not None:
+        row.update(decision_times(scene, decide, settings.timing_ticks, settings.seed))
+    return row
+
+
+def _row(settings: FleetEvalSettings, t: _Tally) -> dict[str, Any]:
+    lo, hi = wilson_interval(t.collided, t.episodes)
+    g_lo, g_hi = wilson_interval(t.arrived, t.cars)
+    eps = scenario_epsilon(t.collided, t.episodes, settings.beta) if t.collided < t.episodes else 1.0
+    return {
+        "episodes": t.episodes,
+        "collisions": t.collided,
+        "collision_rate": t.collided / t.episodes,
+        "collision_low": lo,
+        "collision_high": hi,
+        "collision_bound": eps,
+        "beta": settings.beta,
+        "goal_rate": t.arrived / t.cars,
+        "goal_low": g_lo,
+        "goal_high": g_hi,
+        "arrival_time": t.arrival_time / t.arrived if t.arrived else math.nan,
+        "intervention_rate": t.interventions / t.decisions if t.decisions else 0.0,
+        "conflicts": t.conflicts,
+        "infeasible_share": t.infeasible / t.conflicts if t.conflicts else 0.0,
+        "ticks": t.ticks,
+    }
+
+
+def decision_times(scene: FleetScene, decide: Callable, ticks: int, seed: int) -> dict[str, float]:
+    """Seconds per decision for one fleet (batch 1) on one torch thread: median and 99th percentile
+    over ``ticks`` decisions along an episode of ``scene``, the nominal input filtered and applied."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        sim = FleetSimulator(scene)
+        x, goals = scene.sample(1, np.random.default_rng(seed))
+        present = torch.ones(1, scene.n_cars, dtype=torch.bool)
+        times = []
+        for _ in range(ticks):
+            if not bool(present.any()):
+                break
+            u = goal_seeking(x, goals, scene)
+            start = time.perf_counter()
+            u, _ = decide(x, u, present)
+            times.append(time.perf_counter() - start)
+            x, _, _, present = sim.step(x, u, present, goals)
+    finally:
+        torch.set_num_threads(threads)
+    if not times:
+        return {"decision_ms": math.nan, "decision_p99_ms": math.nan}
+    ms = np.asarray(times) * 1e3
+    return {"decision_ms": float(np.median(ms)), "decision_p99_ms": float(np.percentile(ms, 99))}
+
+
+def _collisions(value: float, row: dict[str, Any]) -> str:
+    return f"{row['collisions']}/{row['episodes']} [{row['collision_low']:.3f}, {row['collision_high']:.3f}]"
+
+
+def _goals(value: float, row: dict[str, Any]) -> str:
+    return f"{value:.3f} [{row['goal_low']:.3f}, {row['goal_high']:.3f}]"
+
+
+#: (key, header, format) of the study's markdown table
+COLUMNS = (
+    ("layout", "scene", "{}"),
+    ("n_cars", "N", "{}"),
+    ("method", "method", "{}"),
+    ("collision_rate", "collisions (95 % CI)", _collisions),
+    ("collision_bound", "eps at 1 - beta", "{:.2e}"),
+    ("goal_rate", "goal rate (95 % CI)", _goals),
+    ("arrival_time", "arrival s", "{:.1f}"),
+    ("intervention_rate", "interventions", "{:.3f}"),
+    ("infeasible_share", "infeasible", "{:.3f}"),
+    ("decision_ms", "ms / decision", "{:.2f}"),
+)
+
+
+def run_fleet_eval(
+    settings: FleetEvalSettings, out: str | Path, progress: Callable[[str], None] | None = None
+) -> list[dict[str, Any]]:
+    """Every cell of ``settings`` not yet in ``OUT.json`` with the same settings, each merged in as it
+    finishes; returns every stored row."""
+    out = Path(out)
+    header = {"settings": {k: v for k, v in asdict(settings).items() if k not in ("layouts", "sizes", "methods")}}
+    cells = [(lay, n, m) for lay in settings.layouts for n in settings.sizes for m in settings.methods]
+    for layout, n, method in cells:
+        key = f"{layout}/{n}/{method}"
+        with exclusive_lock(out.with_suffix(".lock"), f"fleet results {out}", wait=True):
+            stored = _stored(out, header)
+        if any(r["key"] == key for r in stored):
+            continue
+        if progress is not None:
+            progress(key)
+        row = run_cell(settings, layout, n, method)
+        with exclusive_lock(out.with_suffix(".lock"), f"fleet results {out}", wait=True):
+            rows = merge_rows(_stored(out, header), [row], "key")
+            write_results(out, header, rows, columns_table(rows, COLUMNS))
+    with exclusive_lock(out.with_suffix(".lock"), f"fleet results {out}", wait=True):
+        return _stored(out, header)
+
+
+def _stored(out: Path, header: dict[str, Any]) -> list[dict[str, Any]]:
+    """The rows stored in ``OUT.json``; a file of other settings is refused, naming both."""
+    path = out.with_suffix(".json")
+    if not path.exists():
+        return []
+    data = read_json(path, "fleet results")
+    if data.get("settings") != header["settings"]:
+        raise ValueError(
+            f"{path} holds a study with settings {data.get('settings')}, not {header['settings']}: "
+            "write to another file, or delete it"
+        )
+    return list(data.get("results", []))
