@@ -1,0 +1,58 @@
+"""The fleet study (reach fleet-eval): rows with intervals and bounds, resumable, one line per error."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from reach_cli import main
+from reach_envs.fleet_scenes import FleetScene
+from studies.fleet_eval import FleetEvalSettings, run_fleet_eval
+from studies.fleet_plots import plot_fleet_eval, record_fleet_gif
+
+TINY = {"layouts": ("circle-swap",), "sizes": (3,), "episodes": 6, "batch": 3, "timing_ticks": 3}
+
+
+def test_settings_refuse_bad_values_naming_them():
+    for field, bad in (("sizes", (1,)), ("methods", ("magic",)), ("episodes", 0), ("beta", 1.0), ("layouts", ())):
+        with pytest.raises(ValueError, match=field):
+            FleetEvalSettings(**{field: bad})
+
+
+def test_the_study_writes_one_row_per_cell_and_a_rerun_resumes(tmp_path):
+    settings = FleetEvalSettings(methods=("none", "fleet"), **TINY)
+    seen: list[str] = []
+    rows = run_fleet_eval(settings, tmp_path / "s", progress=seen.append)
+    assert seen == ["circle-swap/3/none", "circle-swap/3/fleet"]
+    by = {r["method"]: r for r in rows}
+    assert by["none"]["episodes"] == 6 and by["fleet"]["episodes"] == 6
+    for r in rows:
+        assert 0.0 <= r["collision_low"] <= r["collision_rate"] <= r["collision_high"] <= 1.0
+        assert 0.0 <= r["goal_low"] <= r["goal_rate"] <= r["goal_high"] <= 1.0
+        assert r["collision_bound"] >= r["collision_rate"]
+    assert by["none"]["intervention_rate"] == 0.0
+    assert by["fleet"]["intervention_rate"] > 0.0 and by["fleet"]["decision_ms"] > 0.0
+    again: list[str] = []
+    assert run_fleet_eval(settings, tmp_path / "s", progress=again.append) == rows
+    assert again == []  # every cell stored: nothing rerun
+    stored = json.loads((tmp_path / "s.json").read_text())
+    assert len(stored["results"]) == 2 and (tmp_path / "s.md").read_text().count("circle-swap") == 2
+    with pytest.raises(ValueError, match="settings"):
+        run_fleet_eval(FleetEvalSettings(methods=("none",), **{**TINY, "episodes": 4}), tmp_path / "s")
+    plot_fleet_eval(rows, tmp_path / "p.png")
+    assert (tmp_path / "p.png").stat().st_size > 1000
+
+
+def test_an_episode_gif_says_what_happened(tmp_path):
+    out = record_fleet_gif(
+        FleetScene(layout="random-goals", n_cars=4, horizon=2.0), "fleet", tmp_path / "e.gif", every=5
+    )
+    assert (tmp_path / "e.gif").stat().st_size > 1000
+    assert out["frames"] >= 2 and out["steps"] <= 40
+
+
+def test_cli_bad_input_is_one_line_exit_2(tmp_path, capsys):
+    assert main(["fleet-eval", "--out", str(tmp_path / "s"), "--methods", "magic"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "magic" in err[0]
