@@ -49,6 +49,26 @@ class Grid:
             tuple(bool(p) for p in system.periodic),
         )
 
+    def widened(self, box: Sequence[tuple[float, float]]) -> tuple[Grid, tuple[slice, ...]]:
+        """This grid with whole nodes of its own spacing added along each non-periodic dimension until
+        it covers ``box``, and the slices that cut this grid's nodes back out of the wider one.
+
+        The solver solves a system's domain on the wider grid when the system's
+        :meth:`~reach.systems.base.ControlAffineSystem.training_domain` is wider: trajectories that
+        leave the domain there before their margin decides them get their values from the wider
+        grid's nodes instead of from the edge's extrapolated ghost nodes."""
+        if len(box) != self.ndim:
+            raise ValueError(f"Grid: box has {len(box)} dimensions, the grid {self.ndim}")
+        low, high, shape, keep = [], [], [], []
+        for lo, hi, m, p, dx, (b_lo, b_hi) in zip(self.low, self.high, self.shape, self.periodic, self.spacing, box):
+            before = 0 if p else max(0, math.ceil((lo - b_lo) / dx - 1e-9))
+            after = 0 if p else max(0, math.ceil((b_hi - hi) / dx - 1e-9))
+            low.append(lo - before * dx)
+            high.append(hi + after * dx)
+            shape.append(m + before + after)
+            keep.append(slice(before, before + m))
+        return Grid(tuple(low), tuple(high), tuple(shape), self.periodic), tuple(keep)
+
     @property
     def ndim(self) -> int:
         return len(self.shape)

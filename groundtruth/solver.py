@@ -129,7 +129,9 @@ def solve(
     Args:
         system: any system with at most 4 state dimensions: an instance, a registered name or an
             import path ``package.module:ClassName``.
-        grid: a :class:`Grid`, or node counts (int or per dimension) over the system's domain.
+        grid: a :class:`Grid` (solved as given), or node counts (int or per dimension) over the
+            system's domain; those are solved on whole nodes more where the system's training domain
+            is wider (:meth:`Grid.widened`) and cut back to the domain's nodes.
         times: output times-to-go (>= 0, increasing); the last one is the horizon.
         settings: the scheme's accuracy and time-stepping options (:class:`SolverSettings`: CFL
             number, dissipation, tube, dtype, device, compilation); ``None``: the defaults.
@@ -144,8 +146,12 @@ def solve(
     system = make_system(system)
     if system.state_dim > MAX_DIM:
         raise ValueError(f"the grid solver handles at most {MAX_DIM} dimensions, {system.name} has {system.state_dim}")
-    if not isinstance(grid, Grid):
-        grid = Grid.for_system(system, grid)
+    if isinstance(grid, Grid):
+        asked, keep = grid, None
+    else:  # over the domain, solved on the training domain where that is wider (Grid.widened)
+        asked = Grid.for_system(system, grid)
+        grid, keep = asked.widened(system.training_domain())
+        keep = None if grid == asked else keep
     if grid.ndim != system.state_dim:
         raise ValueError(f"grid has {grid.ndim} dimensions, {system.name} has {system.state_dim}")
     out_times = [float(t) for t in times]
@@ -228,9 +234,9 @@ def solve(
     wall = time.perf_counter() - start
     return GridSolution(
         system=system,
-        grid=grid,
+        grid=asked,
         times=torch.tensor(out_times, dtype=torch.float64),
-        values=torch.stack(values).cpu(),
+        values=torch.stack(values if keep is None else [v[keep] for v in values]).cpu(),
         metadata={
             "scheme": {
                 "spatial": "HJ-WENO5 (Jiang-Peng), upwind",
@@ -243,6 +249,8 @@ def solve(
                 "kind": problem.name,
                 "boundary": "periodic or extrapolate away from zero",
                 "compiled": compile is not False,  # torch.compile asked for (it falls back to eager on failure)
+                # the nodes solved on, where the system's training domain widened them (Grid.widened)
+                **({} if keep is None else {"solved_on": {"low": grid.low, "high": grid.high, "shape": grid.shape}}),
             },
             "dtype": str(dtype).replace("torch.", ""),
             "device": str(device),

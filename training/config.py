@@ -55,7 +55,7 @@ class TrainConfig(SystemSpecified):
     parameterisation: str = "exact"
     sincos: bool = True  # encode periodic dimensions as (sin, cos): no seam at +-pi
     sincos_radius: float = 1 / math.pi  # ... scaled by this: a turn spans as much input as the plain encoding
-    value_scale: float = 1.0
+    value_scale: float | None = None  # None: the system's own (ControlAffineSystem.value_scale, 1 unless declared)
     points: int = 8192
     lr: float = 1e-4
     lr_final: float = 1e-5  # cosine decay from lr to lr_final over the run
@@ -121,7 +121,7 @@ class TrainConfig(SystemSpecified):
             "lr": self.lr > 0,
             "lr_final": self.lr_final > 0,
             "w0": self.w0 > 0,
-            "value_scale": self.value_scale > 0,
+            "value_scale": self.value_scale is None or self.value_scale > 0,
             "sincos_radius": self.sincos_radius > 0,
             "gradient_bound": self.gradient_bound is None or self.gradient_bound > 0,
             "gradient_weight": self.gradient_weight >= 0,

@@ -9,8 +9,11 @@ Each process of a distributed run draws its own share of the points from its own
 
 from __future__ import annotations
 
+import math
+
 import torch
 
+from reach.systems import ControlAffineSystem
 from training.config import TrainConfig
 from training.network import LEARNED_BOUNDARY, ValueNetwork
 from training.policy_lower_bounds import mpc_lower_bound, policy_lower_bound
@@ -34,6 +37,24 @@ def rank_seed(seed: int, rank: int) -> int:
     return (seed + rank * 0x9E37_79B9_7F4A_7C15) % (2**63)
 
 
+def training_box(system: ControlAffineSystem) -> tuple[tuple[float, float], ...]:
+    """The system's :meth:`~reach.systems.base.ControlAffineSystem.training_domain`, checked: finite,
+    one ``(low, high)`` per state, and containing the domain (a box that leaves out states the network
+    is asked about would train it elsewhere); a periodic dimension keeps its period."""
+    box = tuple((float(lo), float(hi)) for lo, hi in system.training_domain())
+    if len(box) != system.state_dim:
+        raise ValueError(f"{system.name}: training_domain has {len(box)} dimensions, the state {system.state_dim}")
+    for name, periodic, (lo, hi), (d_lo, d_hi) in zip(system.state_names, system.periodic, box, system.domain):
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo <= d_lo and hi >= d_hi):
+            raise ValueError(
+                f"{system.name}: training_domain of {name} must be finite and contain the domain "
+                f"[{d_lo}, {d_hi}], got [{lo}, {hi}]"
+            )
+        if periodic and (lo, hi) != (d_lo, d_hi):
+            raise ValueError(f"{system.name}: periodic {name} trains on its period [{d_lo}, {d_hi}], got [{lo}, {hi}]")
+    return box
+
+
 class PointSampler:
     """Draws a run's training points on ``device`` from its own generator, seeded with ``config.seed``.
 
@@ -52,7 +73,7 @@ class PointSampler:
         self.seed = rank_seed(config.seed, rank)
         self.generator = torch.Generator(device=device)
         self.generator.manual_seed(self.seed)
-        box = network.system.domain_tensor(torch.float32, device)
+        box = torch.tensor(training_box(network.system), dtype=torch.float32, device=device)
         self._low, self._span = box[:, 0], box[:, 1] - box[:, 0]
         #: states where the network was found wrong (set by a caller such as studies.train_until, never
         #: checkpointed: the caller keeps them): with :attr:`hard_fraction` > 0 each step replaces that
@@ -63,8 +84,8 @@ class PointSampler:
         self.hard_radius = 0.05
 
     def uniform(self, n: int, tmax: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """``n`` states uniform on the domain and times uniform on ``[0, tmax]``, from the run's generator
-        (states first: resumed runs replay the same stream)."""
+        """``n`` states uniform on the training box (:func:`training_box`) and times uniform on
+        ``[0, tmax]``, from the run's generator (states first: resumed runs replay the same stream)."""
         g = self.generator
         x = self._low + torch.rand((n, self.network.system.state_dim), generator=g, device=self.device) * self._span
         return x, torch.rand(n, generator=g, device=self.device) * tmax
@@ -122,8 +143,8 @@ class PointSampler:
         self, draws: list[torch.Tensor], tmax: float | torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """The step's points from its :meth:`draws` (``tmax`` a float, or a 0-d tensor in a CUDA graph):
-        uniform on the domain and on ``[0, tmax]``, the last ``zero_level_fraction`` of them replaced
-        by the candidates nearest the network's zero level. Reads nothing back from the device."""
+        uniform on the training box and on ``[0, tmax]``, the last ``zero_level_fraction`` of them
+        replaced by the candidates nearest the network's zero level. Reads nothing back from the device."""
         c = self.config
         x, t = self._low + draws[0] * self._span, draws[1] * tmax
         n = t.shape[0]

@@ -70,8 +70,9 @@ def build_network(config: TrainConfig) -> ValueNetwork:
     depends on what the process did before: runs of one sweep in one process would differ from the
     same runs in fresh processes)."""
     system = config.build_system()
+    value_scale = system.value_scale() if config.value_scale is None else config.value_scale
     encoding = Encoding.for_system(
-        system, sincos=config.sincos, value_scale=config.value_scale, sincos_radius=config.sincos_radius
+        system, sincos=config.sincos, value_scale=value_scale, sincos_radius=config.sincos_radius
     )
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)

@@ -168,6 +168,22 @@ class ControlAffineSystem(OptimalInputs, BatchedPhysics, MarginBounds, StateLimi
             return (0, 0)
         return (plain[0], plain[1]) if len(plain) >= 2 else (0, 1)
 
+    def training_domain(self) -> tuple[tuple[float, float], ...]:
+        """The box a value network's training draws its states from: :attr:`domain` (the box the
+        network is asked about), widened where trajectories from it leave it before their margin
+        decides them. A state's value comes from where its trajectory goes; across a face that the
+        trajectories leave through, a residual drawn only inside the box does not determine the value,
+        and a network fills it in as it likes. Default: :attr:`domain`."""
+        return self.domain
+
+    def value_scale(self) -> float:
+        """How far, in the margin's units, ``V(x, horizon)`` may lie from ``l(x)``: the output scale a
+        value network starts from (``V = l + (t / T) value_scale o`` in the exact parameterisation).
+        A sine network's output ``o`` starts near zero and Adam moves each weight by about the
+        learning rate a step, so a value that falls many units below ``l`` within the horizon stays
+        out of a run's reach unless the scale carries it. Default 1.0."""
+        return 1.0
+
     def reference_slice(self) -> tuple[int, float]:
         """``(dimension, value)`` of the 2D slice that grid comparisons report beside the whole volume:
         the nodes of that dimension nearest that value. Default: the last dimension at its domain centre."""

@@ -321,6 +321,27 @@ class ParameterizedVertDrone2D(ControlAffineSystem):
             "horizon": self.horizon,
         }
 
+    def training_domain(self) -> tuple[tuple[float, float], ...]:
+        """The domain with its speed range widened down to the fastest fall that still starts above the
+        floor: a drone whose gain ``k`` is below ``gravity`` falls whatever it does, and leaves the box
+        through ``v = -4`` while still between floor and ceiling (at ``k = 0``, from ``v = 0`` at the
+        ceiling, after 0.41 s at height 2.2). Its value comes from where it falls to, outside the box,
+        which a residual drawn on the box alone leaves free: a network may call it safe although it
+        reaches the floor within the horizon. Thrusting up (``u = 1``, what keeps a falling drone off
+        the floor) it falls with at most ``gravity``, so from the box it meets the floor no faster
+        than ``min(sqrt(4^2 + 2 gravity 3.5), 4 + gravity horizon)`` downwards (9.2 at the defaults)."""
+        (v_low, v_high), (z_low, z_high), gain = self.domain
+        fastest_fall = min(math.sqrt(v_low**2 + 2 * self.gravity * z_high), -v_low + self.gravity * self.horizon)
+        return ((-fastest_fall, v_high), (z_low, z_high), gain)
+
+    def value_scale(self) -> float:
+        """How far the margin can fall within the horizon ``T``: under ``u = min(1, gravity / k)``
+        (hover where the gain allows, else full thrust up) the acceleration lies in [-gravity, 0], so
+        the height falls by at most ``4 T + gravity T^2 / 2`` and the room to the ceiling by at most
+        ``4 T``: ``V >= l - 4 T - gravity T^2 / 2``, which a drone of gain 0 falling at 4 m/s meets."""
+        fastest = max(-self.domain[0][0], self.domain[0][1])
+        return fastest * self.horizon + 0.5 * self.gravity * self.horizon**2
+
     def drift(self, x: Sequence[Column], xp: Backend) -> list[Column]:
         return [0.0 * x[0] - self.gravity, x[0], 0.0 * x[2]]
 
