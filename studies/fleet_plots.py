@@ -39,8 +39,8 @@ def plot_fleet_eval(rows: Sequence[dict[str, Any]], path: str | os.PathLike) -> 
                 continue
             n = [r["n_cars"] for r in mine]
             rate = np.array([r["collision_rate"] for r in mine])
-            low = rate - np.array([r["collision_low"] for r in mine])
-            high = np.array([r["collision_high"] for r in mine]) - rate
+            low = np.maximum(rate - np.array([r["collision_low"] for r in mine]), 0.0)  # rounding: never < 0
+            high = np.maximum(np.array([r["collision_high"] for r in mine]) - rate, 0.0)
             axes[0, c].errorbar(n, rate, yerr=[low, high], marker="o", capsize=3, label=method)
             axes[1, c].plot(n, [r["goal_rate"] for r in mine], marker="o", label=method)
         axes[0, c].set_title(layout)
