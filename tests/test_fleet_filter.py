@@ -79,7 +79,7 @@ class Smooth:
 @given(seed=st.integers(0, 10_000), t=st.sampled_from([1.0, 0.55]), dt=st.sampled_from([0.05, 0.1]))
 def test_at_two_cars_the_fleet_filter_is_the_switch_filter_to_the_bit(pair, seed, t, dt):
     system = fleet(2)
-    ff = FleetFilter(FleetValue(system, pair), FleetFilterSettings(dt=dt, policy="gradient"))
+    ff = FleetFilter(FleetValue(system, pair), FleetFilterSettings(dt=dt, threshold=2 * 1.2 * dt, policy="gradient"))
     theta = float(ff.threshold[0, 1])
     sf = SafetyFilter(PairwiseUnion(system, pair), threshold=theta, policy="gradient")
     x, u_nom = states(2, 4000, 0.7, seed), nominal(2, 4000, seed)
@@ -94,7 +94,7 @@ def test_at_two_cars_the_fleet_filter_is_the_switch_filter_to_the_bit(pair, seed
 @pytest.mark.parametrize("n", [3, 4])
 def test_the_naive_union_switch_is_the_switch_filter_on_the_pairwise_union(pair, n):
     system = fleet(n)
-    naive = NaiveUnionSwitch(FleetValue(system, pair), FleetFilterSettings(dt=0.05))
+    naive = NaiveUnionSwitch(FleetValue(system, pair), FleetFilterSettings(dt=0.05, threshold=2 * 1.2 * 0.05))
     sf = SafetyFilter(PairwiseUnion(system, pair), threshold=float(naive.threshold[0, 1]), policy="gradient")
     x, u_nom = states(n, 5000, 0.9, n), nominal(n, 5000, n)
     u, info = naive(x, 1.0, u_nom)
@@ -210,7 +210,9 @@ def test_a_culled_pair_never_matters_within_the_horizon(pair):
     n = 8
     system = fleet(n, 3.0)
     fv = FleetValue(system, pair)
-    ff = FleetFilter(fv, FleetFilterSettings(dt=0.05))
+    # a low level (the one-step threshold), so that many culled pairs still lie in the grid's box
+    # where their value can be read: the default level culls beyond most of the box
+    ff = FleetFilter(fv, FleetFilterSettings(dt=0.05, threshold=0.12))
     x = states(n, 2000, 1.8, 1)
     everything = PairwiseUnion(system, pair).pair_values(x, 1.0)
     pairs = PairwiseUnion(system, pair).pairs
@@ -230,7 +232,7 @@ def test_a_culled_pair_never_matters_within_the_horizon(pair):
 
     u_nom = nominal(n, 2000, 1)
     u, info = ff(x, 1.0, u_nom)
-    u_all, info_all = FleetFilter(NoCull(system, pair), FleetFilterSettings(dt=0.05))(x, 1.0, u_nom)
+    u_all, info_all = FleetFilter(NoCull(system, pair), ff.settings)(x, 1.0, u_nom)
     assert torch.equal(u, u_all)
     assert info.pairs < info_all.pairs
     assert int(info.conflicts.sum()) > 0
@@ -241,9 +243,12 @@ def test_a_fleet_of_64_evaluates_few_pairs(pair):
     side = torch.arange(8, dtype=F64) * 1.3
     pos = torch.stack(torch.meshgrid(side, side, indexing="ij"), -1).reshape(1, -1)
     x = torch.cat([pos, torch.zeros(1, n, dtype=F64)], 1)
-    ff = FleetFilter(FleetValue(fleet(n, 10.0), pair), FleetFilterSettings(dt=0.05))
+    fv = FleetValue(fleet(n, 10.0), pair)
+    ff = FleetFilter(fv, FleetFilterSettings(dt=0.05))
     u, info = ff(x, 1.0, torch.zeros(1, n, dtype=F64))
-    assert info.pairs < 2016 // 10
+    dist = torch.cdist(pos.reshape(n, 2), pos.reshape(n, 2))
+    near = torch.triu(dist < fv.cull_distance(1.0, ff.level), 1)
+    assert info.pairs == int(near.sum()) < 2016 // 8  # each car's 8 neighbours at most, not every pair
     assert torch.equal(u, torch.zeros(1, n, dtype=F64))  # 1.3 m apart, side by side: no conflict
 
 

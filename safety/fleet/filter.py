@@ -56,7 +56,7 @@ from safety.fleet.value import FleetValue, PairCandidates, check_fleet_state, ch
 #: seconds of closing speed (``v_i + v_j``) the default threshold keeps in hand, at least: a fleet's
 #: pair reacts earlier than the switch filter's one-step default (``2 (v_i + v_j) dt``), as its
 #: cars may be busy with other pairs (measured against the one-step default: docs/results/fleets.md)
-REACTION_TIME = 0.25
+REACTION_TIME = 0.5
 
 #: the fleet filter's rules for a lone pair and an infeasible conflict (FleetFilterSettings.policy)
 FLEET_POLICIES = ("greedy", "gradient")
