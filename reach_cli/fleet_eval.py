@@ -72,6 +72,12 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--seed", type=seed_arg, default=None, help=f"episodes' seed (default: {default(FleetEvalSettings, 'seed')})"
     )
+    p.add_argument(
+        "--density",
+        type=float,
+        default=None,
+        help=f"cars per unit area of the random-goals arena (default: {default(FleetEvalSettings, 'density')})",
+    )
     p.add_argument("--plot", default=None, help="also draw collisions and goal rate against N to this PNG")
     p.set_defaults(func=run)
 
@@ -88,6 +94,7 @@ def run(args: argparse.Namespace) -> int:
         "batch": args.batch,
         "timing_ticks": args.timing_ticks,
         "seed": args.seed,
+        "density": args.density,
     }
     settings = FleetEvalSettings(**{k: v for k, v in chosen.items() if v is not None})
     out = check_output_path(args.out + ".json", "--out").with_suffix("")

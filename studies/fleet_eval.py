@@ -67,6 +67,8 @@ class FleetEvalSettings:
     beta: float = 1e-6
     #: decisions timed per layout, size and method at batch 1 on one thread (0: not timed)
     timing_ticks: int = 100
+    #: cars per unit area of the ``random-goals`` arena (:class:`~reach_envs.fleet_scenes.FleetScene`)
+    density: float = 0.1
 
     def __post_init__(self) -> None:
         for name, known in (("layouts", LAYOUTS), ("methods", METHODS)):
@@ -83,6 +85,7 @@ class FleetEvalSettings:
         check_int("FleetEvalSettings: timing_ticks", self.timing_ticks, low=0)
         check_seed("FleetEvalSettings: seed", self.seed)
         check_float("FleetEvalSettings: beta", self.beta, low=0.0, high=1.0, low_open=True, high_open=True)
+        FleetScene(layout="random-goals", n_cars=2, density=self.density)  # refused there, naming it
 
 
 @dataclass
@@ -129,7 +132,7 @@ def _rollout(scene: FleetScene, decide: Callable | None, episodes: int, seed: in
 def run_cell(settings: FleetEvalSettings, layout: str, n_cars: int, method: str) -> dict[str, Any]:
     """One row of the study: ``settings.episodes`` episodes of ``layout`` with ``n_cars`` cars under
     ``method`` (the module docstring lists its columns)."""
-    scene = FleetScene(layout=layout, n_cars=n_cars)
+    scene = FleetScene(layout=layout, n_cars=n_cars, density=settings.density)
     decide = make_method(method, scene)
     tally = _Tally()
     start = time.perf_counter()
