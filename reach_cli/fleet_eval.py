@@ -97,7 +97,8 @@ def run(args: argparse.Namespace) -> int:
         "density": args.density,
     }
     settings = FleetEvalSettings(**{k: v for k, v in chosen.items() if v is not None})
-    out = check_output_path(args.out + ".json", "--out").with_suffix("")
+    out = args.out
+    check_output_path(out + ".json", "--out")
     if args.plot is not None:
         check_output_path(args.plot, "--plot")
     rows = run_fleet_eval(settings, out, progress=lambda key: print(f"fleet-eval: {key}", flush=True))

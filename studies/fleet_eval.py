@@ -225,7 +225,9 @@ def run_fleet_eval(
 ) -> list[dict[str, Any]]:
     """Every cell of ``settings`` not yet in ``OUT.json`` with the same settings, each merged in as it
     finishes; returns every stored row."""
+    # OUT is a stem: "runs/density_0.2" writes runs/density_0.2.json (with_suffix would eat ".2")
     out = Path(out)
+    out = out.with_name(out.name + ".json")
     header = {"settings": {k: v for k, v in asdict(settings).items() if k not in ("layouts", "sizes", "methods")}}
     cells = [(lay, n, m) for lay in settings.layouts for n in settings.sizes for m in settings.methods]
     for layout, n, method in cells:
@@ -246,7 +248,7 @@ def run_fleet_eval(
 
 def _stored(out: Path, header: dict[str, Any]) -> list[dict[str, Any]]:
     """The rows stored in ``OUT.json``; a file of other settings is refused, naming both."""
-    path = out.with_suffix(".json")
+    path = out
     if not path.exists():
         return []
     data = read_json(path, "fleet results")

@@ -56,3 +56,9 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path, capsys):
     assert main(["fleet-eval", "--out", str(tmp_path / "s"), "--methods", "magic"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "magic" in err[0]
+
+
+def test_a_stem_with_a_dot_keeps_it(tmp_path):
+    run_fleet_eval(FleetEvalSettings(methods=("none",), **TINY), tmp_path / "density_0.2")
+    assert (tmp_path / "density_0.2.json").exists() and (tmp_path / "density_0.2.md").exists()
+    assert not (tmp_path / "density_0.json").exists()
