@@ -13,8 +13,8 @@ from __future__ import annotations
 import argparse
 
 from reach_envs.fleet_scenes import LAYOUTS, FleetScene
-from studies.fleet_methods import METHODS
 from studies.fleet_plots import record_fleet_gif
+from studies.fleet_settings import METHODS
 
 
 def main() -> None:

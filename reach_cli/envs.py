@@ -63,8 +63,10 @@ def run(args: argparse.Namespace) -> int:
         if agents and "system" in fields:
             teams.append((fields["system"], agents))
     print(f'  {reach_envs.SYSTEM_ENV_ID:<28} any system: gym.make("{reach_envs.SYSTEM_ENV_ID}", system=...)')
-    print("Fleets of N cars (gym.make(id, n_cars=N); PettingZoo: reach_envs.fleet_envs.FleetParallelEnv(layout, n_cars=N);")
-    print("  filter: safety.fleet.FleetFilter over the shipped pair grid pretrained:relativepair):")
+    print(
+        "Fleets of N cars (gym.make(id, n_cars=N); PettingZoo: reach_envs.fleet_envs.FleetParallelEnv(layout, "
+        "n_cars=N); filter: safety.fleet.FleetFilter over the shipped pair grid pretrained:relativepair):"
+    )
     for env_id, layout in reach_envs.FLEET_ENVS.items():
         print(f"  {env_id:<28} layout={layout:<14} kind=avoid cars=2..{MAX_CARS} action=N turn rates")
     print("Named scenes (gym.make(id, scene=NAME); reach_envs.parallel.parallel_env(NAME) where agents > 0):")

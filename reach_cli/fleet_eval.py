@@ -28,7 +28,7 @@ def _sizes(text: str) -> tuple[int, ...]:
 
 
 def add_parser(sub: Any) -> None:
-    from studies.fleet_eval import FleetEvalSettings  # lazy: keeps `import reach_cli` light
+    from studies.fleet_settings import FleetEvalSettings  # lazy: keeps `import reach_cli` light
 
     p = add_subparser(sub, "fleet-eval", help="collisions, goals and decision time of fleet filters against N")
     p.add_argument("--out", required=True, help="results file stem: OUT.json, OUT.csv, OUT.md (a rerun continues it)")
@@ -36,7 +36,7 @@ def add_parser(sub: Any) -> None:
         "--layouts",
         type=_csv("--layouts"),
         default=None,
-        help=f"fleet scenes (default: {','.join(default(FleetEvalSettings, 'layouts'))})",
+        help="fleet scenes (default: every one)",
     )
     p.add_argument(
         "--sizes",
@@ -83,8 +83,9 @@ def add_parser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from studies.fleet_eval import FleetEvalSettings, run_fleet_eval  # lazy: keeps `import reach_cli` light
+    from studies.fleet_eval import run_fleet_eval  # lazy: keeps `import reach_cli` light
     from studies.fleet_plots import plot_fleet_eval  # lazy: matplotlib only when asked
+    from studies.fleet_settings import FleetEvalSettings  # lazy: as above
 
     chosen = {
         "layouts": args.layouts,

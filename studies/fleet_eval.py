@@ -37,55 +37,14 @@ import torch
 
 from reach.json_files import read_json
 from reach.locking import exclusive_lock
-from reach.validation import check_float, check_int, check_seed
 from reach_envs.fleet import FleetSimulator, goal_seeking, rollout
-from reach_envs.fleet_scenes import LAYOUTS, FleetScene
+from reach_envs.fleet_scenes import FleetScene
 from safety.verification.metrics import scenario_epsilon, wilson_interval
-from studies.fleet_methods import METHODS, make_method
+from studies.fleet_methods import make_method
+from studies.fleet_settings import FleetEvalSettings
 from studies.tables import columns_table, merge_rows, write_results
 
-__all__ = ["FleetEvalSettings", "decision_times", "run_cell", "run_fleet_eval"]
-
-
-@dataclass(frozen=True)
-class FleetEvalSettings:
-    """What :func:`run_fleet_eval` runs; refused at construction, naming the bad value."""
-
-    #: the fleet scenes' layouts
-    layouts: tuple[str, ...] = LAYOUTS
-    #: the fleet sizes (cars)
-    sizes: tuple[int, ...] = (4, 8, 16, 32, 64)
-    #: the methods compared
-    methods: tuple[str, ...] = METHODS
-    #: episodes per layout, size and method
-    episodes: int = 1000
-    #: episodes simulated at once (the episodes of a cell run in batches of this many)
-    batch: int = 250
-    #: the episodes' seed (the same initial states for every method of a layout and size)
-    seed: int = 0
-    #: the scenario bound's confidence is ``1 - beta``
-    beta: float = 1e-6
-    #: decisions timed per layout, size and method at batch 1 on one thread (0: not timed)
-    timing_ticks: int = 100
-    #: cars per unit area of the ``random-goals`` arena (:class:`~reach_envs.fleet_scenes.FleetScene`)
-    density: float = 0.1
-
-    def __post_init__(self) -> None:
-        for name, known in (("layouts", LAYOUTS), ("methods", METHODS)):
-            values = tuple(getattr(self, name))
-            if not values or any(v not in known for v in values):
-                raise ValueError(f"FleetEvalSettings: {name} must be among {known}, got {values!r}")
-            object.__setattr__(self, name, values)
-        sizes = tuple(self.sizes)
-        if not sizes or any(isinstance(n, bool) or not isinstance(n, int) or n < 2 for n in sizes):
-            raise ValueError(f"FleetEvalSettings: sizes must be integers >= 2, got {self.sizes!r}")
-        object.__setattr__(self, "sizes", sizes)
-        check_int("FleetEvalSettings: episodes", self.episodes, low=1)
-        check_int("FleetEvalSettings: batch", self.batch, low=1)
-        check_int("FleetEvalSettings: timing_ticks", self.timing_ticks, low=0)
-        check_seed("FleetEvalSettings: seed", self.seed)
-        check_float("FleetEvalSettings: beta", self.beta, low=0.0, high=1.0, low_open=True, high_open=True)
-        FleetScene(layout="random-goals", n_cars=2, density=self.density)  # refused there, naming it
+__all__ = ["decision_times", "run_cell", "run_fleet_eval"]
 
 
 @dataclass

@@ -19,12 +19,10 @@ from groundtruth.pairwise import solve_pairs
 from groundtruth.solution import GridSolution
 from reach_envs.fleet_scenes import FleetScene
 from safety.fleet import CBFSettings, DistanceCBF, FleetFilter, FleetFilterSettings, FleetValue, NaiveUnionSwitch
+from studies.fleet_settings import METHODS
 from training import pretrained
 
-__all__ = ["METHODS", "fleet_value", "make_method"]
-
-#: the study's methods: unfiltered, the fleet filter, the distance CBF-QP, the naive union switch
-METHODS = ("none", "fleet", "cbf", "union")
+__all__ = ["fleet_value", "make_method"]
 
 #: the shipped pair grid the fleet value reads where the cars match its physics
 PAIR_SOURCE = "pretrained:relativepair"

@@ -8,8 +8,9 @@ import pytest
 
 from reach_cli import main
 from reach_envs.fleet_scenes import FleetScene
-from studies.fleet_eval import FleetEvalSettings, run_fleet_eval
+from studies.fleet_eval import run_fleet_eval
 from studies.fleet_plots import plot_fleet_eval, record_fleet_gif
+from studies.fleet_settings import FleetEvalSettings
 
 TINY = {"layouts": ("circle-swap",), "sizes": (3,), "episodes": 6, "batch": 3, "timing_ticks": 3}
 
