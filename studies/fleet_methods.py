@@ -32,6 +32,11 @@ Decide = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], tuple[torch.Tensor
 
 @functools.lru_cache(maxsize=1)
 def _shipped_pair() -> GridSolution:
+    """The shipped pair grid, taken only while its card's computed verdict passes (nothing picks an
+    untrusted model by default)."""
+    verdict = pretrained.source_verdict(PAIR_SOURCE)
+    if verdict is None or not verdict.passes:
+        raise ValueError(f"{PAIR_SOURCE} does not pass the trust bar ({verdict}); the fleet study will not use it")
     return GridSolution.load(pretrained.checkpoint_path(PAIR_SOURCE), outside="clamp")
 
 

@@ -63,3 +63,18 @@ def test_a_stem_with_a_dot_keeps_it(tmp_path):
     run_fleet_eval(FleetEvalSettings(methods=("none",), **TINY), tmp_path / "density_0.2")
     assert (tmp_path / "density_0.2.json").exists() and (tmp_path / "density_0.2.md").exists()
     assert not (tmp_path / "density_0.json").exists()
+
+
+def test_the_study_refuses_a_pair_grid_whose_verdict_fails(monkeypatch):
+    from studies import fleet_methods  # lazy: this test patches the module's view of the cards
+    from training import pretrained
+
+    failing = pretrained.card("dubins3d").verdict  # a computed verdict that fails the bar
+    assert not failing.passes
+    monkeypatch.setattr(pretrained, "source_verdict", lambda source: failing)
+    fleet_methods._shipped_pair.cache_clear()
+    try:
+        with pytest.raises(ValueError, match="trust bar"):
+            fleet_methods.make_method("fleet", FleetScene(layout="circle-swap", n_cars=3))
+    finally:
+        fleet_methods._shipped_pair.cache_clear()
