@@ -437,3 +437,12 @@ def test_absent_cars_take_part_in_no_pair(pair):
     u, info = ff(x, 1.0, torch.zeros(1, 3, dtype=F64), present)
     assert int(info.solved[0]) == 0 and int(info.conflicts[0]) == 1  # a lone pair now: the switch rule
     assert not bool(info.intervened[0, 2]) and float(u[0, 2]) == 0.0
+
+
+def test_the_fleet_rules_refuse_a_wrong_value_or_settings_naming_it(pair):
+    fv = FleetValue(fleet(3, 2.0), pair)
+    for rule in (FleetFilter, NaiveUnionSwitch):
+        with pytest.raises(ValueError, match="needs a FleetValue, got GridSolution"):
+            rule(pair, FleetFilterSettings(dt=0.05))
+        with pytest.raises(ValueError, match="must be a FleetFilterSettings, got dict"):
+            rule(fv, {"dt": 0.05})

@@ -32,12 +32,13 @@ from safety.fleet.filter import (
     FleetFilterSettings,
     FleetInfo,
     PairRows,
-    check_nominal,
+    checked_inputs,
     fallback_inputs,
+    pair_thresholds,
     qp_conflicts,
 )
 from safety.fleet.graph import conflicts
-from safety.fleet.value import FleetValue, check_fleet_state, check_present
+from safety.fleet.value import FleetValue
 
 __all__ = ["CBFSettings", "DistanceCBF", "NaiveUnionSwitch"]
 
@@ -52,21 +53,17 @@ class NaiveUnionSwitch:
     """
 
     def __init__(self, fleet_value: FleetValue, settings: FleetFilterSettings) -> None:
-        from safety.fleet.filter import FleetFilter  # lazy: the threshold rule, without a cycle at import
-
         self.fleet_value = fleet_value
         self.settings = settings
-        self.threshold = FleetFilter(fleet_value, settings).threshold
+        self.threshold = pair_thresholds(fleet_value, settings)
 
     def __call__(
         self, x: torch.Tensor, t: float, u_nominal: torch.Tensor, present: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, FleetInfo]:
         fv = self.fleet_value
         n = fv.num_cars
-        x = check_fleet_state(x, n)
+        x, present, given = checked_inputs(fv, x, u_nominal, present)
         batch = x.shape[0]
-        present = check_present(present, batch, n, x.device)
-        given = check_nominal(u_nominal, batch, fv.turn_bounds)
         c = fv.candidates(x, t, present, self.threshold)
         dev, dt = x.device, x.dtype
         threatened = c.value <= self.threshold.to(dev, dt)[c.first, c.second]
@@ -140,10 +137,8 @@ class DistanceCBF:
     ) -> tuple[torch.Tensor, FleetInfo]:
         fv = self.fleet_value
         n = fv.num_cars
-        x = check_fleet_state(x, n)
+        x, present, given = checked_inputs(fv, x, u_nominal, present)
         batch = x.shape[0]
-        present = check_present(present, batch, n, x.device)
-        given = check_nominal(u_nominal, batch, fv.turn_bounds)
         dev, dt = x.device, x.dtype
         step, gamma = self.settings.dt, self.settings.gamma
         pos = x[:, : 2 * n].reshape(batch, n, 2)

@@ -68,7 +68,9 @@ __all__ = [
     "FleetInfo",
     "PairRows",
     "check_nominal",
+    "checked_inputs",
     "fallback_inputs",
+    "pair_thresholds",
     "qp_conflicts",
     "solve_conflicts",
 ]
@@ -155,6 +157,35 @@ def check_nominal(u: object, batch: int, bounds: torch.Tensor) -> torch.Tensor:
         raise ValueError(f"u_nominal contains NaN or inf: {u[~torch.isfinite(u)][:4].tolist()}")
     w = bounds.to(u.device, u.dtype)
     return torch.minimum(torch.maximum(u, -w), w)
+
+
+def checked_inputs(
+    fv: FleetValue, x: torch.Tensor, u_nominal: torch.Tensor, present: torch.Tensor | None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A fleet rule's call inputs checked (every rule of :mod:`safety.fleet` refuses alike):
+    ``(x, present, nominal)``, the nominal input clipped to the turn bounds (:func:`check_nominal`)."""
+    x = check_fleet_state(x, fv.num_cars)
+    present = check_present(present, x.shape[0], fv.num_cars, x.device)
+    return x, present, check_nominal(u_nominal, x.shape[0], fv.turn_bounds)
+
+
+def pair_thresholds(fleet_value: FleetValue, settings: FleetFilterSettings) -> torch.Tensor:
+    """``(N, N)`` each pair's threshold ``theta``: ``settings.threshold`` where given, else the larger
+    of the switch filter's default for the pair problem at ``settings.dt`` and
+    :data:`REACTION_TIME` of the pair's closing speed (the module docstring says why)."""
+    if not isinstance(fleet_value, FleetValue):
+        raise ValueError(f"a fleet filter needs a FleetValue, got {type(fleet_value).__name__}")
+    if not isinstance(settings, FleetFilterSettings):
+        raise ValueError(f"settings must be a FleetFilterSettings, got {type(settings).__name__}")
+    speed_sum = fleet_value.speed_sum
+    if settings.threshold is not None:
+        return torch.full_like(speed_sum, settings.threshold)
+    per_kind = torch.tensor(
+        [default_threshold(s.system, settings.dt) for s in fleet_value.solutions], dtype=torch.float64
+    )
+    # a pair must react earlier than a lone pair would: its cars may be busy with another pair when
+    # it needs them, so the default holds REACTION_TIME of closing speed in hand
+    return torch.maximum(per_kind[fleet_value.pair_kind.clamp(min=0)], REACTION_TIME * speed_sum)
 
 
 class PairRows(NamedTuple):
@@ -274,24 +305,11 @@ class FleetFilter:
     """
 
     def __init__(self, fleet_value: FleetValue, settings: FleetFilterSettings) -> None:
-        if not isinstance(fleet_value, FleetValue):
-            raise ValueError(f"FleetFilter needs a FleetValue, got {type(fleet_value).__name__}")
-        if not isinstance(settings, FleetFilterSettings):
-            raise ValueError(f"settings must be a FleetFilterSettings, got {type(settings).__name__}")
+        self.threshold = pair_thresholds(fleet_value, settings)  # checks both arguments' types first
         self.fleet_value = fleet_value
         self.settings = settings
-        dt = settings.dt
         speed_sum = fleet_value.speed_sum
-        if settings.threshold is None:
-            per_kind = torch.tensor(
-                [default_threshold(s.system, dt) for s in fleet_value.solutions], dtype=torch.float64
-            )
-            # a pair must react earlier than a lone pair would: its cars may be busy with another
-            # pair when it needs them, so the default holds REACTION_TIME of closing speed in hand
-            self.threshold = torch.maximum(per_kind[fleet_value.pair_kind.clamp(min=0)], REACTION_TIME * speed_sum)
-        else:
-            self.threshold = torch.full_like(speed_sum, settings.threshold)
-        self.band = dt * speed_sum if settings.band is None else torch.full_like(speed_sum, settings.band)
+        self.band = settings.dt * speed_sum if settings.band is None else torch.full_like(speed_sum, settings.band)
         self.level = self.threshold + self.band
 
     def __call__(
@@ -299,10 +317,8 @@ class FleetFilter:
     ) -> tuple[torch.Tensor, FleetInfo]:
         fv = self.fleet_value
         n = fv.num_cars
-        x = check_fleet_state(x, n)
+        x, present, given = checked_inputs(fv, x, u_nominal, present)
         batch = x.shape[0]
-        present = check_present(present, batch, n, x.device)
-        given = check_nominal(u_nominal, batch, fv.turn_bounds)
         c = fv.candidates(x, t, present, self.level)
         dev, dt = x.device, x.dtype
         theta = self.threshold.to(dev, dt)[c.first, c.second]
