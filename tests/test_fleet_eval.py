@@ -19,6 +19,9 @@ def test_settings_refuse_bad_values_naming_them():
     for field, bad in (("sizes", (1,)), ("methods", ("magic",)), ("episodes", 0), ("beta", 1.0), ("layouts", ())):
         with pytest.raises(ValueError, match=field):
             FleetEvalSettings(**{field: bad})
+    for density in (float("nan"), 0.0, 5.0):  # not finite, not positive, denser than starts 1 apart allow
+        with pytest.raises(ValueError, match="density"):
+            FleetEvalSettings(density=density)
 
 
 def test_the_study_writes_one_row_per_cell_and_a_rerun_resumes(tmp_path):
