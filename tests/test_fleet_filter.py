@@ -339,6 +339,41 @@ def test_at_two_cars_the_greedy_fleet_filter_commits_a_head_on_pair_to_one_manoe
     )
 
 
+def converging(n: int, radius: float, seed: int) -> torch.Tensor:
+    """``n`` cars on a circle of ``radius``, each heading for the centre, slightly jittered."""
+    g = torch.Generator().manual_seed(seed)
+    ang = torch.arange(n, dtype=F64) * 2 * math.pi / n + 0.05 * torch.randn(n, generator=g, dtype=F64)
+    pos = torch.stack([radius * torch.cos(ang), radius * torch.sin(ang)], -1).reshape(1, -1)
+    heading = ang + math.pi + 0.05 * torch.randn(n, generator=g, dtype=F64)
+    return torch.cat([pos, heading[None]], 1)
+
+
+def test_a_conflict_too_large_to_enumerate_descends_from_its_best_structured_input(pair):
+    # eight cars converging on one point: one infeasible conflict of all eight (more than
+    # MAX_JOINT_CARS), where all-straight, all-left and all-right nearly tie. The descent over the
+    # worst pair's two cars starts from the best of those and of each car on its worst pair's u*
+    # (the gradient policy's fallback): it is never worse, and here it is strictly better once
+    n = 8
+    fv = FleetValue(fleet(n, 3.0), pair)
+    zero = torch.zeros(1, n, dtype=F64)
+    pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    gains = []
+    for seed in range(3):
+        x = converging(n, 1.0, seed)
+        u, info = FleetFilter(fv, FleetFilterSettings(dt=0.05))(x, 1.0, zero)
+        assert int(info.conflicts[0]) == 1 and int(info.infeasible[0]) == 1 and bool(info.intervened.all())
+        gradient, _ = FleetFilter(fv, FleetFilterSettings(dt=0.05, policy="gradient"))(x, 1.0, zero)
+
+        def least(w: torch.Tensor, x: torch.Tensor = x) -> float:  # least score over every pair, rates w held
+            return min(
+                float(_held_score(pair, _rel(x, n, i, j), torch.stack([w[i], w[j]])[None], 1.0)[0]) for i, j in pairs
+            )
+
+        structured = [torch.full((n,), s * 1.1, dtype=F64) for s in (0.0, 1.0, -1.0)] + [gradient[0]]
+        gains.append(least(u[0]) - max(least(w) for w in structured))
+    assert min(gains) >= -1e-12 and max(gains) > 1e-3, gains
+
+
 def test_the_qp_solution_meets_every_condition_of_its_conflict(pair):
     n = 4
     fv = FleetValue(fleet(n, 2.0), pair)

@@ -13,11 +13,16 @@ For a conflict of ``k <= MAX_JOINT_CARS`` cars, each candidate gives every car a
 its pair problem's own stepper (:func:`~reach.integrators.make_stepper`, Euler substeps as the greedy
 policy takes), and scored as ``min(V(y), min over the substeps of l(y))``; where the pair's second car
 is a disturbance, against both of its extreme turn rates. The candidate whose least score over the
-group's pairs is highest is applied (ties: the first, the centre). A larger conflict weighs a
-few structured candidates: all straight, all turning left, all turning right (cars of equal speed
-and turn rate then circle in place, each on its own turning circle, a holding pattern), and each car
-on its worst pair's ``u*``. Batched: every conflict of the batch, every candidate and
-every pair in one evaluation per pair problem.
+group's pairs is highest is applied (ties: the first, the centre). A larger conflict starts from
+the best of a few structured candidates: all straight, all turning left, all turning right (cars of
+equal speed and turn rate then circle in place, each on its own turning circle, a holding pattern),
+and each car on its worst pair's ``u*``. It then descends: each round its worst pair's two cars try
+the nine combinations of their signs, and the best is kept if it raises the least score (only
+those two cars can raise it alone), for at most :data:`DESCENT_ROUNDS` rounds. The structured
+candidates nearly tie where cars converge head-on, as turning changes a head-on distance only at
+second order over one step; the descent found the inputs that kept the 8-car circle swaps apart in
+1,000 episodes where the structured ones let 4 collide (docs/results/fleets.md). Batched: every
+conflict of the batch, every candidate and every pair in one evaluation per pair problem.
 """
 
 from __future__ import annotations
@@ -37,6 +42,9 @@ __all__ = ["MAX_JOINT_CARS", "joint_greedy"]
 
 #: the largest conflict (cars) the joint greedy decides: ``2^k + 1`` candidates each
 MAX_JOINT_CARS = 6
+
+#: the most rounds of the worst-pair descent a conflict of more than MAX_JOINT_CARS cars takes
+DESCENT_ROUNDS = 16
 
 #: the greedy step's Euler substep (s), as :class:`~safety.value_policies.GreedyPolicy`'s default
 SUBSTEP = 0.0025
@@ -131,11 +139,74 @@ def joint_greedy(
         cand[group_of[big], 3, rank[big]] = gradient_sign[big].to(dtype)
     wmax = fv.turn_bounds.to(dev, dtype)
     gu, gv = group_of[u], group_of[v]
-    w = torch.stack([cand[gu, :, rank[u]].T * wmax[c.first[edges]], cand[gv, :, rank[v]].T * wmax[c.second[edges]]], -1)
-    scores = _pair_scores(fv, c, edges, w, t)  # (C, E)
+    ends = (gu, gv, rank[u], rank[v], wmax[c.first[edges]], wmax[c.second[edges]])
+    scores = _candidate_scores(fv, c, edges, t, cand, ends)  # (C, E)
     least = torch.full((count, group.numel()), math.inf, dtype=dtype, device=dev)
     least = least.scatter_reduce(1, gu.expand(count, -1), scores, reduce="amin")
     best = least.argmax(0)  # (G,): ties go to the first, the centre
-    sign[cars] = cand[compact, best[compact], rank[cars]]
+    chosen = cand[torch.arange(group.numel(), device=dev), best]  # (G, k)
+    if large.numel():
+        chosen = _descend(fv, c, (edges, t), chosen, ends, large)
+    sign[cars] = chosen[compact, rank[cars]]
     decided[cars] = True
     return sign, decided
+
+
+Ends = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+def _candidate_scores(
+    fv: FleetValue, c: PairCandidates, edges: torch.Tensor, t: float, cand: torch.Tensor, ends: Ends
+) -> torch.Tensor:
+    """``(C, E)`` each pair's score under each of its group's ``C`` candidates ``cand`` ``(G, C, k)``;
+    ``ends`` = each pair's two groups, ranks in them and turn bounds."""
+    gu, gv, ru, rv, wu, wv = ends
+    w = torch.stack([cand[gu, :, ru].T * wu, cand[gv, :, rv].T * wv], -1)
+    return _pair_scores(fv, c, edges, w, t)
+
+
+def _descend(
+    fv: FleetValue,
+    c: PairCandidates,
+    at: tuple[torch.Tensor, float],
+    chosen: torch.Tensor,
+    ends: Ends,
+    large: torch.Tensor,
+) -> torch.Tensor:
+    """``chosen`` ``(G, k)`` improved for the ``large`` groups by a worst-pair descent: each round,
+    every such group tries the 9 sign combinations of the two cars of its worst pair (the only cars
+    whose inputs can raise the least score alone) and keeps the best if it raises the group's least
+    score; at most :data:`DESCENT_ROUNDS` rounds, stopping early when no group improves."""
+    edges, t = at
+    dev, dtype = chosen.device, chosen.dtype
+    mine = torch.isin(ends[0], large)
+    edges = edges[mine]
+    ends = tuple(e[mine] for e in ends)
+    gu, _, ru, rv, _, _ = ends
+    groups = chosen.shape[0]
+    # the sign combinations the worst pair's two cars try; the group's current choice goes first
+    combos = torch.tensor(list(itertools.product((-1.0, 0.0, 1.0), repeat=2)), dtype=dtype, device=dev)
+    tries = combos.shape[0] + 1
+    rows = torch.arange(groups, device=dev)
+    now = _candidate_scores(fv, c, edges, t, chosen[:, None, :], ends)[0]  # (E,) the pairs' scores now
+    order = torch.arange(now.numel(), device=dev)
+    for _ in range(DESCENT_ROUNDS):
+        least = torch.full((groups,), math.inf, dtype=dtype, device=dev).scatter_reduce(0, gu, now, reduce="amin")
+        low = now == least[gu]
+        worst = torch.full((groups,), now.numel(), dtype=torch.long, device=dev)
+        worst = worst.scatter_reduce(0, gu[low], order[low], reduce="amin")
+        has = worst < now.numel()
+        e = worst.clamp(max=now.numel() - 1)
+        cand = chosen[:, None, :].repeat(1, tries, 1)  # (G, 10, k)
+        cand[rows[:, None], torch.arange(1, tries, device=dev), ru[e][:, None]] = combos[:, 0]
+        cand[rows[:, None], torch.arange(1, tries, device=dev), rv[e][:, None]] = combos[:, 1]
+        scores = _candidate_scores(fv, c, edges, t, cand, ends)  # (10, E)
+        tried = torch.full((tries, groups), math.inf, dtype=dtype, device=dev)
+        tried = tried.scatter_reduce(1, gu.expand(tries, -1), scores, reduce="amin")
+        best = tried.argmax(0)
+        better = has & (tried[best, rows] > least) & torch.isin(rows, large)
+        if not bool(better.any()):
+            break
+        chosen = torch.where(better[:, None], cand[rows, best], chosen)
+        now = torch.where(better[gu], scores[best[gu], order], now)
+    return chosen
