@@ -281,16 +281,15 @@ def _rel(x: torch.Tensor, n: int, i: int, j: int) -> torch.Tensor:
 
 
 def _held_score(pair: GridSolution, rel: torch.Tensor, w: torch.Tensor, t: float) -> torch.Tensor:
-    """min(V, l) of relative states after the greedy step with turn rates ``w`` held (independent
+    """min(V, l) of relative states after the greedy hold with turn rates ``w`` held (independent
     of the filter: the pair system's own stepper)."""
     from reach.integrators import make_stepper  # lazy: only these greedy checks step the pair
     from reach.systems.arrays import TORCH  # lazy: as above
-    from safety.fleet.greedy import SUBSTEP  # lazy: as above
-    from safety.value_policies import GREEDY_STEP  # lazy: as above
+    from safety.fleet.greedy import HOLD, SUBSTEP  # lazy: as above
 
     ps = pair.system
-    k = max(1, math.ceil(GREEDY_STEP / SUBSTEP - 1e-9))
-    step = make_stepper(ps, GREEDY_STEP / k, "euler", TORCH)
+    k = max(1, math.ceil(HOLD / SUBSTEP - 1e-9))
+    step = make_stepper(ps, HOLD / k, "rk4", TORCH)
     cols, low = TORCH.unbind(rel), ps.failure_margin(rel)
     uc = ps.input_columns(w, ps.control_bounds, "u")
     dc = ps.input_columns(w[:, :0], ps.disturbance_bounds, "d")

@@ -49,7 +49,7 @@ import torch
 from reach.validation import check_float, positive_finite
 from safety.filters.settings import default_threshold
 from safety.fleet.graph import Conflicts, conflicts
-from safety.fleet.greedy import joint_greedy
+from safety.fleet.greedy import HOLD, joint_greedy
 from safety.fleet.qp import ConflictQP, solve
 from safety.fleet.value import FleetValue, PairCandidates, check_fleet_state, check_present
 
@@ -97,6 +97,8 @@ class FleetFilterSettings:
             :data:`~safety.fleet.greedy.MAX_JOINT_CARS` cars weighs a few structured inputs), or
             ``"gradient"``, each car on its worst pair's ``u*`` (at two cars, the switch filter with
             ``policy="gradient"`` to the bit).
+        hold: how long (s) the greedy policy holds each candidate input before it reads the pair
+            values (:data:`~safety.fleet.greedy.HOLD` by default; its module says why).
     """
 
     dt: float
@@ -106,9 +108,11 @@ class FleetFilterSettings:
     slack_tolerance: float = 1e-6
     gamma: float = 1.0
     policy: str = "greedy"
+    hold: float = HOLD
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dt", positive_finite("dt", self.dt))
+        object.__setattr__(self, "hold", positive_finite("hold", self.hold))
         if self.policy not in FLEET_POLICIES:
             raise ValueError(f"policy must be one of {FLEET_POLICIES}, got {self.policy!r}")
         gamma = check_float("gamma", self.gamma, 0)
@@ -356,7 +360,8 @@ class FleetFilter:
             the joint greedy input where the policy is greedy and the conflict small enough."""
             sign, has = fallback_inputs(c, edges, c.value, n, batch)
             if self.settings.policy == "greedy":
-                joint, decided = joint_greedy(fv, c, edges, t, torch.where(has, sign, 0.0))
+                when = (t, self.settings.hold)
+                joint, decided = joint_greedy(fv, c, edges, when, torch.where(has, sign, 0.0))
                 sign, has = torch.where(decided, joint, sign), has | decided
             return sign, has
 

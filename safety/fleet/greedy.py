@@ -9,9 +9,9 @@ the same step for a group of cars, scored on every active pair of the group at o
 
 For a conflict of ``k <= MAX_JOINT_CARS`` cars, each candidate gives every car a turn rate of
 ``0`` (all cars, the box's centre) or ``+-w_max`` (the box's corners, ``2^k`` of them), held for
-:data:`~safety.value_policies.GREEDY_STEP` seconds. Each active pair's relative state is advanced by
-its pair problem's own stepper (:func:`~reach.integrators.make_stepper`, Euler substeps as the greedy
-policy takes), and scored as ``min(V(y), min over the substeps of l(y))``; where the pair's second car
+``hold`` seconds (:data:`HOLD` by default). Each active pair's relative state is advanced by its pair
+problem's own stepper (:func:`~reach.integrators.make_stepper`, RK4 substeps of at most
+:data:`SUBSTEP`), and scored as ``min(V(y), min over the substeps of l(y))``; where the pair's second car
 is a disturbance, against both of its extreme turn rates. The candidate whose least score over the
 group's pairs is highest is applied (ties: the first, the centre). A larger conflict starts from
 the best of a few structured candidates: all straight, all turning left, all turning right (cars of
@@ -36,7 +36,6 @@ from reach.integrators import make_stepper
 from reach.systems.arrays import TORCH
 from safety.fleet.graph import components
 from safety.fleet.value import FleetValue, PairCandidates
-from safety.value_policies import GREEDY_STEP
 
 __all__ = ["MAX_JOINT_CARS", "joint_greedy"]
 
@@ -46,8 +45,14 @@ MAX_JOINT_CARS = 6
 #: the most rounds of the worst-pair descent a conflict of more than MAX_JOINT_CARS cars takes
 DESCENT_ROUNDS = 16
 
-#: the greedy step's Euler substep (s), as :class:`~safety.value_policies.GreedyPolicy`'s default
-SUBSTEP = 0.0025
+#: how long (s) each candidate is held before its pairs' values are read (FleetFilterSettings.hold's
+#: default): longer than the switch filter's greedy step (:data:`~safety.value_policies.GREEDY_STEP`,
+#: 0.05 s), as over one short step turning changes a head-on distance only at second order, and the
+#: candidates of converging cars nearly tie (measured: docs/results/fleets.md)
+HOLD = 0.2
+
+#: the held step's RK4 substep (s): the failure margin is checked at each substep's end
+SUBSTEP = 0.05
 
 
 def _candidates(k: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
@@ -56,9 +61,13 @@ def _candidates(k: int, dtype: torch.dtype, device: torch.device) -> torch.Tenso
     return torch.tensor([[0.0] * k, *corners], dtype=dtype, device=device)
 
 
-def _pair_scores(fv: FleetValue, c: PairCandidates, edges: torch.Tensor, w: torch.Tensor, t: float) -> torch.Tensor:
-    """``(C, E)`` scores of the pairs ``edges`` under held turn rates ``w = (C, E, 2)`` (first car,
-    second car); a disturbance second car is taken at its worse extreme instead of ``w[..., 1]``."""
+def _pair_scores(
+    fv: FleetValue, c: PairCandidates, edges: torch.Tensor, w: torch.Tensor, when: tuple[float, float]
+) -> torch.Tensor:
+    """``(C, E)`` scores of the pairs ``edges`` under turn rates ``w = (C, E, 2)`` (first car, second
+    car) held for ``hold`` seconds, with ``when = (t, hold)``; a disturbance second car is taken at
+    its worse extreme instead of ``w[..., 1]``."""
+    t, hold = when
     count, e = w.shape[0], edges.numel()
     out = torch.full((count, e), math.inf, dtype=w.dtype, device=w.device)
     kinds = fv.pair_kind[c.first[edges], c.second[edges]].to(w.device)
@@ -67,8 +76,8 @@ def _pair_scores(fv: FleetValue, c: PairCandidates, edges: torch.Tensor, w: torc
         if mine.numel() == 0:
             continue
         ps = sol.system
-        substeps = max(1, math.ceil(GREEDY_STEP / SUBSTEP - 1e-9))
-        advance = make_stepper(ps, GREEDY_STEP / substeps, "euler", TORCH)
+        substeps = max(1, math.ceil(hold / SUBSTEP - 1e-9))
+        advance = make_stepper(ps, hold / substeps, "rk4", TORCH)
         rel = c.rel[edges[mine]].to(w.dtype).unsqueeze(0).expand(count, -1, -1).reshape(-1, 3)
         held = w[:, mine].reshape(-1, 2)
         if ps.disturbance_dim:  # the second car attacks: both extremes, the worse one counts
@@ -95,13 +104,17 @@ def _pair_scores(fv: FleetValue, c: PairCandidates, edges: torch.Tensor, w: torc
 
 
 def joint_greedy(
-    fv: FleetValue, c: PairCandidates, edges: torch.Tensor, t: float, gradient_sign: torch.Tensor
+    fv: FleetValue,
+    c: PairCandidates,
+    edges: torch.Tensor,
+    when: tuple[float, float],
+    gradient_sign: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``(sign (B * N,), decided (B * N,) bool)``: the turn-rate sign each car of the conflicts
     formed by the pairs ``edges`` (indices into ``c``; each conflict given whole) takes (module
-    docstring); ``gradient_sign`` ``(B * N,)`` is each car's worst-pair ``u*`` sign, the candidate a
-    conflict of more than :data:`MAX_JOINT_CARS` cars weighs beside all-straight, all-left and
-    all-right. ``decided`` marks the cars of the conflicts."""
+    docstring), at time-to-go and hold ``when = (t, hold)``; ``gradient_sign`` ``(B * N,)`` is each
+    car's worst-pair ``u*`` sign, the candidate a conflict of more than :data:`MAX_JOINT_CARS` cars
+    weighs beside all-straight, all-left and all-right. ``decided`` marks the cars of the conflicts."""
     n = fv.num_cars
     nodes = gradient_sign.numel()
     dev, dtype = c.value.device, c.value.dtype
@@ -140,13 +153,13 @@ def joint_greedy(
     wmax = fv.turn_bounds.to(dev, dtype)
     gu, gv = group_of[u], group_of[v]
     ends = (gu, gv, rank[u], rank[v], wmax[c.first[edges]], wmax[c.second[edges]])
-    scores = _candidate_scores(fv, c, edges, t, cand, ends)  # (C, E)
+    scores = _candidate_scores(fv, c, edges, when, cand, ends)  # (C, E)
     least = torch.full((count, group.numel()), math.inf, dtype=dtype, device=dev)
     least = least.scatter_reduce(1, gu.expand(count, -1), scores, reduce="amin")
     best = least.argmax(0)  # (G,): ties go to the first, the centre
     chosen = cand[torch.arange(group.numel(), device=dev), best]  # (G, k)
     if large.numel():
-        chosen = _descend(fv, c, (edges, t), chosen, ends, large)
+        chosen = _descend(fv, c, (edges, when), chosen, ends, large)
     sign[cars] = chosen[compact, rank[cars]]
     decided[cars] = True
     return sign, decided
@@ -156,19 +169,19 @@ Ends = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tenso
 
 
 def _candidate_scores(
-    fv: FleetValue, c: PairCandidates, edges: torch.Tensor, t: float, cand: torch.Tensor, ends: Ends
+    fv: FleetValue, c: PairCandidates, edges: torch.Tensor, when: tuple[float, float], cand: torch.Tensor, ends: Ends
 ) -> torch.Tensor:
     """``(C, E)`` each pair's score under each of its group's ``C`` candidates ``cand`` ``(G, C, k)``;
     ``ends`` = each pair's two groups, ranks in them and turn bounds."""
     gu, gv, ru, rv, wu, wv = ends
     w = torch.stack([cand[gu, :, ru].T * wu, cand[gv, :, rv].T * wv], -1)
-    return _pair_scores(fv, c, edges, w, t)
+    return _pair_scores(fv, c, edges, w, when)
 
 
 def _descend(
     fv: FleetValue,
     c: PairCandidates,
-    at: tuple[torch.Tensor, float],
+    at: tuple[torch.Tensor, tuple[float, float]],
     chosen: torch.Tensor,
     ends: Ends,
     large: torch.Tensor,
@@ -177,7 +190,7 @@ def _descend(
     every such group tries the 9 sign combinations of the two cars of its worst pair (the only cars
     whose inputs can raise the least score alone) and keeps the best if it raises the group's least
     score; at most :data:`DESCENT_ROUNDS` rounds, stopping early when no group improves."""
-    edges, t = at
+    edges, when = at
     dev, dtype = chosen.device, chosen.dtype
     mine = torch.isin(ends[0], large)
     edges = edges[mine]
@@ -188,7 +201,7 @@ def _descend(
     combos = torch.tensor(list(itertools.product((-1.0, 0.0, 1.0), repeat=2)), dtype=dtype, device=dev)
     tries = combos.shape[0] + 1
     rows = torch.arange(groups, device=dev)
-    now = _candidate_scores(fv, c, edges, t, chosen[:, None, :], ends)[0]  # (E,) the pairs' scores now
+    now = _candidate_scores(fv, c, edges, when, chosen[:, None, :], ends)[0]  # (E,) the pairs' scores now
     order = torch.arange(now.numel(), device=dev)
     for _ in range(DESCENT_ROUNDS):
         least = torch.full((groups,), math.inf, dtype=dtype, device=dev).scatter_reduce(0, gu, now, reduce="amin")
@@ -200,7 +213,7 @@ def _descend(
         cand = chosen[:, None, :].repeat(1, tries, 1)  # (G, 10, k)
         cand[rows[:, None], torch.arange(1, tries, device=dev), ru[e][:, None]] = combos[:, 0]
         cand[rows[:, None], torch.arange(1, tries, device=dev), rv[e][:, None]] = combos[:, 1]
-        scores = _candidate_scores(fv, c, edges, t, cand, ends)  # (10, E)
+        scores = _candidate_scores(fv, c, edges, when, cand, ends)  # (10, E)
         tried = torch.full((tries, groups), math.inf, dtype=dtype, device=dev)
         tried = tried.scatter_reduce(1, gu.expand(tries, -1), scores, reduce="amin")
         best = tried.argmax(0)
