@@ -448,6 +448,9 @@ def test_bad_input_is_refused_naming_it(pair):
         ff(x, math.nan, u_nom)
     with pytest.raises(ValueError, match="dt"):
         FleetFilterSettings(dt=0.0)
+    for hold in (0.0, -0.2, math.nan, math.inf, "0.2"):
+        with pytest.raises(ValueError, match="hold"):
+            FleetFilterSettings(dt=0.05, hold=hold)
     # a nominal input beyond the turn bound is clipped, as SafetyFilter clips it
     _, info = ff(x, 1.0, torch.full((4, 3), 5.0, dtype=F64))
     assert bool((info.nominal == 1.1).all())
