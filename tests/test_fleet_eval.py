@@ -37,6 +37,9 @@ def test_the_study_writes_one_row_per_cell_and_a_rerun_resumes(tmp_path):
         assert r["collision_bound"] >= r["collision_rate"]
     assert by["none"]["intervention_rate"] == 0.0
     assert by["fleet"]["intervention_rate"] > 0.0 and by["fleet"]["decision_ms"] > 0.0
+    fleet = by["fleet"]
+    assert 0 < fleet["decision_ms"] <= fleet["decision_p99_ms"] <= fleet["decision_max_ms"]
+    assert 0 < fleet["timed"] <= TINY["timing_ticks"]
     again: list[str] = []
     assert run_fleet_eval(settings, tmp_path / "s", progress=again.append) == rows
     assert again == []  # every cell stored: nothing rerun
