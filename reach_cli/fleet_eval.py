@@ -67,7 +67,8 @@ def add_parser(sub: Any) -> None:
         "--timing-ticks",
         type=int,
         default=None,
-        help=f"decisions timed per cell at batch 1, one thread (default: {ticks})",
+        help=f"decisions timed per cell at batch 1, one thread, from an episode's start; more than the episode has "
+        f"times all of it (default: {ticks})",
     )
     p.add_argument(
         "--seed", type=seed_arg, default=None, help=f"episodes' seed (default: {default(FleetEvalSettings, 'seed')})"
