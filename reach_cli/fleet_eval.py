@@ -79,6 +79,12 @@ def add_parser(sub: Any) -> None:
         default=None,
         help=f"cars per unit area of the random-goals arena (default: {default(FleetEvalSettings, 'density')})",
     )
+    p.add_argument(
+        "--hold",
+        type=float,
+        default=None,
+        help="seconds the fleet filter's greedy policy holds each candidate input (default: the filter's own)",
+    )
     p.add_argument("--plot", default=None, help="also draw collisions and goal rate against N to this PNG")
     p.set_defaults(func=run)
 
@@ -97,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
         "timing_ticks": args.timing_ticks,
         "seed": args.seed,
         "density": args.density,
+        "hold": args.hold,
     }
     settings = FleetEvalSettings(**{k: v for k, v in chosen.items() if v is not None})
     out = args.out

@@ -39,12 +39,13 @@ from reach.json_files import read_json
 from reach.locking import exclusive_lock
 from reach_envs.fleet import FleetSimulator, goal_seeking, rollout
 from reach_envs.fleet_scenes import FleetScene
+from safety.fleet.greedy import HOLD
 from safety.verification.metrics import scenario_epsilon, wilson_interval
 from studies.fleet_methods import make_method
 from studies.fleet_settings import FleetEvalSettings
 from studies.tables import columns_table, merge_rows, write_results
 
-__all__ = ["decision_times", "run_cell", "run_fleet_eval"]
+__all__ = ["decision_times", "held", "run_cell", "run_fleet_eval"]
 
 
 @dataclass
@@ -88,11 +89,16 @@ def _rollout(scene: FleetScene, decide: Callable | None, episodes: int, seed: in
     tally.arrival_time += float(outcome.arrival_time[arrived].sum())
 
 
+def held(settings: FleetEvalSettings) -> float:
+    """The greedy hold (s) the fleet filter of ``settings`` runs: its own, else the filter's default."""
+    return HOLD if settings.hold is None else settings.hold
+
+
 def run_cell(settings: FleetEvalSettings, layout: str, n_cars: int, method: str) -> dict[str, Any]:
     """One row of the study: ``settings.episodes`` episodes of ``layout`` with ``n_cars`` cars under
     ``method`` (the module docstring lists its columns)."""
     scene = FleetScene(layout=layout, n_cars=n_cars, density=settings.density)
-    decide = make_method(method, scene)
+    decide = make_method(method, scene, held(settings))
     tally = _Tally()
     start = time.perf_counter()
     batches = range(0, settings.episodes, settings.batch)
@@ -195,7 +201,8 @@ def run_fleet_eval(
     # OUT is a stem: "runs/density_0.2" writes runs/density_0.2.json (with_suffix would eat ".2")
     out = Path(out)
     out = out.with_name(out.name + ".json")
-    header = {"settings": {k: v for k, v in asdict(settings).items() if k not in ("layouts", "sizes", "methods")}}
+    stored_settings = {k: v for k, v in asdict(settings).items() if k not in ("layouts", "sizes", "methods")}
+    header = {"settings": {**stored_settings, "hold": held(settings)}}  # the hold that ran, default or not
     cells = [(lay, n, m) for lay in settings.layouts for n in settings.sizes for m in settings.methods]
     for layout, n, method in cells:
         key = f"{layout}/{n}/{method}"

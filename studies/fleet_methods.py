@@ -19,6 +19,7 @@ from groundtruth.pairwise import solve_pairs
 from groundtruth.solution import GridSolution
 from reach_envs.fleet_scenes import FleetScene
 from safety.fleet import CBFSettings, DistanceCBF, FleetFilter, FleetFilterSettings, FleetValue, NaiveUnionSwitch
+from safety.fleet.greedy import HOLD
 from studies.fleet_settings import METHODS
 from training import pretrained
 
@@ -51,8 +52,9 @@ def fleet_value(scene: FleetScene) -> FleetValue:
         return FleetValue(system, solve_pairs(system, progress=False))
 
 
-def make_method(method: str, scene: FleetScene) -> Decide | None:
-    """``method``'s decision rule for ``scene`` (``None`` for ``"none"``, the nominal input)."""
+def make_method(method: str, scene: FleetScene, hold: float = HOLD) -> Decide | None:
+    """``method``'s decision rule for ``scene`` (``None`` for ``"none"``, the nominal input); the
+    fleet filter's greedy policy holds each candidate for ``hold`` seconds."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if method == "none":
@@ -60,7 +62,7 @@ def make_method(method: str, scene: FleetScene) -> Decide | None:
     value = fleet_value(scene)
     t = float(max(s.system.horizon for s in value.solutions))
     if method == "fleet":
-        rule: Any = FleetFilter(value, FleetFilterSettings(dt=scene.dt))
+        rule: Any = FleetFilter(value, FleetFilterSettings(dt=scene.dt, hold=hold))
     elif method == "union":
         rule = NaiveUnionSwitch(value, FleetFilterSettings(dt=scene.dt))
     else:

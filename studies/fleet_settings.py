@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from reach.validation import check_float, check_int, check_seed
+from reach.validation import check_float, check_int, check_seed, positive_finite
 
 __all__ = ["METHODS", "FleetEvalSettings"]
 
@@ -35,6 +35,9 @@ class FleetEvalSettings:
     timing_ticks: int = 100
     #: cars per unit area of the ``random-goals`` arena (:class:`~reach_envs.fleet_scenes.FleetScene`)
     density: float = 0.1
+    #: seconds the fleet filter's greedy policy holds each candidate (``FleetFilterSettings.hold``;
+    #: None: the filter's default, :data:`safety.fleet.greedy.HOLD`, which the results record)
+    hold: float | None = None
 
     def __post_init__(self) -> None:
         from reach_envs.fleet_scenes import LAYOUTS, FleetScene  # lazy: the envs stack only once settings are made
@@ -56,3 +59,5 @@ class FleetEvalSettings:
         check_seed("FleetEvalSettings: seed", self.seed)
         check_float("FleetEvalSettings: beta", self.beta, low=0.0, high=1.0, low_open=True, high_open=True)
         FleetScene(layout="random-goals", n_cars=2, density=self.density)  # refused there, naming it
+        if self.hold is not None:
+            object.__setattr__(self, "hold", positive_finite("FleetEvalSettings: hold", self.hold))

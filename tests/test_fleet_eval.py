@@ -22,6 +22,9 @@ def test_settings_refuse_bad_values_naming_them():
     for density in (float("nan"), 0.0, 5.0):  # not finite, not positive, denser than starts 1 apart allow
         with pytest.raises(ValueError, match="density"):
             FleetEvalSettings(density=density)
+    for hold in (float("nan"), 0.0, -0.1, float("inf")):
+        with pytest.raises(ValueError, match="hold"):
+            FleetEvalSettings(hold=hold)
 
 
 def test_the_study_writes_one_row_per_cell_and_a_rerun_resumes(tmp_path):
@@ -63,6 +66,19 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path, capsys):
     assert main(["fleet-eval", "--out", str(tmp_path / "s"), "--methods", "magic"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "magic" in err[0]
+    assert main(["fleet-eval", "--out", str(tmp_path / "s"), "--hold", "-1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "hold" in err[0]
+
+
+def test_the_results_record_the_hold_that_ran_and_a_rerun_of_another_is_refused(tmp_path):
+    from safety.fleet.greedy import HOLD  # lazy: the filter's default, which a default run records
+
+    run_fleet_eval(FleetEvalSettings(methods=("none",), **TINY), tmp_path / "s")
+    assert json.loads((tmp_path / "s.json").read_text())["settings"]["hold"] == HOLD
+    with pytest.raises(ValueError, match="settings"):
+        run_fleet_eval(FleetEvalSettings(methods=("none",), hold=HOLD / 2, **TINY), tmp_path / "s")
+    run_fleet_eval(FleetEvalSettings(methods=("none",), hold=HOLD, **TINY), tmp_path / "s")  # the same: resumes
 
 
 def test_a_stem_with_a_dot_keeps_it(tmp_path):
