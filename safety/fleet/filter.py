@@ -365,24 +365,26 @@ class FleetFilter:
                 sign, has = torch.where(decided, joint, sign), has | decided
             return sign, has
 
-        # lone pairs: the switch rule, both cars on the policy's input for the pair
-        lone = idx[g.in_conflict & (g.edges_in_group == 1)]
-        sign, has = rule(lone)
-        out = torch.where(has & control, wmax * sign, out)
-        # conflicts of several pairs: one QP for the whole batch
+        # conflicts of several pairs: one QP for the whole batch; those it cannot meet wait for the
+        # policy's input beside the lone pairs, so the policy runs once per decision
+        waiting: list[torch.Tensor] = []
+
+        def later(edges: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            waiting.append(edges)
+            return torch.zeros(batch * n, dtype=dt, device=dev), torch.zeros(batch * n, dtype=torch.bool, device=dev)
+
         group = g.in_conflict & (g.edges_in_group > 1)
         qp_edges = idx[group]
         step = self.settings.dt
         coef = torch.stack([step * c.switch_first[qp_edges], step * c.switch_second[qp_edges]], -1)
         rhs = self.settings.gamma * (theta[qp_edges] - c.value[qp_edges]) - step * c.drift[qp_edges]
         out, solved, infeasible = qp_conflicts(
-            c,
-            qp_edges,
-            g.edge_label[group],
-            (coef, rhs),
-            rule,
-            out.reshape(batch, n),
-            (wmax, control),
-            self.settings,
+            c, qp_edges, g.edge_label[group], (coef, rhs), later, out.reshape(batch, n), (wmax, control), self.settings
         )
+        # lone pairs (the switch rule: both cars on the policy's input for the pair) and the
+        # infeasible conflicts (the fallback): the policy's input, in one call; their cars are
+        # in other groups than the QP's feasible conflicts, whose inputs stand
+        lone = idx[g.in_conflict & (g.edges_in_group == 1)]
+        sign, has = rule(torch.cat([lone, *waiting]))
+        out = torch.where((has & control).reshape(batch, n), (wmax * sign).reshape(batch, n), out)
         return out, solved, infeasible
