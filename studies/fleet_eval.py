@@ -148,7 +148,7 @@ def decision_times(scene: FleetScene, decide: Callable, ticks: int, seed: int) -
         x, goals = scene.sample(1, np.random.default_rng(seed))
         present = torch.ones(1, scene.n_cars, dtype=torch.bool)
         times = []
-        for _ in range(ticks):
+        for _ in range(min(ticks, scene.max_steps)):  # an episode ends at its horizon
             if not bool(present.any()):
                 break
             u = goal_seeking(x, goals, scene)

@@ -100,3 +100,13 @@ def test_the_study_refuses_a_pair_grid_whose_verdict_fails(monkeypatch):
             fleet_methods.make_method("fleet", FleetScene(layout="circle-swap", n_cars=3))
     finally:
         fleet_methods._shipped_pair.cache_clear()
+
+
+def test_timing_past_the_episode_stops_at_its_horizon():
+    from studies.fleet_eval import decision_times  # lazy: only this test times decisions directly
+    from studies.fleet_methods import make_method  # lazy: as above
+
+    # cars that never arrive keep the episode alive: timing must stop at the horizon, not run on
+    scene = FleetScene(layout="circle-swap", n_cars=3, horizon=0.5)
+    times = decision_times(scene, make_method("fleet", scene), 10**9, seed=0)
+    assert times["timed"] == scene.max_steps == 10
