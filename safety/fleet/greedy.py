@@ -189,7 +189,8 @@ def _descend(
     """``chosen`` ``(G, k)`` improved for the ``large`` groups by a worst-pair descent: each round,
     every such group tries the 9 sign combinations of the two cars of its worst pair (the only cars
     whose inputs can raise the least score alone) and keeps the best if it raises the group's least
-    score; at most :data:`DESCENT_ROUNDS` rounds, stopping early when no group improves."""
+    score; at most :data:`DESCENT_ROUNDS` rounds, stopping early when no group improves. A round
+    scores only the pairs of those two cars: the others' scores stand."""
     edges, when = at
     dev, dtype = chosen.device, chosen.dtype
     mine = torch.isin(ends[0], large)
@@ -210,16 +211,24 @@ def _descend(
         worst = worst.scatter_reduce(0, gu[low], order[low], reduce="amin")
         has = worst < now.numel()
         e = worst.clamp(max=now.numel() - 1)
+        a, b = ru[e], rv[e]  # each group's worst pair's two cars (ranks in the group)
         cand = chosen[:, None, :].repeat(1, tries, 1)  # (G, 10, k)
-        cand[rows[:, None], torch.arange(1, tries, device=dev), ru[e][:, None]] = combos[:, 0]
-        cand[rows[:, None], torch.arange(1, tries, device=dev), rv[e][:, None]] = combos[:, 1]
-        scores = _candidate_scores(fv, c, edges, when, cand, ends)  # (10, E)
+        cand[rows[:, None], torch.arange(1, tries, device=dev), a[:, None]] = combos[:, 0]
+        cand[rows[:, None], torch.arange(1, tries, device=dev), b[:, None]] = combos[:, 1]
+        # only the pairs of those two cars change score: score them, keep the others' scores
+        touch = has[gu] & ((ru == a[gu]) | (ru == b[gu]) | (rv == a[gu]) | (rv == b[gu]))
+        kept = torch.full((groups,), math.inf, dtype=dtype, device=dev)
+        kept = kept.scatter_reduce(0, gu[~touch], now[~touch], reduce="amin")
+        near = tuple(x[touch] for x in ends)
+        scores = _candidate_scores(fv, c, edges[touch], when, cand, near)  # (10, T)
         tried = torch.full((tries, groups), math.inf, dtype=dtype, device=dev)
-        tried = tried.scatter_reduce(1, gu.expand(tries, -1), scores, reduce="amin")
+        tried = tried.scatter_reduce(1, gu[touch].expand(tries, -1), scores, reduce="amin")
+        tried = torch.minimum(tried, kept)
         best = tried.argmax(0)
         better = has & (tried[best, rows] > least) & torch.isin(rows, large)
         if not bool(better.any()):
             break
         chosen = torch.where(better[:, None], cand[rows, best], chosen)
-        now = torch.where(better[gu], scores[best[gu], order], now)
+        gt = gu[touch]
+        now[touch] = torch.where(better[gt], scores[best[gt], torch.arange(gt.numel(), device=dev)], now[touch])
     return chosen
