@@ -36,6 +36,7 @@ from safety.fleet.filter import (
     fallback_inputs,
     pair_thresholds,
     qp_conflicts,
+    with_signs,
 )
 from safety.fleet.graph import conflicts
 from safety.fleet.value import FleetValue
@@ -170,16 +171,12 @@ class DistanceCBF:
         g = conflicts(batch, n, (b, i, j), broken)
         edges = torch.nonzero(g.in_conflict).squeeze(-1)
         wmax = wmax_car.repeat(batch)
-        out, solved, infeasible = qp_conflicts(
-            pairs,
-            edges,
-            g.edge_label[edges],
-            (torch.stack([c_i, c_j], -1)[edges], rhs[edges]),
-            lambda bad: fallback_inputs(pairs, bad, h, n, batch),
-            nominal,
-            (wmax, control.repeat(batch)),
-            self.settings,
+        cars = (wmax, control.repeat(batch))
+        conditions = (torch.stack([c_i, c_j], -1)[edges], rhs[edges])
+        out, solved, infeasible, fallen = qp_conflicts(
+            pairs, edges, g.edge_label[edges], conditions, nominal, cars, self.settings
         )
+        out = with_signs(out, fallback_inputs(pairs, fallen, h, n, batch), cars)
         intervened = g.car_in_conflict & control
         u = torch.where(intervened, out.to(given.dtype), given)
         low = torch.full((batch,), math.inf, dtype=dt, device=dev).scatter_reduce(0, b, h, reduce="amin")

@@ -40,7 +40,6 @@ pair's relative state beyond its grid's box reads the edge value (conservative, 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -73,6 +72,7 @@ __all__ = [
     "pair_thresholds",
     "qp_conflicts",
     "solve_conflicts",
+    "with_signs",
 ]
 
 
@@ -263,26 +263,24 @@ def qp_conflicts(
     edges: torch.Tensor,
     labels: torch.Tensor,
     conditions: tuple[torch.Tensor, torch.Tensor],
-    fallback: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
     inputs: torch.Tensor,
     cars: tuple[torch.Tensor, torch.Tensor],
     rule: FleetFilterSettings,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Decide every conflict of the pairs ``edges`` (indices into ``c``; ``labels`` their groups) in
     one QP: ``conditions = (coef (E, 2), rhs (E,))`` read ``coef . (w_first, w_second) >= rhs``;
     ``inputs`` ``(B, N)`` the inputs so far (returned with these conflicts' cars decided),
     ``cars = (turn bounds, controlled)`` per car node, ``rule`` the penalty and slack tolerance. A
-    conflict with a positive slack (or all, if the solver fails) falls back:
-    ``fallback(edges)`` gives the turn-rate sign of each car of those conflicts' pairs and a mask of
-    the cars it decided (``(B * N,)`` each; :func:`fallback_inputs`, the worst pair's sign).
-    Returns ``(inputs, solved (B,), infeasible (B,))``."""
+    conflict with a positive slack (or all, if the solver fails) is infeasible: its pairs are
+    returned, for the caller's fallback rule to decide its cars (:func:`with_signs`).
+    Returns ``(inputs, solved (B,), infeasible (B,), infeasible conflicts' pairs)``."""
     wmax, control = cars
     batch, n = inputs.shape
     dev = inputs.device
     roots = torch.unique(labels)
     solved = torch.zeros(batch, dtype=torch.long, device=dev).scatter_add(0, roots // n, torch.ones_like(roots))
     if edges.numel() == 0:
-        return inputs, solved, torch.zeros_like(solved)
+        return inputs, solved, torch.zeros_like(solved), edges
     inputs = inputs.reshape(-1)
     coef, rhs = conditions
     u = c.batch[edges] * n + c.first[edges]
@@ -294,10 +292,19 @@ def qp_conflicts(
     w, slack, ok = solve_conflicts((u, torch.where(control[v], v, -1), coef, rhs), mask, inputs, wmax, rule.penalty)
     bad = torch.zeros(batch * n, dtype=torch.bool, device=dev)
     bad[labels[slack > rule.slack_tolerance] if ok else roots] = True
-    sign, has = fallback(edges[bad[labels]])
     out = torch.where(mask, w, inputs)
-    out = torch.where(has & control, wmax * sign, out)
-    return out.reshape(batch, n), solved, bad.reshape(batch, n).sum(1)
+    return out.reshape(batch, n), solved, bad.reshape(batch, n).sum(1), edges[bad[labels]]
+
+
+def with_signs(
+    inputs: torch.Tensor, signs: tuple[torch.Tensor, torch.Tensor], cars: tuple[torch.Tensor, torch.Tensor]
+) -> torch.Tensor:
+    """``inputs`` ``(B, N)`` with each car a rule decided (``signs = (sign, decided)``, ``(B * N,)``
+    each, e.g. :func:`fallback_inputs`) at that sign of its turn bound, where the filter controls it
+    (``cars = (turn bounds, controlled)`` per car node)."""
+    sign, has = signs
+    wmax, control = cars
+    return torch.where((has & control).reshape(inputs.shape), (wmax * sign).reshape(inputs.shape), inputs)
 
 
 class FleetFilter:
@@ -353,7 +360,6 @@ class FleetFilter:
         dev, dt = nominal.device, nominal.dtype
         wmax = fv.turn_bounds.to(dev, dt).repeat(batch)
         control = fv.control.to(dev).repeat(batch)
-        out = nominal.reshape(-1).clone()
 
         def rule(edges: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
             """The policy's signs for the conflicts of ``edges``: the worst pair's ``u*``, replaced by
@@ -367,24 +373,16 @@ class FleetFilter:
 
         # conflicts of several pairs: one QP for the whole batch; those it cannot meet wait for the
         # policy's input beside the lone pairs, so the policy runs once per decision
-        waiting: list[torch.Tensor] = []
-
-        def later(edges: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            waiting.append(edges)
-            return torch.zeros(batch * n, dtype=dt, device=dev), torch.zeros(batch * n, dtype=torch.bool, device=dev)
-
         group = g.in_conflict & (g.edges_in_group > 1)
         qp_edges = idx[group]
         step = self.settings.dt
         coef = torch.stack([step * c.switch_first[qp_edges], step * c.switch_second[qp_edges]], -1)
         rhs = self.settings.gamma * (theta[qp_edges] - c.value[qp_edges]) - step * c.drift[qp_edges]
-        out, solved, infeasible = qp_conflicts(
-            c, qp_edges, g.edge_label[group], (coef, rhs), later, out.reshape(batch, n), (wmax, control), self.settings
+        out, solved, infeasible, fallen = qp_conflicts(
+            c, qp_edges, g.edge_label[group], (coef, rhs), nominal, (wmax, control), self.settings
         )
         # lone pairs (the switch rule: both cars on the policy's input for the pair) and the
         # infeasible conflicts (the fallback): the policy's input, in one call; their cars are
         # in other groups than the QP's feasible conflicts, whose inputs stand
         lone = idx[g.in_conflict & (g.edges_in_group == 1)]
-        sign, has = rule(torch.cat([lone, *waiting]))
-        out = torch.where((has & control).reshape(batch, n), (wmax * sign).reshape(batch, n), out)
-        return out, solved, infeasible
+        return with_signs(out, rule(torch.cat([lone, fallen])), (wmax, control)), solved, infeasible

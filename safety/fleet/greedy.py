@@ -225,7 +225,7 @@ def _descend(
         tried = tried.scatter_reduce(1, gu[touch].expand(tries, -1), scores, reduce="amin")
         tried = torch.minimum(tried, kept)
         best = tried.argmax(0)
-        better = has & (tried[best, rows] > least) & torch.isin(rows, large)
+        better = has & (tried[best, rows] > least)  # has: only the large groups have pairs here
         if not bool(better.any()):
             break
         chosen = torch.where(better[:, None], cand[rows, best], chosen)
