@@ -48,6 +48,8 @@ class GridSolution:
         self._check_against_system()
         self._gradients: torch.Tensor | None = None
         self._cache: dict[tuple[str, torch.dtype, torch.device], torch.Tensor] = {}
+        # each stored time-to-go's slice: a query at one of them reads that slice alone
+        self._stored: dict[float, int] = {float(v): k for k, v in enumerate(self.times.tolist())}
 
     def _check_against_system(self) -> None:
         """Refuse a grid that contradicts its system, or times that cannot be interpolated: a wrong
@@ -197,7 +199,12 @@ class GridSolution:
             lin = (lin[:, :, None] + nodes[:, None, :]).reshape(m, 2 ** (i + 1))
         flat = table.reshape(len(self.times), -1, *table.shape[1 + n :])
         extra = (1,) * (flat.ndim - 2)  # a table's own trailing dimensions (the gradient's components)
-        if lookup.shape[0] == 1 and m * 2**n >= flat[0].numel():
+        stored = self._stored.get(float(t)) if isinstance(t, (int, float)) else None
+        if stored is not None:
+            # a stored time: its bracket's weight is exactly 0 or 1, where lerp returns that end to
+            # the bit, so one gather from that slice gives the same numbers at half the reads
+            corners = flat[stored][lin]
+        elif lookup.shape[0] == 1 and m * 2**n >= flat[0].numel():
             # one time for every state, and more corners than nodes: blend the two time slices once
             # and gather from the blend (the same lerp of the same numbers, so the same bits), not twice
             blend = torch.lerp(flat[k0[0]], flat[k1[0]], wt[0])

@@ -166,6 +166,22 @@ def test_a_large_batch_blends_the_time_slices_first_with_the_same_bits(air3d_coa
         assert torch.equal(whole[1], torch.cat([g for _, g in parts]))
 
 
+def test_a_stored_time_reads_its_slice_alone_with_the_same_bits(air3d_coarse):
+    """A query at a stored time-to-go gathers from that slice only (its bracket's weight is 0 or 1,
+    where lerp returns that end exactly): equal to the bit to the time-per-state path, which
+    gathers both slices and blends them, at every stored time including the first and the last."""
+    x = Air3D().sample_states(700, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    for t in air3d_coarse.times.tolist():
+        per_state = torch.full((700,), t, dtype=torch.float64)
+        assert torch.equal(air3d_coarse.value(x, t), air3d_coarse.value(x, per_state)), t
+        assert torch.equal(air3d_coarse.gradient(x, t), air3d_coarse.gradient(x, per_state)), t
+        v, g = air3d_coarse.value_and_gradient(x, t)
+        assert torch.equal(v, air3d_coarse.value(x, per_state)) and torch.equal(g, air3d_coarse.gradient(x, t))
+    # and it is the stored slice: at the nodes, the stored values themselves
+    nodes = air3d_coarse.grid.points(torch.float64)[2:5, 7:9]
+    assert torch.equal(air3d_coarse.value(nodes, 0.25).float(), air3d_coarse.values[1][2:5, 7:9])
+
+
 def test_grid_solution_is_a_value_function(air3d_coarse):
     from reach.systems import ValueFunction
 
