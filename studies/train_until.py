@@ -170,7 +170,7 @@ def _write(path: Path, record: dict[str, Any]) -> None:
 
 
 def _hard_states(run: Path, phases: int, keep: int) -> torch.Tensor | None:
-    parts = [torch.load(run / "hard" / f"phase-{i:03d}.pt") for i in range(phases)]
+    parts = [torch.load(run / "hard" / f"phase-{i:03d}.pt", weights_only=True) for i in range(phases)]
     parts = [p for p in parts if p.shape[0]]
     return torch.cat(parts)[-keep:] if parts else None
 

@@ -262,3 +262,27 @@ def test_one_error_boundary_serves_the_cli_and_the_study_scripts(capsys):
     for parse, text in ((float_list, "10,,30"), (int_list, "0,")):
         with pytest.raises(ValueError, match="empty item"):
             parse(text)
+
+
+def test_every_torch_load_in_the_package_refuses_code():
+    """No file format may execute code on load: every ``torch.load`` call in the package's source
+    passes ``weights_only=True`` (an unpickler that builds tensors and plain containers only), read
+    from the syntax tree so that a new call without it fails here."""
+    import ast
+
+    root = Path(__file__).resolve().parents[1]
+    packages = ("reach", "reach_runtime", "reach_envs", "groundtruth", "training", "safety", "studies", "reach_cli")
+    calls, unsafe = 0, []
+    for package in packages:
+        for path in sorted((root / package).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+                func = getattr(node, "func", None)
+                if isinstance(node, ast.Call) and isinstance(func, ast.Attribute) and func.attr == "load":
+                    if not (isinstance(func.value, ast.Name) and func.value.id == "torch"):
+                        continue
+                    calls += 1
+                    keyword = {k.arg: k.value for k in node.keywords}.get("weights_only")
+                    if not (isinstance(keyword, ast.Constant) and keyword.value is True):
+                        unsafe.append(f"{path.relative_to(root)}:{node.lineno}")
+    assert calls > 0, "found no torch.load call at all: the scan looks in the wrong place"
+    assert not unsafe, f"torch.load without weights_only=True: {unsafe}"
