@@ -85,6 +85,13 @@ def add_parser(sub: Any) -> None:
         default=None,
         help="seconds the fleet filter's greedy policy holds each candidate input (default: the filter's own)",
     )
+    p.add_argument(
+        "--reaction-time",
+        type=float,
+        default=None,
+        help="seconds of a pair's closing speed the fleet filter's default threshold keeps in hand "
+        "(default: the filter's own)",
+    )
     p.add_argument("--plot", default=None, help="also draw collisions and goal rate against N to this PNG")
     p.set_defaults(func=run)
 
@@ -104,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
         "seed": args.seed,
         "density": args.density,
         "hold": args.hold,
+        "reaction_time": args.reaction_time,
     }
     settings = FleetEvalSettings(**{k: v for k, v in chosen.items() if v is not None})
     out = args.out

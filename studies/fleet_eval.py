@@ -39,13 +39,14 @@ from reach.json_files import read_json
 from reach.locking import exclusive_lock
 from reach_envs.fleet import FleetSimulator, goal_seeking, rollout
 from reach_envs.fleet_scenes import FleetScene
+from safety.fleet.filter import REACTION_TIME
 from safety.fleet.greedy import HOLD
 from safety.verification.metrics import scenario_epsilon, wilson_interval
 from studies.fleet_methods import make_method
 from studies.fleet_settings import FleetEvalSettings
 from studies.tables import columns_table, merge_rows, write_results
 
-__all__ = ["decision_times", "held", "run_cell", "run_fleet_eval"]
+__all__ = ["decision_times", "held", "reaction", "run_cell", "run_fleet_eval"]
 
 
 @dataclass
@@ -94,11 +95,16 @@ def held(settings: FleetEvalSettings) -> float:
     return HOLD if settings.hold is None else settings.hold
 
 
+def reaction(settings: FleetEvalSettings) -> float:
+    """The reaction time (s) the fleet filter of ``settings`` runs: its own, else the filter's default."""
+    return REACTION_TIME if settings.reaction_time is None else settings.reaction_time
+
+
 def run_cell(settings: FleetEvalSettings, layout: str, n_cars: int, method: str) -> dict[str, Any]:
     """One row of the study: ``settings.episodes`` episodes of ``layout`` with ``n_cars`` cars under
     ``method`` (the module docstring lists its columns)."""
     scene = FleetScene(layout=layout, n_cars=n_cars, density=settings.density)
-    decide = make_method(method, scene, held(settings))
+    decide = make_method(method, scene, held(settings), reaction(settings))
     tally = _Tally()
     start = time.perf_counter()
     batches = range(0, settings.episodes, settings.batch)
@@ -202,7 +208,8 @@ def run_fleet_eval(
     out = Path(out)
     out = out.with_name(out.name + ".json")
     stored_settings = {k: v for k, v in asdict(settings).items() if k not in ("layouts", "sizes", "methods")}
-    header = {"settings": {**stored_settings, "hold": held(settings)}}  # the hold that ran, default or not
+    # the hold and reaction time that ran, default or not
+    header = {"settings": {**stored_settings, "hold": held(settings), "reaction_time": reaction(settings)}}
     cells = [(lay, n, m) for lay in settings.layouts for n in settings.sizes for m in settings.methods]
     for layout, n, method in cells:
         key = f"{layout}/{n}/{method}"

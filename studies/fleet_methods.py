@@ -19,6 +19,7 @@ from groundtruth.pairwise import solve_pairs
 from groundtruth.solution import GridSolution
 from reach_envs.fleet_scenes import FleetScene
 from safety.fleet import CBFSettings, DistanceCBF, FleetFilter, FleetFilterSettings, FleetValue, NaiveUnionSwitch
+from safety.fleet.filter import REACTION_TIME
 from safety.fleet.greedy import HOLD
 from studies.fleet_settings import METHODS
 from training import pretrained
@@ -52,9 +53,12 @@ def fleet_value(scene: FleetScene) -> FleetValue:
         return FleetValue(system, solve_pairs(system, progress=False))
 
 
-def make_method(method: str, scene: FleetScene, hold: float = HOLD) -> Decide | None:
+def make_method(
+    method: str, scene: FleetScene, hold: float = HOLD, reaction_time: float = REACTION_TIME
+) -> Decide | None:
     """``method``'s decision rule for ``scene`` (``None`` for ``"none"``, the nominal input); the
-    fleet filter's greedy policy holds each candidate for ``hold`` seconds."""
+    fleet filter's greedy policy holds each candidate for ``hold`` seconds, and its default pair
+    threshold keeps ``reaction_time`` seconds of closing speed in hand."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if method == "none":
@@ -62,7 +66,7 @@ def make_method(method: str, scene: FleetScene, hold: float = HOLD) -> Decide | 
     value = fleet_value(scene)
     t = float(max(s.system.horizon for s in value.solutions))
     if method == "fleet":
-        rule: Any = FleetFilter(value, FleetFilterSettings(dt=scene.dt, hold=hold))
+        rule: Any = FleetFilter(value, FleetFilterSettings(dt=scene.dt, hold=hold, reaction_time=reaction_time))
     elif method == "union":
         rule = NaiveUnionSwitch(value, FleetFilterSettings(dt=scene.dt))
     else:

@@ -38,6 +38,10 @@ class FleetEvalSettings:
     #: seconds the fleet filter's greedy policy holds each candidate (``FleetFilterSettings.hold``;
     #: None: the filter's default, :data:`safety.fleet.greedy.HOLD`, which the results record)
     hold: float | None = None
+    #: seconds of closing speed the fleet filter's default pair threshold keeps in hand
+    #: (``FleetFilterSettings.reaction_time``; None: the filter's default,
+    #: :data:`safety.fleet.filter.REACTION_TIME`, which the results record)
+    reaction_time: float | None = None
 
     def __post_init__(self) -> None:
         from reach_envs.fleet_scenes import LAYOUTS, FleetScene  # lazy: the envs stack only once settings are made
@@ -61,3 +65,6 @@ class FleetEvalSettings:
         FleetScene(layout="random-goals", n_cars=2, density=self.density)  # refused there, naming it
         if self.hold is not None:
             object.__setattr__(self, "hold", positive_finite("FleetEvalSettings: hold", self.hold))
+        if self.reaction_time is not None:
+            rt = check_float("FleetEvalSettings: reaction_time", self.reaction_time, low=0.0)
+            object.__setattr__(self, "reaction_time", rt)

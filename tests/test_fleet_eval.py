@@ -25,6 +25,9 @@ def test_settings_refuse_bad_values_naming_them():
     for hold in (float("nan"), 0.0, -0.1, float("inf")):
         with pytest.raises(ValueError, match="hold"):
             FleetEvalSettings(hold=hold)
+    for reaction in (float("nan"), -0.1, float("inf")):
+        with pytest.raises(ValueError, match="reaction_time"):
+            FleetEvalSettings(reaction_time=reaction)
 
 
 def test_the_study_writes_one_row_per_cell_and_a_rerun_resumes(tmp_path):
@@ -69,6 +72,9 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path, capsys):
     assert main(["fleet-eval", "--out", str(tmp_path / "s"), "--hold", "-1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "hold" in err[0]
+    assert main(["fleet-eval", "--out", str(tmp_path / "s"), "--reaction-time", "nan"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "reaction_time" in err[0]
 
 
 def test_the_results_record_the_hold_that_ran_and_a_rerun_of_another_is_refused(tmp_path):
@@ -79,6 +85,32 @@ def test_the_results_record_the_hold_that_ran_and_a_rerun_of_another_is_refused(
     with pytest.raises(ValueError, match="settings"):
         run_fleet_eval(FleetEvalSettings(methods=("none",), hold=HOLD / 2, **TINY), tmp_path / "s")
     run_fleet_eval(FleetEvalSettings(methods=("none",), hold=HOLD, **TINY), tmp_path / "s")  # the same: resumes
+
+
+def test_the_results_record_the_reaction_time_and_it_reaches_the_filter(tmp_path, monkeypatch):
+    """A default run records the filter's own reaction time; another one is refused from the same
+    file; and the value given is the one the fleet filter is built with."""
+    from safety.fleet.filter import REACTION_TIME  # lazy: the filter's default, which a default run records
+    from studies import fleet_methods  # lazy: this test watches the settings the study builds
+
+    built = []
+    real = fleet_methods.FleetFilterSettings
+
+    def watched(*args, **kwargs):
+        built.append(real(*args, **kwargs))
+        return built[-1]
+
+    monkeypatch.setattr(fleet_methods, "FleetFilterSettings", watched)
+    run_fleet_eval(FleetEvalSettings(methods=("fleet",), **{**TINY, "timing_ticks": 0}), tmp_path / "s")
+    assert json.loads((tmp_path / "s.json").read_text())["settings"]["reaction_time"] == REACTION_TIME
+    assert built[-1].reaction_time == REACTION_TIME
+    with pytest.raises(ValueError, match="settings"):
+        run_fleet_eval(FleetEvalSettings(methods=("none",), reaction_time=1.0, **TINY), tmp_path / "s")
+    run_fleet_eval(
+        FleetEvalSettings(methods=("fleet",), reaction_time=1.0, **{**TINY, "timing_ticks": 0}), tmp_path / "r"
+    )
+    assert built[-1].reaction_time == 1.0
+    assert json.loads((tmp_path / "r.json").read_text())["settings"]["reaction_time"] == 1.0
 
 
 def test_a_stem_with_a_dot_keeps_it(tmp_path):

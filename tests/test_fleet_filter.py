@@ -451,6 +451,9 @@ def test_bad_input_is_refused_naming_it(pair):
     for hold in (0.0, -0.2, math.nan, math.inf, "0.2"):
         with pytest.raises(ValueError, match="hold"):
             FleetFilterSettings(dt=0.05, hold=hold)
+    for reaction in (-0.1, math.nan, math.inf, "0.5"):
+        with pytest.raises(ValueError, match="reaction_time"):
+            FleetFilterSettings(dt=0.05, reaction_time=reaction)
     # a nominal input beyond the turn bound is clipped, as SafetyFilter clips it
     _, info = ff(x, 1.0, torch.full((4, 3), 5.0, dtype=F64))
     assert bool((info.nominal == 1.1).all())
@@ -483,3 +486,21 @@ def test_the_fleet_rules_refuse_a_wrong_value_or_settings_naming_it(pair):
             rule(pair, FleetFilterSettings(dt=0.05))
         with pytest.raises(ValueError, match="must be a FleetFilterSettings, got dict"):
             rule(fv, {"dt": 0.05})
+
+
+def test_the_reaction_time_sets_the_default_threshold_where_it_exceeds_one_step(pair):
+    """The default threshold is the larger of the one-step default and ``reaction_time`` seconds of
+    the pair's closing speed: twice the reaction time doubles it where it dominates, zero leaves the
+    one-step default, and a threshold given outright ignores it."""
+    from safety.fleet.filter import REACTION_TIME, pair_thresholds
+
+    fv = FleetValue(fleet(3), pair)
+    speed = fv.speed_sum[0, 1]
+    base = pair_thresholds(fv, FleetFilterSettings(dt=0.05))
+    assert torch.allclose(base[0, 1], REACTION_TIME * speed)
+    longer = pair_thresholds(fv, FleetFilterSettings(dt=0.05, reaction_time=2 * REACTION_TIME))
+    assert torch.allclose(longer, 2 * base)
+    one_step = pair_thresholds(fv, FleetFilterSettings(dt=0.05, reaction_time=0.0))
+    assert bool((one_step < base).all()) and bool((one_step > 0).all())
+    given_ = pair_thresholds(fv, FleetFilterSettings(dt=0.05, threshold=0.3, reaction_time=3.0))
+    assert bool((given_ == 0.3).all())

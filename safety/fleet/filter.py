@@ -8,7 +8,7 @@ left the scene take part in no pair). The rule, per state:
 1. Each pair ``(i, j)`` of present cars has a value ``V_ij`` (:class:`~safety.fleet.value.FleetValue`,
    culled by distance), a threshold ``theta_ij`` (default: the larger of the switch filter's default
    for the pair problem at the filter's ``dt``, :func:`~safety.filters.settings.default_threshold`,
-   and :data:`REACTION_TIME` seconds of the pair's closing speed) and an
+   and ``reaction_time`` seconds of the pair's closing speed, :data:`REACTION_TIME` by default) and an
    activation band ``band_ij`` (default ``dt (v_i + v_j)``, what ``V`` can lose in one held step).
    It is *active* where ``V_ij <= theta_ij + band_ij`` and *threatened* where ``V_ij <= theta_ij``.
 2. Active pairs join cars into groups (:mod:`safety.fleet.graph`); a group with a threatened pair is
@@ -99,6 +99,10 @@ class FleetFilterSettings:
             ``policy="gradient"`` to the bit).
         hold: how long (s) the greedy policy holds each candidate input before it reads the pair
             values (:data:`~safety.fleet.greedy.HOLD` by default; its module says why).
+        reaction_time: seconds of a pair's closing speed the default threshold keeps in hand, at
+            least (>= 0; :data:`REACTION_TIME` by default). Longer makes pairs react earlier: fewer
+            collisions where many cars converge, fewer cars home (measured: docs/results/fleets.md).
+            Unused where ``threshold`` is given.
     """
 
     dt: float
@@ -109,10 +113,12 @@ class FleetFilterSettings:
     gamma: float = 1.0
     policy: str = "greedy"
     hold: float = HOLD
+    reaction_time: float = REACTION_TIME
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dt", positive_finite("dt", self.dt))
         object.__setattr__(self, "hold", positive_finite("hold", self.hold))
+        object.__setattr__(self, "reaction_time", check_float("reaction_time", self.reaction_time, 0))
         if self.policy not in FLEET_POLICIES:
             raise ValueError(f"policy must be one of {FLEET_POLICIES}, got {self.policy!r}")
         gamma = check_float("gamma", self.gamma, 0)
@@ -176,7 +182,7 @@ def checked_inputs(
 def pair_thresholds(fleet_value: FleetValue, settings: FleetFilterSettings) -> torch.Tensor:
     """``(N, N)`` each pair's threshold ``theta``: ``settings.threshold`` where given, else the larger
     of the switch filter's default for the pair problem at ``settings.dt`` and
-    :data:`REACTION_TIME` of the pair's closing speed (the module docstring says why)."""
+    ``settings.reaction_time`` of the pair's closing speed (the module docstring says why)."""
     if not isinstance(fleet_value, FleetValue):
         raise ValueError(f"a fleet filter needs a FleetValue, got {type(fleet_value).__name__}")
     if not isinstance(settings, FleetFilterSettings):
@@ -188,8 +194,8 @@ def pair_thresholds(fleet_value: FleetValue, settings: FleetFilterSettings) -> t
         [default_threshold(s.system, settings.dt) for s in fleet_value.solutions], dtype=torch.float64
     )
     # a pair must react earlier than a lone pair would: its cars may be busy with another pair when
-    # it needs them, so the default holds REACTION_TIME of closing speed in hand
-    return torch.maximum(per_kind[fleet_value.pair_kind.clamp(min=0)], REACTION_TIME * speed_sum)
+    # it needs them, so the default holds reaction_time of closing speed in hand
+    return torch.maximum(per_kind[fleet_value.pair_kind.clamp(min=0)], settings.reaction_time * speed_sum)
 
 
 class PairRows(NamedTuple):
