@@ -39,14 +39,13 @@ from reach.json_files import read_json
 from reach.locking import exclusive_lock
 from reach_envs.fleet import FleetSimulator, goal_seeking, rollout
 from reach_envs.fleet_scenes import FleetScene
-from safety.fleet.filter import REACTION_TIME
-from safety.fleet.greedy import HOLD
+from safety.fleet import FleetFilterSettings
 from safety.verification.metrics import scenario_epsilon, wilson_interval
 from studies.fleet_methods import make_method
 from studies.fleet_settings import FleetEvalSettings
 from studies.tables import columns_table, merge_rows, write_results
 
-__all__ = ["decision_times", "held", "reaction", "run_cell", "run_fleet_eval"]
+__all__ = ["decision_times", "filter_options", "run_cell", "run_fleet_eval"]
 
 
 @dataclass
@@ -90,21 +89,18 @@ def _rollout(scene: FleetScene, decide: Callable | None, episodes: int, seed: in
     tally.arrival_time += float(outcome.arrival_time[arrived].sum())
 
 
-def held(settings: FleetEvalSettings) -> float:
-    """The greedy hold (s) the fleet filter of ``settings`` runs: its own, else the filter's default."""
-    return HOLD if settings.hold is None else settings.hold
-
-
-def reaction(settings: FleetEvalSettings) -> float:
-    """The reaction time (s) the fleet filter of ``settings`` runs: its own, else the filter's default."""
-    return REACTION_TIME if settings.reaction_time is None else settings.reaction_time
+def filter_options(settings: FleetEvalSettings) -> dict[str, float]:
+    """The fleet filter's ``hold`` and ``reaction_time`` that ``settings`` runs: its own where given,
+    else :class:`~safety.fleet.FleetFilterSettings`' defaults (the values the results record)."""
+    given = {"hold": settings.hold, "reaction_time": settings.reaction_time}
+    return {name: getattr(FleetFilterSettings, name) if value is None else value for name, value in given.items()}
 
 
 def run_cell(settings: FleetEvalSettings, layout: str, n_cars: int, method: str) -> dict[str, Any]:
     """One row of the study: ``settings.episodes`` episodes of ``layout`` with ``n_cars`` cars under
     ``method`` (the module docstring lists its columns)."""
     scene = FleetScene(layout=layout, n_cars=n_cars, density=settings.density)
-    decide = make_method(method, scene, held(settings), reaction(settings))
+    decide = make_method(method, scene, **filter_options(settings))
     tally = _Tally()
     start = time.perf_counter()
     batches = range(0, settings.episodes, settings.batch)
@@ -208,8 +204,7 @@ def run_fleet_eval(
     out = Path(out)
     out = out.with_name(out.name + ".json")
     stored_settings = {k: v for k, v in asdict(settings).items() if k not in ("layouts", "sizes", "methods")}
-    # the hold and reaction time that ran, default or not
-    header = {"settings": {**stored_settings, "hold": held(settings), "reaction_time": reaction(settings)}}
+    header = {"settings": {**stored_settings, **filter_options(settings)}}  # what ran, default or not
     cells = [(lay, n, m) for lay in settings.layouts for n in settings.sizes for m in settings.methods]
     for layout, n, method in cells:
         key = f"{layout}/{n}/{method}"

@@ -19,8 +19,6 @@ from groundtruth.pairwise import solve_pairs
 from groundtruth.solution import GridSolution
 from reach_envs.fleet_scenes import FleetScene
 from safety.fleet import CBFSettings, DistanceCBF, FleetFilter, FleetFilterSettings, FleetValue, NaiveUnionSwitch
-from safety.fleet.filter import REACTION_TIME
-from safety.fleet.greedy import HOLD
 from studies.fleet_settings import METHODS
 from training import pretrained
 
@@ -53,12 +51,10 @@ def fleet_value(scene: FleetScene) -> FleetValue:
         return FleetValue(system, solve_pairs(system, progress=False))
 
 
-def make_method(
-    method: str, scene: FleetScene, hold: float = HOLD, reaction_time: float = REACTION_TIME
-) -> Decide | None:
-    """``method``'s decision rule for ``scene`` (``None`` for ``"none"``, the nominal input); the
-    fleet filter's greedy policy holds each candidate for ``hold`` seconds, and its default pair
-    threshold keeps ``reaction_time`` seconds of closing speed in hand."""
+def make_method(method: str, scene: FleetScene, **fleet_options: float) -> Decide | None:
+    """``method``'s decision rule for ``scene`` (``None`` for ``"none"``, the nominal input);
+    ``fleet_options`` (``hold``, ``reaction_time``) go to the fleet filter's
+    :class:`~safety.fleet.FleetFilterSettings`, whose defaults stand for those not given."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if method == "none":
@@ -66,7 +62,7 @@ def make_method(
     value = fleet_value(scene)
     t = float(max(s.system.horizon for s in value.solutions))
     if method == "fleet":
-        rule: Any = FleetFilter(value, FleetFilterSettings(dt=scene.dt, hold=hold, reaction_time=reaction_time))
+        rule: Any = FleetFilter(value, FleetFilterSettings(dt=scene.dt, **fleet_options))
     elif method == "union":
         rule = NaiveUnionSwitch(value, FleetFilterSettings(dt=scene.dt))
     else:
