@@ -47,7 +47,12 @@ def add_parser(sub: Any) -> None:
         sub, "train-until", help="train in phases, each verified on fresh states, until the scenario bound holds"
     )
     p.add_argument("--out", required=True, help="run directory (run the command again to continue it)")
-    p.add_argument("--budget", default=None, help="wall-clock budget of training and verification, e.g. 30m")
+    p.add_argument(
+        "--budget",
+        default=None,
+        help="wall-clock budget of the phases (training and verification), e.g. 30m; checked before each "
+        "phase: none starts once it is spent, while the phase under way and the final verification finish",
+    )
     for flag, field, kind, text in SETTINGS_OPTIONS:
         p.add_argument(flag, type=kind, default=None, help=f"{text} (default: {default(TrainUntilSettings, field)})")
     for flag, field, kind, text in CONFIG_OPTIONS:

@@ -73,7 +73,8 @@ class TrainUntilSettings:
     phase_steps: int = 2000
     #: at most this many phases
     max_phases: int = 10
-    #: wall-clock budget of training and verification together, in seconds (None: phases alone)
+    #: wall-clock budget of the phases, training and verification together, in seconds (None: phases
+    #: alone); checked before each phase, so the phase under way and the final verification run past it
     budget_s: float | None = None
     #: the scenario bound to reach (the delta-level set's eps)
     target_eps: float = 3e-4
