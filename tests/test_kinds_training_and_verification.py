@@ -230,3 +230,25 @@ def test_a_reach_problem_has_no_collisions_and_bounds_its_reachable_set():
     row = verify(grid, sample_states(grid.system, 400, 0), settings, progress=False)
     assert row["problem"] == "reach" and "collision_rate" not in row and row["scenario_states"] == 100
     assert row["failure_rate"] > 0 and row["scenario_volume"] == row["reachable_fraction"] > 0
+
+
+@pytest.mark.parametrize("kind", ["reach", "reach-avoid"])
+def test_the_target_floor_exit_changes_work_not_outcomes(kind, reach_avoid_grid):
+    """A reach rollout stops a trajectory once its target is out of reach in the time left (a
+    reach-avoid one only where its obstacle is too): the same successes, violations and times as
+    simulating every step, from less work; the stopped ones are decided before the horizon."""
+    if kind == "reach":
+        grid = solve(Dubins3D("reach"), 21, [0.0, 0.5, 1.0], settings=SolverSettings(compile=False), progress=False)
+        grid.outside = "clamp"
+    else:
+        grid = reach_avoid_grid
+    x = sample_states(grid.system, 600, 4)
+    full = rollout(grid, x, dt=0.01, early_exit=False, progress=False)
+    fast = rollout(grid, x, dt=0.01, early_exit=True, progress=False, chunk_size=256)
+    assert torch.equal(full.reached, fast.reached) and torch.equal(full.collided, fast.collided)
+    assert full.reached.any() and (~full.reached).any() and (kind == "reach" or full.collided.any())
+    torch.testing.assert_close(full.reach_time, fast.reach_time, equal_nan=True)
+    torch.testing.assert_close(full.collision_time, fast.collision_time, equal_nan=True)
+    assert fast.state_steps < 0.9 * full.state_steps
+    stopped = fast.decided_time < full.decided_time
+    assert stopped.any() and not (fast.reached | fast.collided)[stopped].any()

@@ -372,3 +372,43 @@ def test_margin_floor_bounds_the_margin_under_adversarial_and_random_turns(syste
             x = torch.cat([x[:, : 2 * n] + dt * step, th + dt * turn * rates], -1)
             lowest = torch.minimum(lowest, system.failure_margin(x))
         assert (lowest >= floor - 1e-9).all(), policy
+
+
+@pytest.mark.parametrize("integrator", ["euler", "rk4"])
+@pytest.mark.parametrize("system", [Dubins3D("reach"), DubinsReachAvoid()], ids=lambda s: s.name)
+def test_target_floor_bounds_the_target_margin_and_is_tight(system, integrator):
+    """No inputs (random bang-bang turns and winds, held over Euler or RK4 steps) bring the target
+    margin below the declared floor within its time; driving straight at the goal's centre with the
+    wind behind comes within 10 % of it, so a floor with a rate 10 % lower fails."""
+    dt, steps = 0.01, 40
+    gen = torch.Generator().manual_seed(8)
+    x0 = system.sample_states(3000, generator=gen, dtype=torch.float64)
+    advance = make_stepper(system, dt, integrator, TORCH)
+    centre = torch.tensor(getattr(system, "goal", (0.0, 0.0)), dtype=torch.float64)
+    wind = torch.tensor(system.disturbance_bounds.half_width) if system.disturbance_dim else None
+    for policy in ("random", "straight in"):
+        x = x0.clone()
+        if policy == "straight in":  # head for the goal's centre, the wind behind; no turning
+            to_goal = centre - x[:, :2]
+            x[:, 2] = torch.atan2(to_goal[:, 1], to_goal[:, 0])
+        lowest = system.target_margin(x)
+        floors = {k: system.target_floor(x, k * dt) for k in (steps // 2, steps)}
+        for k in range(1, steps + 1):
+            if policy == "random":
+                u = torch.randint(-1, 2, (len(x), 1), generator=gen).to(x.dtype) * system.control_bounds.half_width[0]
+                d = None if wind is None else (torch.rand(len(x), 2, generator=gen, dtype=x.dtype) * 2 - 1) * wind
+            else:
+                u = torch.zeros(len(x), 1, dtype=x.dtype)
+                heading = torch.stack([torch.cos(x[:, 2]), torch.sin(x[:, 2])], -1)
+                d = None if wind is None else heading.sign() * wind
+            uc = system.input_columns(u, system.control_bounds, "u")
+            dc = system.input_columns(d, system.disturbance_bounds, "d")
+            x = TORCH.stack(advance(TORCH.unbind(x), uc, dc), like=x[:, 0])
+            lowest = torch.minimum(lowest, system.target_margin(x))
+            if k in floors:
+                assert (lowest >= floors[k] - 1e-9).all(), (policy, k)
+        if policy == "straight in":  # where the goal stays out of reach, a 10 % slower rate breaks
+            rate = (system.target_floor(x0, 0.0) - system.target_floor(x0, 1.0))[0]
+            far = floors[steps] > 0
+            looser = floors[steps] + 0.1 * rate * steps * dt
+            assert far.float().mean() > 0.3 and ((lowest < looser - 1e-9) & far).float().mean() > 0.3

@@ -17,6 +17,8 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
+import torch
+
 from reach.systems.arrays import Backend, Column, InputMatrix
 from reach.systems.base import ControlAffineSystem
 from reach.systems.box import Box
@@ -95,6 +97,14 @@ class Dubins3D(ControlAffineSystem):
 
     def margin_rate_bound(self) -> float:
         return self.velocity
+
+    def target_floor(self, x: torch.Tensor, time: float) -> torch.Tensor | None:
+        """``l(x) - v time`` (reach): the target margin is the distance to the goal disc's edge, and the
+        car moves no faster than ``v``; an Euler or RK4 step moves it by a weighted mean of stage
+        velocities of length ``v`` with positive weights summing to one, so by at most ``dt v`` too."""
+        if self.kind != "reach":
+            return None
+        return self.target_margin(x) - self.velocity * time
 
     def margin_step_bound(self, dt: float, integrator: str) -> float | None:
         """``dt v`` (avoid; Euler or RK4): either step moves the position by a weighted mean of
@@ -175,6 +185,14 @@ class DubinsReachAvoid(ControlAffineSystem):
 
     def margin_rate_bound(self) -> float:
         return self.speed + math.sqrt(2.0) * self.wind
+
+    def target_floor(self, x: torch.Tensor, time: float) -> torch.Tensor:
+        """``l(x) - (v + sqrt(2) w) time``: the target margin is the distance to the goal disc's edge,
+        and the car's velocity, its own plus the wind, is no longer than ``v + sqrt(2) w``; an Euler or
+        RK4 step moves it by a weighted mean of such stage velocities, with positive weights summing
+        to one, so by at most ``dt`` times that. (The same bound holds for the obstacle's margin, the
+        constraint: :meth:`margin_floor`.)"""
+        return self.target_margin(x) - self.margin_rate_bound() * time
 
 
 __all__ = ["SET_MODES", "Dubins3D", "DubinsReachAvoid"]

@@ -1,6 +1,7 @@
 """What a system knows of how fast its failure margin can change: declared bounds and a sampled estimate.
 
 Rollouts stop simulating trajectories whose failure set is out of reach (:meth:`MarginBounds.margin_floor`),
+or, for reach kinds, whose target is (:meth:`MarginBounds.target_floor`);
 formal certificates treat states far from failure without bounding the network there
 (:meth:`MarginBounds.margin_step_bound`, :meth:`MarginBounds.margin_outside_domain`), and filters
 set default thresholds from :meth:`MarginBounds.margin_rate_estimate`.
@@ -31,6 +32,18 @@ class MarginBounds:
         fast their distance changes). With it, a rollout can stop simulating a trajectory once
         ``l(x) > bound * time_left``: the failure set is then out of reach, whatever the inputs.
         """
+        return None
+
+    def target_floor(self, x: torch.Tensor, time: float) -> torch.Tensor | None:
+        """A lower bound of the target margin over the next ``time`` seconds from states ``x``
+        ``(..., n)`` (reach kinds), under *any* admissible inputs and disturbances, held over Euler or
+        RK4 steps or not; ``None`` (the default) where none is known.
+
+        A proof obligation, declared per system with its argument in the docstring (and checked at
+        samples in the tests). A reach rollout stops a trajectory whose floor over the time left is
+        positive: the target is out of reach, so the trajectory has failed. A reach-avoid rollout stops
+        it only where :meth:`margin_floor` (of the constraint) is positive too, so the constraint
+        violations it counts stay the same."""
         return None
 
     def margin_step_bound(self, dt: float, integrator: str) -> float | None:

@@ -25,8 +25,13 @@ It simulates only what is still undecided:
   headings, since cars facing apart must turn before they can close), a trajectory whose floor over
   ``time_left + dt`` is positive can no longer reach the failure set under *any* inputs, so its
   outcome (no collision) is decided and it stops too. Exact for Euler (a held step moves ``l`` by
-  at most what the floor allows); the extra ``dt`` covers RK4's truncation. Avoid problems only: a
-  reach problem's outcome is open until the target is reached or the horizon ends.
+  at most what the floor allows); the extra ``dt`` covers RK4's truncation;
+* for reach kinds, where the system bounds how fast the target margin can fall
+  (:meth:`~reach.systems.base.ControlAffineSystem.target_floor`), a trajectory whose target floor
+  over ``time_left + dt`` is positive can no longer reach the target in time: it has failed, and it
+  stops. A reach-avoid trajectory stops so only where its constraint is out of reach too
+  (:meth:`~reach.systems.base.ControlAffineSystem.margin_floor` of the constraint margin), so the
+  violations counted are those a full simulation finds.
 
 States go through in chunks (bounded memory), the network runs without an autograd graph (one
 fused value-and-gradient pass per state and step, see ``ValueNetwork.value_and_gradient``), and a
@@ -267,6 +272,7 @@ def rollout(
         raise ValueError(f"record=True keeps every state; {states.shape[0]} states is too many (<= 100000)")
     problem = system.problem
     floor_exit = early_exit and not record and not problem.reaches
+    target_exit = early_exit and not record and problem.reaches
     # what ends a trajectory in failure: the failure set (avoid), leaving the constraint set (reach-avoid)
     collision_margin = None if problem.name == "reach" else system.failure_margin
     use_disturbance = system.disturbance_dim > 0 and disturbance != "none"
@@ -308,6 +314,19 @@ def rollout(
         nothing = torch.zeros_like(x[..., 0], dtype=torch.bool)
         hit = nothing if collision_margin is None else collision_margin(x) <= 0
         return hit, (system.target_margin(x) <= 0) & ~hit if problem.reaches else None
+
+    def out_of_reach(x: torch.Tensor, time: float) -> torch.Tensor:
+        """Per state, whether no input reaches the target within ``time`` (and, for reach-avoid, none
+        leaves the constraint set either, so the violations counted stay the same): a failure."""
+        none = torch.zeros_like(x[..., 0], dtype=torch.bool)
+        target = system.target_floor(x, time)
+        if target is None:
+            return none
+        out = target > 0
+        if problem.has_constraint:
+            floor = system.margin_floor(x, time)
+            out = out & (floor > 0) if floor is not None else none
+        return out
 
     def settle(where_hit: torch.Tensor, where_reached: torch.Tensor | None, at: float) -> None:
         """Record the trajectories decided at time ``at`` (global indices on the CPU)."""
@@ -359,11 +378,14 @@ def rollout(
                 floor = system.margin_floor(x, horizon - elapsed + dt) if floor_exit else None
                 if floor is not None:
                     done = done | (floor > 0)
+                if target_exit:
+                    done = done | out_of_reach(x, horizon - elapsed + dt)
                 if bool(done.any()):
                     settle(idx[hit].cpu(), None if in_target is None else idx[in_target].cpu(), elapsed)
-                    safe = done & ~hit if in_target is None else torch.zeros_like(done)  # avoid's floor exit
-                    if bool(safe.any()):
-                        decided_time[idx[safe].cpu()] = elapsed
+                    # the floor exits: avoid's (no collision any more), reach's (no target any more)
+                    exited = done & ~hit if in_target is None else done & ~hit & ~in_target
+                    if bool(exited.any()):
+                        decided_time[idx[exited].cpu()] = elapsed
                     keep = ~done
                     x, idx = x[keep], idx[keep]
                     held = None if held is None else held[keep]
