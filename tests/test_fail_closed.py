@@ -152,6 +152,23 @@ def test_rollout_settings_validate_once_and_travel_whole():
             RolloutSettings(**bad)
 
 
+def test_a_rollout_refuses_a_disturbance_outside_its_bounds():
+    """A disturbance function's value outside the system's box (or NaN) is refused, naming it: the
+    outcomes and the early exits' floors hold for admissible disturbances only."""
+    from reach.systems import DubinsReachAvoid
+    from safety import rollout
+    from training import NeuralValueFunction, ValueNetwork
+
+    torch.manual_seed(0)
+    vf = NeuralValueFunction(ValueNetwork(DubinsReachAvoid(), "ssssl", width=16))
+    x = vf.system.sample_states(32, torch.Generator().manual_seed(1))
+    inside = rollout(vf, x, dt=0.05, progress=False, disturbance=lambda s, t: torch.full((len(s), 2), 0.1))
+    assert inside.num_states == 32
+    for value, shown in ((0.2, r"\[0\.2"), (math.nan, r"\[nan")):
+        with pytest.raises(ValueError, match=f"disturbance function returned {shown}.*outside"):
+            rollout(vf, x, dt=0.05, progress=False, disturbance=lambda s, t, v=value: torch.full((len(s), 2), v))
+
+
 @pytest.fixture(scope="module")
 def air3d_vf():
     from reach.systems import Air3D

@@ -52,6 +52,7 @@ from tqdm.auto import tqdm
 from reach.integrators import check_integrator, make_stepper
 from reach.systems import ControlAffineSystem
 from reach.systems.arrays import TORCH
+from reach.systems.box import Ball
 from reach.systems.problem import problem_kind
 from reach.validation import check_int, positive_finite, settings_from
 from reach.value_function import ValueFunction, check_time_coverage
@@ -227,6 +228,27 @@ def concat_results(parts: list[RolloutResult]) -> RolloutResult:
     )
 
 
+def check_admissible(d: Any, system: ControlAffineSystem) -> Any:
+    """``d`` as given if it lies in the system's disturbance bounds (to rounding), else ``ValueError``
+    naming a value outside: a rollout's outcomes, and its early exits' floors, hold for admissible
+    disturbances only. Anything but a ``(..., m_d)`` tensor passes on to the input checks."""
+    bounds = system.disturbance_bounds
+    if not isinstance(d, torch.Tensor) or d.shape[-1:] != (bounds.dim,) or not d.dtype.is_floating_point:
+        return d
+    tol = 1e-6 * (1.0 + max(bounds.half_width))
+    if isinstance(bounds, Ball):
+        centre = torch.tensor(bounds.center, dtype=d.dtype, device=d.device)
+        excess = (d - centre).norm(dim=-1) - bounds.radius
+    else:
+        low, high = (torch.tensor(b, dtype=d.dtype, device=d.device) for b in (bounds.low, bounds.high))
+        excess = torch.maximum(low - d, d - high).amax(-1)
+    bad = ~(excess <= tol)  # NaN counts as outside
+    if bool(bad.any()):
+        value = d[bad][0].tolist()
+        raise ValueError(f"the disturbance function returned {value}, outside the system's disturbance bounds {bounds}")
+    return d
+
+
 def rollout(
     value_function: ValueFunction,
     states: torch.Tensor,
@@ -245,7 +267,8 @@ def rollout(
         settings: how to simulate (:class:`RolloutSettings`: horizon, step, integrator, policy,
             batch size, precision, early exit); its fields may also be given as keywords
             (``rollout(vf, x, dt=0.01, policy="greedy")``), alone or over ``settings``.
-        disturbance: ``"optimal"`` (worst case ``d*``), ``"none"`` (box centre) or ``fn(x, t) -> d``.
+        disturbance: ``"optimal"`` (worst case ``d*``), ``"none"`` (box centre) or ``fn(x, t) -> d``,
+            which must stay within the disturbance bounds (a value outside raises ``ValueError``).
         record: keep every state (small ``N`` only; turns the margin-bound exit off).
         device: where to simulate (default: the states' device).
         dtype: precision of the simulation (default float32).
@@ -292,7 +315,7 @@ def rollout(
         elif disturbance == "optimal":
             d = system.optimal_disturbance(x, p)
         else:
-            d = disturbance(x, torch.full(x.shape[:-1], t, dtype=x.dtype, device=x.device))
+            d = check_admissible(disturbance(x, torch.full(x.shape[:-1], t, dtype=x.dtype, device=x.device)), system)
         u = held
         if u is None:
             u = system.optimal_control(x, p) if greedy is None else greedy.control(x, t, d)
