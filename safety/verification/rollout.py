@@ -338,18 +338,15 @@ def rollout(
         hit = nothing if collision_margin is None else collision_margin(x) <= 0
         return hit, (system.target_margin(x) <= 0) & ~hit if problem.reaches else None
 
-    def out_of_reach(x: torch.Tensor, time: float) -> torch.Tensor:
+    def out_of_reach(x: torch.Tensor, time: float) -> torch.Tensor | None:
         """Per state, whether no input reaches the target within ``time`` (and, for reach-avoid, none
-        leaves the constraint set either, so the violations counted stay the same): a failure."""
-        none = torch.zeros_like(x[..., 0], dtype=torch.bool)
+        leaves the constraint set either, so the violations counted stay the same): a failure.
+        ``None`` where the system bounds neither (as :meth:`margin_floor` answers)."""
         target = system.target_floor(x, time)
-        if target is None:
-            return none
-        out = target > 0
-        if problem.has_constraint:
-            floor = system.margin_floor(x, time)
-            out = out & (floor > 0) if floor is not None else none
-        return out
+        if target is None or not problem.has_constraint:
+            return None if target is None else target > 0
+        floor = system.margin_floor(x, time)
+        return None if floor is None else (target > 0) & (floor > 0)
 
     def settle(where_hit: torch.Tensor, where_reached: torch.Tensor | None, at: float) -> None:
         """Record the trajectories decided at time ``at`` (global indices on the CPU)."""
@@ -401,8 +398,9 @@ def rollout(
                 floor = system.margin_floor(x, horizon - elapsed + dt) if floor_exit else None
                 if floor is not None:
                     done = done | (floor > 0)
-                if target_exit:
-                    done = done | out_of_reach(x, horizon - elapsed + dt)
+                stopped = out_of_reach(x, horizon - elapsed + dt) if target_exit else None
+                if stopped is not None:
+                    done = done | stopped
                 if bool(done.any()):
                     settle(idx[hit].cpu(), None if in_target is None else idx[in_target].cpu(), elapsed)
                     # the floor exits: avoid's (no collision any more), reach's (no target any more)
