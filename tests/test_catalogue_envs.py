@@ -188,8 +188,8 @@ def test_a_disc_of_thrust_takes_actions_inside_the_disc_and_scales_the_rest_onto
     import torch
 
     from reach.systems import RocketLanding
+    from reach.systems.box import project_inputs
     from reach_envs.spaces import inputs_of_actions
-    from safety.filters.base import project_inputs
     from safety.value_policies import GreedyPolicy
     from training.network import NeuralValueFunction, ValueNetwork
 

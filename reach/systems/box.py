@@ -7,7 +7,9 @@ and the optimal inputs are derived for both (``docs/concepts.md``): over a box, 
 ``s . c + sum_j hw_j |s_j|`` at a corner; over a ball, ``s . c + r |s|_2`` at ``c + r s / |s|_2``.
 A ball's ``low``, ``high`` and ``half_width`` are its bounding box, which is what bounds (the grid
 solver's dissipation) and normalised actions (envs) need; code that enumerates corners or samples
-the box refuses a ball by name (:func:`require_box`).
+the box refuses a ball by name (:func:`require_box`). :func:`project_inputs` moves inputs into
+either kind of set (filters clip a nominal input with it, rollouts measure how far a disturbance
+lies outside).
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+
+import torch
 
 
 @dataclass(frozen=True)
@@ -89,6 +93,15 @@ class Ball:
 
 #: what a system may declare as its control or disturbance bounds
 InputSet = Box | Ball
+
+
+def project_inputs(u: torch.Tensor, bounds: InputSet) -> torch.Tensor:
+    """``u`` moved into the input set: clipped to a box, scaled back onto a ball along ``u - c``."""
+    if isinstance(bounds, Ball):
+        c = u.new_tensor(bounds.center)
+        norm = torch.linalg.vector_norm(u - c, dim=-1, keepdim=True)
+        return c + (u - c) * torch.clamp(bounds.radius / norm.clamp_min(1e-300), max=1.0)
+    return torch.minimum(torch.maximum(u, u.new_tensor(bounds.low)), u.new_tensor(bounds.high))
 
 
 def require_box(bounds: InputSet, what: str) -> Box:

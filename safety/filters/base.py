@@ -61,7 +61,7 @@ from typing import Any, ClassVar, NamedTuple
 import torch
 
 from reach.systems.base import ControlAffineSystem
-from reach.systems.box import Ball, InputSet
+from reach.systems.box import project_inputs
 from reach.validation import positive_finite
 from reach.value_function import ValueFunction
 from safety.filters.settings import (
@@ -73,7 +73,7 @@ from safety.filters.settings import (
 from safety.tracing import only_rows, refuse_untrusted, tracing
 from safety.value_policies import GreedyPolicy, OptimalPolicy, check_states
 
-__all__ = ["Evaluation", "FilterInfo", "SafetyFilter", "project_inputs", "require_served_kind"]
+__all__ = ["Evaluation", "FilterInfo", "SafetyFilter", "require_served_kind"]
 
 #: slack (s) on the lookahead's "a whole step of time-to-go is left" (times summed in float arithmetic)
 TIME_SLACK = 1e-9
@@ -120,15 +120,6 @@ class Evaluation(NamedTuple):
     gradient: torch.Tensor
     u_star: torch.Tensor
     d_star: torch.Tensor | None
-
-
-def project_inputs(u: torch.Tensor, bounds: InputSet) -> torch.Tensor:
-    """``u`` moved into the input set: clipped to a box, scaled back onto a ball along ``u - c``."""
-    if isinstance(bounds, Ball):
-        c = u.new_tensor(bounds.center)
-        norm = torch.linalg.vector_norm(u - c, dim=-1, keepdim=True)
-        return c + (u - c) * torch.clamp(bounds.radius / norm.clamp_min(1e-300), max=1.0)
-    return torch.minimum(torch.maximum(u, u.new_tensor(bounds.low)), u.new_tensor(bounds.high))
 
 
 def _asked_kind(options: dict[str, Any]) -> object:

@@ -52,7 +52,7 @@ from tqdm.auto import tqdm
 from reach.integrators import check_integrator, make_stepper
 from reach.systems import ControlAffineSystem
 from reach.systems.arrays import TORCH
-from reach.systems.box import Ball
+from reach.systems.box import project_inputs
 from reach.systems.problem import problem_kind
 from reach.validation import check_int, positive_finite, settings_from
 from reach.value_function import ValueFunction, check_time_coverage
@@ -236,12 +236,7 @@ def check_admissible(d: Any, system: ControlAffineSystem) -> Any:
     if not isinstance(d, torch.Tensor) or d.shape[-1:] != (bounds.dim,) or not d.dtype.is_floating_point:
         return d
     tol = 1e-6 * (1.0 + max(bounds.half_width))
-    if isinstance(bounds, Ball):
-        centre = torch.tensor(bounds.center, dtype=d.dtype, device=d.device)
-        excess = (d - centre).norm(dim=-1) - bounds.radius
-    else:
-        low, high = (torch.tensor(b, dtype=d.dtype, device=d.device) for b in (bounds.low, bounds.high))
-        excess = torch.maximum(low - d, d - high).amax(-1)
+    excess = torch.linalg.vector_norm(d - project_inputs(d, bounds), dim=-1)  # distance to the set
     bad = ~(excess <= tol)  # NaN counts as outside
     if bool(bad.any()):
         value = d[bad][0].tolist()
