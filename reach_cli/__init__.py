@@ -5,8 +5,9 @@ Each subcommand is one module of this package holding its parser beside its hand
 ``record`` (an episode as a GIF), ``groundtruth`` (grid BRT solve), ``train`` (value networks),
 ``train-until`` (training in phases until the scenario bound holds), ``evaluate`` (rollout
 verification across checkpoints), ``filter-eval`` (what a safety filter changes in episodes of a
-task), ``export`` (a filter as one ONNX file for the torch-free runtime), ``certify`` (a formally
-certified safe set, or the check of its file), ``plot`` (BRT slices, union overlays, violation
+task), ``fleet-eval`` (fleet filters against the fleet's size), ``fleet-replay`` (one of its
+collided episodes, alone), ``export`` (a filter as one ONNX file for the torch-free runtime),
+``certify`` (a formally certified safe set, or the check of its file), ``plot`` (BRT slices, union overlays, violation
 bars, filtered-episode GIFs), ``sweep`` (layouts x seeds on a budget, with a report) and ``demo``
 (all of it on Air3D).
 
@@ -42,6 +43,7 @@ from reach_cli import (
     export,
     filter_eval,
     fleet_eval,
+    fleet_replay,
     groundtruth,
     plot,
     pretrained,
@@ -63,6 +65,7 @@ COMMANDS = (
     evaluate,
     filter_eval,
     fleet_eval,
+    fleet_replay,
     export,
     certify,
     plot,

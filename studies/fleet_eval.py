@@ -21,6 +21,11 @@ thread: :func:`decision_times`).
 
 Resumable and one owner at a time: every finished cell is merged into ``OUT.json`` (with ``.csv``
 and ``.md``) atomically under ``OUT.lock``; a rerun skips the cells stored with the same settings.
+
+Every episode with a collision is also written, one file each, to the folder ``OUT.collisions``
+beside the results (:func:`collisions_folder`): its start, goals and the inputs it was given, which
+replay it alone exactly where re-running the episode would not (:mod:`studies.fleet_collisions`;
+``reach fleet-replay`` draws it).
 """
 
 from __future__ import annotations
@@ -41,11 +46,12 @@ from reach_envs.fleet import FleetSimulator, goal_seeking, rollout
 from reach_envs.fleet_scenes import FleetScene
 from safety.fleet import FleetFilterSettings
 from safety.verification.metrics import scenario_epsilon, wilson_interval
+from studies.fleet_collisions import InputRecorder, save_collided
 from studies.fleet_methods import make_method
 from studies.fleet_settings import FleetEvalSettings
 from studies.tables import columns_table, merge_rows, write_results
 
-__all__ = ["decision_times", "filter_options", "run_cell", "run_fleet_eval"]
+__all__ = ["collisions_folder", "decision_times", "filter_options", "run_cell", "run_fleet_eval"]
 
 
 @dataclass
@@ -64,9 +70,12 @@ class _Tally:
     ticks: int = 0
 
 
-def _rollout(scene: FleetScene, decide: Callable | None, episodes: int, seed: int, tally: _Tally) -> None:
+def _rollout(
+    scene: FleetScene, decide: Callable | None, episodes: int, seed: int, tally: _Tally, keep: _Keep | None = None
+) -> None:
     """``episodes`` episodes of ``scene`` at once (:func:`reach_envs.fleet.rollout`), each car's input
-    decided by ``decide`` from the nominal one (``None``: the nominal input), added to ``tally``."""
+    decided by ``decide`` from the nominal one (``None``: the nominal input), added to ``tally``;
+    with ``keep``, each collided episode is written to its folder (:func:`studies.fleet_collisions.save_collided`)."""
 
     def controller(x: torch.Tensor, goals: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
         u = goal_seeking(x, goals, scene)
@@ -80,13 +89,25 @@ def _rollout(scene: FleetScene, decide: Callable | None, episodes: int, seed: in
         return u
 
     x0, goals = scene.sample(episodes, np.random.default_rng(seed))
-    outcome = rollout(scene, x0, goals, controller)
+    recorder = InputRecorder(controller) if keep is not None else None
+    outcome = rollout(scene, x0, goals, recorder or controller)
+    if keep is not None and recorder is not None and bool(outcome.any_collision.any()):
+        meta = {**keep.meta, "seed": seed, "batch_episodes": episodes}
+        save_collided(scene, (x0, goals), recorder, outcome.any_collision, keep.folder, meta)
     tally.episodes += episodes
     tally.collided += int(outcome.any_collision.sum())
     tally.cars += episodes * scene.n_cars
     arrived = outcome.arrived
     tally.arrived += int(arrived.sum())
     tally.arrival_time += float(outcome.arrival_time[arrived].sum())
+
+
+@dataclass(frozen=True)
+class _Keep:
+    """Where a cell's collided episodes go, and what their files record of the run."""
+
+    folder: Path
+    meta: dict[str, Any]
 
 
 def filter_options(settings: FleetEvalSettings) -> dict[str, float]:
@@ -96,17 +117,26 @@ def filter_options(settings: FleetEvalSettings) -> dict[str, float]:
     return {name: getattr(FleetFilterSettings, name) if value is None else value for name, value in given.items()}
 
 
-def run_cell(settings: FleetEvalSettings, layout: str, n_cars: int, method: str) -> dict[str, Any]:
+def run_cell(
+    settings: FleetEvalSettings, layout: str, n_cars: int, method: str, collisions: str | Path | None = None
+) -> dict[str, Any]:
     """One row of the study: ``settings.episodes`` episodes of ``layout`` with ``n_cars`` cars under
-    ``method`` (the module docstring lists its columns)."""
+    ``method`` (the module docstring lists its columns). With ``collisions`` (a folder), every
+    episode with a collision is also written there, to replay alone (:mod:`studies.fleet_collisions`)."""
     scene = FleetScene(layout=layout, n_cars=n_cars, density=settings.density)
-    decide = make_method(method, scene, **filter_options(settings))
+    options = filter_options(settings)
+    decide = make_method(method, scene, **options)
+    keep = None
+    if collisions is not None:
+        meta = {"method": method, "batch": settings.batch, "study_seed": settings.seed}
+        meta.update(options if method == "fleet" else {})
+        keep = _Keep(Path(collisions), meta)
     tally = _Tally()
     start = time.perf_counter()
     batches = range(0, settings.episodes, settings.batch)
     for b, first in enumerate(batches):
         size = min(settings.batch, settings.episodes - first)
-        _rollout(scene, decide, size, settings.seed + 1000 * b, tally)
+        _rollout(scene, decide, size, settings.seed + 1000 * b, tally, keep)
     wall = time.perf_counter() - start
     row = _row(settings, tally)
     row.update(layout=layout, n_cars=n_cars, method=method, key=f"{layout}/{n_cars}/{method}", wall_s=wall)
@@ -214,12 +244,20 @@ def run_fleet_eval(
             continue
         if progress is not None:
             progress(key)
-        row = run_cell(settings, layout, n, method)
+        row = run_cell(settings, layout, n, method, collisions=collisions_folder(out))
         with exclusive_lock(out.with_suffix(".lock"), f"fleet results {out}", wait=True):
             rows = merge_rows(_stored(out, header), [row], "key")
             write_results(out, header, rows, columns_table(rows, COLUMNS))
     with exclusive_lock(out.with_suffix(".lock"), f"fleet results {out}", wait=True):
         return _stored(out, header)
+
+
+def collisions_folder(results: str | Path) -> Path:
+    """The folder beside a study's results file (``OUT.json``, or its stem) that holds the collided
+    episodes: ``OUT.collisions``."""
+    path = Path(results)
+    stem = path.name[: -len(".json")] if path.name.endswith(".json") else path.name
+    return path.with_name(stem + ".collisions")
 
 
 def _stored(out: Path, header: dict[str, Any]) -> list[dict[str, Any]]:
