@@ -54,6 +54,9 @@ HOLD = 0.2
 #: the held step's RK4 substep (s): the failure margin is checked at each substep's end
 SUBSTEP = 0.05
 
+#: each pair's two groups, its cars' ranks in them and their turn bounds
+Ends = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+
 
 def _candidates(k: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """``(2^k + 1, k)`` turn-rate signs: the centre first, then every corner."""
@@ -61,13 +64,24 @@ def _candidates(k: int, dtype: torch.dtype, device: torch.device) -> torch.Tenso
     return torch.tensor([[0.0] * k, *corners], dtype=dtype, device=device)
 
 
-def _pair_scores(
-    fv: FleetValue, c: PairCandidates, edges: torch.Tensor, w: torch.Tensor, when: tuple[float, float]
+def _sign_table(
+    fv: FleetValue, c: PairCandidates, edges: torch.Tensor, turn: Ends, when: tuple[float, float]
 ) -> torch.Tensor:
-    """``(C, E)`` scores of the pairs ``edges`` under turn rates ``w = (C, E, 2)`` (first car, second
-    car) held for ``hold`` seconds, with ``when = (t, hold)``; a disturbance second car is taken at
-    its worse extreme instead of ``w[..., 1]``."""
+    """``(E, 3, 3)`` the score of each pair ``edges`` when its first car holds ``s_u w_max`` and its
+    second ``s_v w_max`` for ``hold`` seconds, at ``[e, s_u + 1, s_v + 1]`` for signs ``s`` in
+    ``{-1, 0, 1}``, with ``when = (t, hold)`` and ``turn`` the pairs' ends (their turn bounds last);
+    a disturbance second car is taken at its worse extreme whatever ``s_v``.
+
+    Every candidate of the policy gives each car one of these three signs, so a candidate's pair
+    scores are entries of this table: each pair is stepped once per sign pair, not once per
+    candidate and descent round. The rows are the same arithmetic on the same inputs as stepping
+    each candidate, elementwise, so the scores are too."""
     t, hold = when
+    wu, wv = turn[4], turn[5]
+    signs = torch.tensor((-1.0, 0.0, 1.0), dtype=wu.dtype, device=wu.device)
+    w = torch.stack(
+        [(signs[:, None, None] * wu).expand(3, 3, -1), (signs[None, :, None] * wv).expand(3, 3, -1)], -1
+    ).reshape(9, -1, 2)
     count, e = w.shape[0], edges.numel()
     out = torch.full((count, e), math.inf, dtype=w.dtype, device=w.device)
     kinds = fv.pair_kind[c.first[edges], c.second[edges]].to(w.device)
@@ -100,7 +114,7 @@ def _pair_scores(
                 raise ValueError(f"the fleet's joint greedy step met a non-finite pair value (t = {t})")
             scores.append(torch.minimum(value, low))
         out[:, mine] = torch.stack(scores).amin(0).reshape(count, -1)
-    return out
+    return out.T.reshape(e, 3, 3)
 
 
 def joint_greedy(
@@ -153,48 +167,39 @@ def joint_greedy(
     wmax = fv.turn_bounds.to(dev, dtype)
     gu, gv = group_of[u], group_of[v]
     ends = (gu, gv, rank[u], rank[v], wmax[c.first[edges]], wmax[c.second[edges]])
-    scores = _candidate_scores(fv, c, edges, when, cand, ends)  # (C, E)
+    table = _sign_table(fv, c, edges, ends, when)  # (E, 3, 3)
+    scores = _candidate_scores(table, cand, ends)  # (C, E)
     least = torch.full((count, group.numel()), math.inf, dtype=dtype, device=dev)
     least = least.scatter_reduce(1, gu.expand(count, -1), scores, reduce="amin")
     best = least.argmax(0)  # (G,): ties go to the first, the centre
     chosen = cand[torch.arange(group.numel(), device=dev), best]  # (G, k)
     if large.numel():
-        chosen = _descend(fv, c, (edges, when), chosen, ends, large)
+        chosen = _descend(table, chosen, ends, large)
     sign[cars] = chosen[compact, rank[cars]]
     decided[cars] = True
     return sign, decided
 
 
-Ends = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
-
-
-def _candidate_scores(
-    fv: FleetValue, c: PairCandidates, edges: torch.Tensor, when: tuple[float, float], cand: torch.Tensor, ends: Ends
-) -> torch.Tensor:
-    """``(C, E)`` each pair's score under each of its group's ``C`` candidates ``cand`` ``(G, C, k)``;
+def _candidate_scores(table: torch.Tensor, cand: torch.Tensor, ends: Ends) -> torch.Tensor:
+    """``(C, E)`` each pair's score under each of its group's ``C`` candidates ``cand`` ``(G, C, k)``
+    (signs in ``{-1, 0, 1}``), read from the pairs' sign table ``(E, 3, 3)`` (:func:`_sign_table`);
     ``ends`` = each pair's two groups, ranks in them and turn bounds."""
-    gu, gv, ru, rv, wu, wv = ends
-    w = torch.stack([cand[gu, :, ru].T * wu, cand[gv, :, rv].T * wv], -1)
-    return _pair_scores(fv, c, edges, w, when)
+    gu, gv, ru, rv, _, _ = ends
+    su = cand[gu, :, ru].T.long() + 1
+    sv = cand[gv, :, rv].T.long() + 1
+    return table[torch.arange(table.shape[0], device=table.device), su, sv]
 
 
-def _descend(
-    fv: FleetValue,
-    c: PairCandidates,
-    at: tuple[torch.Tensor, tuple[float, float]],
-    chosen: torch.Tensor,
-    ends: Ends,
-    large: torch.Tensor,
-) -> torch.Tensor:
+def _descend(table: torch.Tensor, chosen: torch.Tensor, ends: Ends, large: torch.Tensor) -> torch.Tensor:
     """``chosen`` ``(G, k)`` improved for the ``large`` groups by a worst-pair descent: each round,
     every such group tries the 9 sign combinations of the two cars of its worst pair (the only cars
     whose inputs can raise the least score alone) and keeps the best if it raises the group's least
     score; at most :data:`DESCENT_ROUNDS` rounds, stopping early when no group improves. A round
-    scores only the pairs of those two cars: the others' scores stand."""
-    edges, when = at
+    scores only the pairs of those two cars: the others' scores stand. Scores are read from the
+    pairs' sign table ``(E, 3, 3)`` (:func:`_sign_table`)."""
     dev, dtype = chosen.device, chosen.dtype
     mine = torch.isin(ends[0], large)
-    edges = edges[mine]
+    table = table[mine]
     ends = tuple(e[mine] for e in ends)
     gu, _, ru, rv, _, _ = ends
     groups = chosen.shape[0]
@@ -202,7 +207,7 @@ def _descend(
     combos = torch.tensor(list(itertools.product((-1.0, 0.0, 1.0), repeat=2)), dtype=dtype, device=dev)
     tries = combos.shape[0] + 1
     rows = torch.arange(groups, device=dev)
-    now = _candidate_scores(fv, c, edges, when, chosen[:, None, :], ends)[0]  # (E,) the pairs' scores now
+    now = _candidate_scores(table, chosen[:, None, :], ends)[0]  # (E,) the pairs' scores now
     order = torch.arange(now.numel(), device=dev)
     for _ in range(DESCENT_ROUNDS):
         least = torch.full((groups,), math.inf, dtype=dtype, device=dev).scatter_reduce(0, gu, now, reduce="amin")
@@ -220,7 +225,7 @@ def _descend(
         kept = torch.full((groups,), math.inf, dtype=dtype, device=dev)
         kept = kept.scatter_reduce(0, gu[~touch], now[~touch], reduce="amin")
         near = tuple(x[touch] for x in ends)
-        scores = _candidate_scores(fv, c, edges[touch], when, cand, near)  # (10, T)
+        scores = _candidate_scores(table[touch], cand, near)  # (10, T)
         tried = torch.full((tries, groups), math.inf, dtype=dtype, device=dev)
         tried = tried.scatter_reduce(1, gu[touch].expand(tries, -1), scores, reduce="amin")
         tried = torch.minimum(tried, kept)
