@@ -155,15 +155,17 @@ class GridSolution:
         times = self._times_on(x.device)
         if checked:
             check_time(tt, *self.time_range)
+        # a stored time reads its slice alone (below): no bracket to find
+        stored = self._stored.get(float(t)) if isinstance(t, (int, float)) else None
         # time bracket
         # one bracket for a scalar time (the common case); searchsorted over an expanded tensor is slow
         lookup = tt[:1].contiguous() if (isinstance(t, (int, float)) or torch.as_tensor(t).ndim == 0) else tt
-        k1 = torch.searchsorted(times, lookup.clamp(times[0], times[-1]), right=False).clamp(1, max(len(times) - 1, 1))
-        k1 = k1.expand(m) if lookup.shape[0] != m else k1
-        if len(times) == 1:
-            k0 = k1 = torch.zeros_like(k1)
+        if stored is None and len(times) == 1:
+            k0 = k1 = torch.zeros(m, dtype=torch.long, device=x.device)
             wt = torch.zeros(m, dtype=table.dtype, device=x.device)
-        else:
+        elif stored is None:
+            k1 = torch.searchsorted(times, lookup.clamp(times[0], times[-1]), right=False).clamp(1, len(times) - 1)
+            k1 = k1.expand(m) if lookup.shape[0] != m else k1
             k0 = k1 - 1
             wt = ((tt - times[k0]) / (times[k1] - times[k0])).clamp(0, 1).to(table.dtype)
         # space: fractional indices per dimension
@@ -199,7 +201,6 @@ class GridSolution:
             lin = (lin[:, :, None] + nodes[:, None, :]).reshape(m, 2 ** (i + 1))
         flat = table.reshape(len(self.times), -1, *table.shape[1 + n :])
         extra = (1,) * (flat.ndim - 2)  # a table's own trailing dimensions (the gradient's components)
-        stored = self._stored.get(float(t)) if isinstance(t, (int, float)) else None
         if stored is not None:
             # a stored time: its bracket's weight is exactly 0 or 1, where lerp returns that end to
             # the bit, so one gather from that slice gives the same numbers at half the reads
