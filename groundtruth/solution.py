@@ -146,7 +146,7 @@ class GridSolution:
             raise ValueError(f"states contain NaN or inf, e.g. {bad}")
         batch = x.shape[:-1]
         xf = x.reshape(-1, n).to(table.dtype)
-        if checked and not torch.isfinite(xf).all():  # a float64 state can overflow a float32 table
+        if checked and xf.dtype != x.dtype and not torch.isfinite(xf).all():  # float64 can overflow float32
             bad = x.reshape(-1, n)[~torch.isfinite(xf).all(-1)][0].tolist()
             raise ValueError(f"states overflow {table.dtype}, e.g. {bad}")
         m = xf.shape[0]
