@@ -32,13 +32,21 @@ def add_parser(sub: Any) -> None:
         "--seconds", type=_seconds, default=SECONDS, help=f"seconds before the collision drawn (default: {SECONDS:g})"
     )
     p.add_argument("--every", type=positive_int_arg, default=1, help="every k-th step a frame (default: 1)")
+    p.add_argument(
+        "--trace",
+        type=positive_int_arg,
+        default=None,
+        metavar="K",
+        help="also print the fleet filter's view of the colliding pair every K steps over those seconds: its "
+        "distance, value and threshold, and the group of cars its active pairs join",
+    )
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from reach_envs.fleet_render import render_fleet  # lazy: keeps `import reach_cli` light
     from reach_envs.recording import save_gif  # lazy: as above
-    from studies.fleet_collisions import first_collision, load_episode, window_frames  # lazy: as above
+    from studies.fleet_collisions import conflict_trace, first_collision, load_episode, window_frames  # lazy
 
     if args.gif is not None:
         check_output_path(args.gif, "--gif")
@@ -53,6 +61,18 @@ def run(args: argparse.Namespace) -> int:
         pairs = ", ".join(f"car_{i + 1} and car_{j + 1}" for i, j in hit["pairs"])
         gap = f"closest {hit['distance']:.3f} apart, radius {hit['radius']:g}"
         print(f"{where}: {pairs} collided at t = {hit['time']:.2f} s (step {hit['tick']}; {gap})")
+    if args.trace is not None and hit["tick"] is not None:
+        i, j = hit["pairs"][0]
+        pair = f"car_{i + 1}-car_{j + 1}"
+        print(f"t s | {pair}: distance, value (threshold) | group: cars, active pairs, least value | inputs")
+        for r in conflict_trace(episode, args.seconds, args.trace):
+            value = "n/a" if r["value"] is None else f"{r['value']:.3f} ({r['threshold']:.2f})"
+            least = "n/a" if r["group_least"] is None else f"{r['group_least']:.3f}"
+            ui, uj = r["inputs"]
+            print(
+                f"{r['time']:.2f} | {r['distance']:.3f}, {value} | {r['group_cars']}, {r['group_pairs']}, {least} "
+                f"| {ui:+.2f}, {uj:+.2f}"
+            )
     if args.gif is not None:
         frames = window_frames(episode, args.seconds, args.every, render_fleet)
         save_gif(frames, args.gif, fps=1.0 / (scene.dt * args.every))

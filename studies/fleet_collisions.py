@@ -14,7 +14,8 @@ where the batch's did, and writes ``.npz`` files (arrays only, read back without
 the scene, the settings that ran, the start, the goals, the inputs, every state and presence mask,
 and which cars collided. :func:`load_episode` reads one back, refusing anything malformed, and
 :func:`first_collision` says when, which cars and how close; ``reach fleet-replay`` prints that and
-draws the seconds before it as a GIF.
+draws the seconds before it as a GIF. :func:`conflict_trace` reads the fleet filter's view of the
+seconds before it: the colliding pair's value and the group of cars its active pairs join.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from reach.atomic import atomic_path
 from reach_envs.fleet import Controller, positions, rollout
 from reach_envs.fleet_scenes import FleetScene
 
-__all__ = ["FleetEpisode", "InputRecorder", "first_collision", "load_episode", "save_collided"]
+__all__ = ["FleetEpisode", "InputRecorder", "conflict_trace", "first_collision", "load_episode", "save_collided"]
 
 #: the arrays every episode file holds
 ARRAYS = ("x0", "goals", "inputs", "states", "present", "collided")
@@ -220,3 +221,51 @@ def window_frames(episode: FleetEpisode, seconds: float, every: int, render: Cal
     if picks[-1] != end:
         picks.append(end)
     return [render(e.states[k], e.goals, e.present[k], scene, k * scene.dt, e.collided & ~e.present[k]) for k in picks]
+
+
+def conflict_trace(episode: FleetEpisode, seconds: float, every: int) -> list[dict[str, Any]]:
+    """The fleet filter's view of the last ``seconds`` before the first collision, every ``every``-th
+    step: for the first colliding pair ``(i, j)``, its distance and pair value, the filter's threshold
+    for it, and the group of cars that active pairs join to it (:func:`safety.fleet.graph.components`
+    over the pairs within the threshold plus its band): its cars, its active pairs and their least
+    value. The filter is the study's (:func:`studies.fleet_methods.fleet_value`, with the episode's
+    recorded ``hold`` and ``reaction_time``), read at the replayed states. An episode without a
+    collision has no trace (``[]``)."""
+    from safety.fleet import FleetFilter, FleetFilterSettings  # lazy: only a trace reads the filter
+    from safety.fleet.graph import components
+    from studies.fleet_methods import fleet_value
+
+    hit = first_collision(episode)
+    if hit["tick"] is None:
+        return []
+    scene, meta = episode.scene, episode.meta
+    options = {k: float(meta[k]) for k in ("hold", "reaction_time") if k in meta}
+    fv = fleet_value(scene)
+    rule = FleetFilter(fv, FleetFilterSettings(dt=scene.dt, **options))
+    t = float(max(s.system.horizon for s in fv.solutions))
+    i, j = hit["pairs"][0]
+    end = hit["tick"]
+    rows = []
+    for k in range(max(0, end - round(seconds / scene.dt)), end, every):
+        x = torch.as_tensor(episode.states[k])[None]
+        c = fv.candidates(x, t, torch.as_tensor(episode.present[k])[None], rule.level)
+        theta = rule.threshold[c.first, c.second]
+        active = torch.nonzero(c.value <= theta + rule.band[c.first, c.second]).squeeze(-1)
+        label = components(scene.n_cars, c.first[active], c.second[active])
+        mine = active[label[c.first[active]] == label[i]]
+        pair = torch.nonzero(((c.first == i) & (c.second == j)) | ((c.first == j) & (c.second == i))).flatten()
+        pos = positions(x, scene.n_cars)[0]
+        rows.append(
+            {
+                "tick": k,
+                "time": k * scene.dt,
+                "distance": float((pos[i] - pos[j]).norm()),
+                "value": float(c.value[pair[0]]) if pair.numel() else None,
+                "threshold": float(theta[pair[0]]) if pair.numel() else None,
+                "group_cars": int(torch.unique(torch.cat([c.first[mine], c.second[mine]])).numel()),
+                "group_pairs": int(mine.numel()),
+                "group_least": float(c.value[mine].min()) if mine.numel() else None,
+                "inputs": (float(episode.inputs[k, i]), float(episode.inputs[k, j])),
+            }
+        )
+    return rows

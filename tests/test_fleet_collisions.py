@@ -11,7 +11,7 @@ import torch
 from reach_cli import main
 from reach_envs.fleet import goal_seeking, rollout
 from reach_envs.fleet_scenes import FleetScene
-from studies.fleet_collisions import InputRecorder, first_collision, load_episode, replay
+from studies.fleet_collisions import InputRecorder, conflict_trace, first_collision, load_episode, replay
 from studies.fleet_eval import collisions_folder, run_fleet_eval
 from studies.fleet_methods import make_method
 from studies.fleet_settings import FleetEvalSettings
@@ -69,9 +69,26 @@ def test_fleet_replay_prints_the_collision_and_draws_it(tmp_path, capsys):
     run_fleet_eval(settings, tmp_path / "s")
     (path,) = collisions_folder(tmp_path / "s").glob("*.npz")
     gif = tmp_path / "c.gif"
-    assert main(["fleet-replay", str(path), "--gif", str(gif), "--seconds", "1", "--every", "2"]) == 0
+    assert main(["fleet-replay", str(path), "--gif", str(gif), "--seconds", "1", "--every", "2", "--trace", "5"]) == 0
     out = capsys.readouterr().out
     assert "collided at t =" in out and "car_" in out and gif.stat().st_size > 1000
+    assert len([line for line in out.splitlines() if line.count("|") == 3]) == 1 + 4  # header, 20 steps / 5
+
+
+def test_the_trace_follows_the_colliding_pair_into_its_collision(tmp_path):
+    settings = FleetEvalSettings(
+        layouts=("circle-swap",), sizes=(8,), methods=("none",), episodes=1, batch=1, timing_ticks=0
+    )
+    run_fleet_eval(settings, tmp_path / "s")
+    (path,) = collisions_folder(tmp_path / "s").glob("*.npz")
+    episode = load_episode(path)
+    rows = conflict_trace(episode, 1.0, 1)
+    assert len(rows) == 20 and rows[-1]["tick"] == first_collision(episode)["tick"] - 1
+    radius = episode.scene.collision_radius
+    assert rows[-1]["distance"] < rows[0]["distance"] and radius < rows[-1]["distance"] < radius + 0.1
+    last = rows[-1]  # one step before the collision the pair is read, active, and in a group with both cars
+    assert last["value"] is not None and last["value"] <= last["threshold"] and last["group_cars"] >= 2
+    assert last["group_least"] <= last["value"]
 
 
 def _tampered(tmp_path, path, name, **change):
