@@ -92,6 +92,13 @@ def add_parser(sub: Any) -> None:
         help="seconds of a pair's closing speed the fleet filter's default threshold keeps in hand "
         "(default: the filter's own)",
     )
+    p.add_argument(
+        "--keep-collisions",
+        type=int,
+        default=None,
+        help="collided episodes kept per cell in OUT.collisions/, to replay with reach fleet-replay "
+        f"(default: {default(FleetEvalSettings, 'keep_collisions')}; 0: none)",
+    )
     p.add_argument("--plot", default=None, help="also draw collisions and goal rate against N to this PNG")
     p.set_defaults(func=run)
 
@@ -112,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
         "density": args.density,
         "hold": args.hold,
         "reaction_time": args.reaction_time,
+        "keep_collisions": args.keep_collisions,
     }
     settings = FleetEvalSettings(**{k: v for k, v in chosen.items() if v is not None})
     out = args.out

@@ -22,10 +22,10 @@ thread: :func:`decision_times`).
 Resumable and one owner at a time: every finished cell is merged into ``OUT.json`` (with ``.csv``
 and ``.md``) atomically under ``OUT.lock``; a rerun skips the cells stored with the same settings.
 
-Every episode with a collision is also written, one file each, to the folder ``OUT.collisions``
-beside the results (:func:`collisions_folder`): its start, goals and the inputs it was given, which
-replay it alone exactly where re-running the episode would not (:mod:`studies.fleet_collisions`;
-``reach fleet-replay`` draws it).
+The first collided episodes of each cell (``keep_collisions``, 10 by default) are also written, one
+file each, to the folder ``OUT.collisions`` beside the results (:func:`collisions_folder`): each
+episode's start, goals and the inputs it was given, which replay it alone exactly where re-running
+the episode would not (:mod:`studies.fleet_collisions`; ``reach fleet-replay`` draws it).
 """
 
 from __future__ import annotations
@@ -75,7 +75,8 @@ def _rollout(
 ) -> None:
     """``episodes`` episodes of ``scene`` at once (:func:`reach_envs.fleet.rollout`), each car's input
     decided by ``decide`` from the nominal one (``None``: the nominal input), added to ``tally``;
-    with ``keep``, each collided episode is written to its folder (:func:`studies.fleet_collisions.save_collided`)."""
+    with ``keep``, its collided episodes, up to the room it has left, are written to its folder
+    (:func:`studies.fleet_collisions.save_collided`)."""
 
     def controller(x: torch.Tensor, goals: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
         u = goal_seeking(x, goals, scene)
@@ -89,11 +90,12 @@ def _rollout(
         return u
 
     x0, goals = scene.sample(episodes, np.random.default_rng(seed))
-    recorder = InputRecorder(controller) if keep is not None else None
+    recorder = InputRecorder(controller) if keep is not None and keep.room > 0 else None
     outcome = rollout(scene, x0, goals, recorder or controller)
-    if keep is not None and recorder is not None and bool(outcome.any_collision.any()):
+    if keep is not None and recorder is not None and keep.room > 0:
+        chosen = outcome.any_collision & (torch.cumsum(outcome.any_collision.long(), 0) <= keep.room)
         meta = {**keep.meta, "seed": seed, "batch_episodes": episodes}
-        save_collided(scene, (x0, goals), recorder, outcome.any_collision, keep.folder, meta)
+        keep.room -= len(save_collided(scene, (x0, goals), recorder, chosen, keep.folder, meta))
     tally.episodes += episodes
     tally.collided += int(outcome.any_collision.sum())
     tally.cars += episodes * scene.n_cars
@@ -102,12 +104,14 @@ def _rollout(
     tally.arrival_time += float(outcome.arrival_time[arrived].sum())
 
 
-@dataclass(frozen=True)
+@dataclass
 class _Keep:
-    """Where a cell's collided episodes go, and what their files record of the run."""
+    """Where a cell's collided episodes go, what their files record of the run, and how many more
+    the cell keeps."""
 
     folder: Path
     meta: dict[str, Any]
+    room: int
 
 
 def filter_options(settings: FleetEvalSettings) -> dict[str, float]:
@@ -121,16 +125,17 @@ def run_cell(
     settings: FleetEvalSettings, layout: str, n_cars: int, method: str, collisions: str | Path | None = None
 ) -> dict[str, Any]:
     """One row of the study: ``settings.episodes`` episodes of ``layout`` with ``n_cars`` cars under
-    ``method`` (the module docstring lists its columns). With ``collisions`` (a folder), every
-    episode with a collision is also written there, to replay alone (:mod:`studies.fleet_collisions`)."""
+    ``method`` (the module docstring lists its columns). With ``collisions`` (a folder), the first
+    ``settings.keep_collisions`` episodes with a collision are also written there, to replay alone
+    (:mod:`studies.fleet_collisions`)."""
     scene = FleetScene(layout=layout, n_cars=n_cars, density=settings.density)
     options = filter_options(settings)
     decide = make_method(method, scene, **options)
     keep = None
-    if collisions is not None:
+    if collisions is not None and settings.keep_collisions:
         meta = {"method": method, "batch": settings.batch, "study_seed": settings.seed}
         meta.update(options if method == "fleet" else {})
-        keep = _Keep(Path(collisions), meta)
+        keep = _Keep(Path(collisions), meta, settings.keep_collisions)
     tally = _Tally()
     start = time.perf_counter()
     batches = range(0, settings.episodes, settings.batch)
@@ -233,7 +238,9 @@ def run_fleet_eval(
     # OUT is a stem: "runs/density_0.2" writes runs/density_0.2.json (with_suffix would eat ".2")
     out = Path(out)
     out = out.with_name(out.name + ".json")
-    stored_settings = {k: v for k, v in asdict(settings).items() if k not in ("layouts", "sizes", "methods")}
+    # what the rows depend on: not the cells asked for, nor how many collided episodes are kept
+    unrecorded = ("layouts", "sizes", "methods", "keep_collisions")
+    stored_settings = {k: v for k, v in asdict(settings).items() if k not in unrecorded}
     header = {"settings": {**stored_settings, **filter_options(settings)}}  # what ran, default or not
     cells = [(lay, n, m) for lay in settings.layouts for n in settings.sizes for m in settings.methods]
     for layout, n, method in cells:

@@ -42,6 +42,9 @@ class FleetEvalSettings:
     #: (``FleetFilterSettings.reaction_time``; None: the filter's default,
     #: :data:`safety.fleet.filter.REACTION_TIME`, which the results record)
     reaction_time: float | None = None
+    #: collided episodes kept per layout, size and method to replay alone (the first ones; 0: none).
+    #: A 64-car episode's file is about 2 MB, and an unfiltered fleet collides in nearly every one
+    keep_collisions: int = 10
 
     def __post_init__(self) -> None:
         from reach_envs.fleet_scenes import LAYOUTS, FleetScene  # lazy: the envs stack only once settings are made
@@ -60,6 +63,7 @@ class FleetEvalSettings:
         check_int("FleetEvalSettings: episodes", self.episodes, low=1)
         check_int("FleetEvalSettings: batch", self.batch, low=1)
         check_int("FleetEvalSettings: timing_ticks", self.timing_ticks, low=0)
+        check_int("FleetEvalSettings: keep_collisions", self.keep_collisions, low=0)
         check_seed("FleetEvalSettings: seed", self.seed)
         check_float("FleetEvalSettings: beta", self.beta, low=0.0, high=1.0, low_open=True, high_open=True)
         FleetScene(layout="random-goals", n_cars=2, density=self.density)  # refused there, naming it

@@ -37,9 +37,9 @@ def test_an_episode_of_a_filtered_batch_replays_alone_bit_for_bit():
         assert torch.equal(alone.collided[0], batch.collided[i])
 
 
-def test_the_study_keeps_every_collided_episode_and_each_replays(tmp_path):
+def test_the_study_keeps_the_collided_episodes_and_each_replays(tmp_path):
     settings = FleetEvalSettings(
-        layouts=("circle-swap",), sizes=(8,), methods=("none",), episodes=4, batch=2, timing_ticks=0
+        layouts=("circle-swap",), sizes=(8,), methods=("none",), episodes=4, batch=2, timing_ticks=0, keep_collisions=4
     )
     (row,) = run_fleet_eval(settings, tmp_path / "s")
     files = sorted(collisions_folder(tmp_path / "s").glob("*.npz"))
@@ -60,6 +60,23 @@ def test_the_study_keeps_every_collided_episode_and_each_replays(tmp_path):
         alive = episode.present[hit["tick"] - 1]
         gaps = np.linalg.norm(pos[:, None] - pos[None], axis=-1)[np.ix_(alive, alive)]
         assert (gaps[np.triu_indices(int(alive.sum()), 1)] > scene.collision_radius).all()
+
+
+def test_the_study_keeps_at_most_keep_collisions_per_cell_and_the_results_do_not_depend_on_it(tmp_path):
+    base = {"layouts": ("circle-swap",), "sizes": (4,), "methods": ("none",), "episodes": 5, "batch": 2}
+    (row,) = run_fleet_eval(FleetEvalSettings(**base, timing_ticks=0, keep_collisions=3), tmp_path / "s")
+    names = sorted(p.name for p in collisions_folder(tmp_path / "s").glob("*.npz"))
+    assert row["collisions"] == 5 and names == [
+        "circle-swap-4-none-seed0-ep0.npz",
+        "circle-swap-4-none-seed0-ep1.npz",
+        "circle-swap-4-none-seed1000-ep0.npz",
+    ]  # the first three, across batches
+    # another count continues the same results file (it is not a setting of the rows)
+    assert run_fleet_eval(FleetEvalSettings(**base, timing_ticks=0, keep_collisions=0), tmp_path / "s") == [row]
+    run_fleet_eval(FleetEvalSettings(**base, timing_ticks=0, keep_collisions=0), tmp_path / "t")
+    assert not collisions_folder(tmp_path / "t").exists()
+    with pytest.raises(ValueError, match="keep_collisions"):
+        FleetEvalSettings(keep_collisions=-1)
 
 
 def test_fleet_replay_prints_the_collision_and_draws_it(tmp_path, capsys):
