@@ -46,12 +46,12 @@ def add_parser(sub: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     from reach_envs.fleet_render import render_fleet  # lazy: keeps `import reach_cli` light
     from reach_envs.recording import save_gif  # lazy: as above
-    from studies.fleet_collisions import conflict_trace, first_collision, load_episode, window_frames  # lazy
+    from studies import fleet_collisions as replays  # lazy: keeps `import reach_cli` light
 
     if args.gif is not None:
         check_output_path(args.gif, "--gif")
-    episode = load_episode(args.episode)
-    hit = first_collision(episode)
+    episode = replays.load_episode(args.episode)
+    hit = replays.first_collision(episode)
     meta, scene = episode.meta, episode.scene
     where = f"{scene.layout}, {scene.n_cars} cars, {meta.get('method')}: episode {meta.get('index')}"
     where += f" of the batch seeded {meta.get('seed')}"
@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
         i, j = hit["pairs"][0]
         pair = f"car_{i + 1}-car_{j + 1}"
         print(f"t s | {pair}: distance, value (threshold) | group: cars, active pairs, least value | inputs")
-        for r in conflict_trace(episode, args.seconds, args.trace):
+        for r in replays.conflict_trace(episode, args.seconds, args.trace):
             value = "n/a" if r["value"] is None else f"{r['value']:.3f} ({r['threshold']:.2f})"
             least = "n/a" if r["group_least"] is None else f"{r['group_least']:.3f}"
             ui, uj = r["inputs"]
@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
                 f"| {ui:+.2f}, {uj:+.2f}"
             )
     if args.gif is not None:
-        frames = window_frames(episode, args.seconds, args.every, render_fleet)
+        frames = replays.window_frames(episode, args.seconds, args.every, render_fleet)
         save_gif(frames, args.gif, fps=1.0 / (scene.dt * args.every))
         print(f"{len(frames)} frames: {args.gif}")
     return 0

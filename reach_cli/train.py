@@ -156,9 +156,7 @@ def train_flags(fields: dict[str, Any]) -> list[str]:
 
 def add_parser(sub: Any) -> None:
     p = add_subparser(sub, "train", help="train a value network of any activation layout")
-    for option, field, kwargs, text in TRAIN_OPTIONS:
-        value = default(TrainConfig, field)
-        p.add_argument(option, dest=field, default=None, help=f"{text} (default: {value})", **kwargs)
+    add_training_options(p)
     p.add_argument("--budget", default=None, help="wall-clock budget, e.g. 90s, 10m, 1h (default: none)")
     p.add_argument(
         "--compile",
@@ -204,11 +202,28 @@ def add_parser(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
-def _config_fields(args: argparse.Namespace) -> dict[str, Any]:
-    """The TrainConfig fields the user set on the command line."""
-    fields = {field: getattr(args, field) for _, field, _, _ in TRAIN_OPTIONS if getattr(args, field) is not None}
+def add_training_options(p: argparse.ArgumentParser, skip: frozenset[str] = frozenset()) -> None:
+    """Every option of :data:`TRAIN_OPTIONS` but the fields ``skip``, with its default in its help
+    (``reach train``'s, and ``reach train-until``'s for the runs it starts)."""
+    for option, field, kwargs, text in TRAIN_OPTIONS:
+        if field not in skip:
+            value = default(TrainConfig, field)
+            p.add_argument(option, dest=field, default=None, help=f"{text} (default: {value})", **kwargs)
+
+
+def training_fields(args: argparse.Namespace) -> dict[str, Any]:
+    """The TrainConfig fields of :data:`TRAIN_OPTIONS` the user set on the command line (``--gradient-bound
+    off``: ``None``); options a parser did not add count as not set."""
+    fields = {field: getattr(args, field, None) for _, field, _, _ in TRAIN_OPTIONS}
+    fields = {field: value for field, value in fields.items() if value is not None}
     if fields.get("gradient_bound") == "off":
         fields["gradient_bound"] = None
+    return fields
+
+
+def _config_fields(args: argparse.Namespace) -> dict[str, Any]:
+    """The TrainConfig fields the user set on the command line."""
+    fields = training_fields(args)
     if args.budget is not None:
         fields["budget_s"] = parse_duration(args.budget)
     for option in ("compile", "cuda_graph"):

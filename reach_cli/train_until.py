@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 from reach.validation import (
@@ -14,6 +15,7 @@ from reach.validation import (
     unit_interval_arg,
 )
 from reach_cli.options import add_subparser, default
+from reach_cli.train import TRAIN_OPTIONS, add_training_options, training_fields
 from training.config import TrainConfig, parse_duration
 
 #: the options that set TrainUntilSettings' fields: (flag, field, type, help)
@@ -30,14 +32,8 @@ SETTINGS_OPTIONS = (
     ("--dt", "dt", positive_float_arg, "the rollouts' step, in seconds"),
 )
 
-#: the options that set the run's TrainConfig (a new run; a resumed one keeps its own)
-CONFIG_OPTIONS = (
-    ("--system", "system", str, "system: a registered name or package.module:ClassName"),
-    ("--layout", "layout", str, "network layout"),
-    ("--width", "width", positive_int_arg, "hidden width"),
-    ("--points", "points", positive_int_arg, "points per step"),
-    ("--seed", "seed", seed_arg, "training seed"),
-)
+#: the training options train-until does not take: each phase sets its own steps, and the loop stops
+STOP_RULES = frozenset({"steps", "target_loss"})
 
 
 def add_parser(sub: Any) -> None:
@@ -55,9 +51,27 @@ def add_parser(sub: Any) -> None:
     )
     for flag, field, kind, text in SETTINGS_OPTIONS:
         p.add_argument(flag, type=kind, default=None, help=f"{text} (default: {default(TrainUntilSettings, field)})")
-    for flag, field, kind, text in CONFIG_OPTIONS:
-        p.add_argument(flag, type=kind, default=None, help=f"{text} (default: {default(TrainConfig, field)})")
+    # a new run's recipe: every reach train option but the stop rules (a resumed run keeps its own)
+    add_training_options(p, skip=STOP_RULES)
     p.set_defaults(func=run)
+
+
+def _check_continued(out: str, chosen: dict[str, Any]) -> None:
+    """A run directory that holds a run continues it under its stored configuration: a training option
+    that differs from it is refused, naming it, rather than ignored."""
+    from training.run_directory import RunDirectory  # lazy: only a continued run reads its configuration
+
+    if not (Path(out) / "config.json").exists():
+        return
+    stored, _ = RunDirectory(out).resumed_config({})
+    flags = {field: flag for flag, field, _, _ in TRAIN_OPTIONS}
+    differ = sorted(k for k, v in chosen.items() if getattr(stored, k) != v)
+    if differ:
+        names = ", ".join(f"{flags[k]} {chosen[k]!r} (stored: {getattr(stored, k)!r})" for k in differ)
+        raise ValueError(
+            f"{out} continues its run with its stored configuration; {names} cannot change "
+            "(give another --out to train with other settings)"
+        )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -67,11 +81,11 @@ def run(args: argparse.Namespace) -> int:
     if args.budget is not None:
         chosen["budget_s"] = parse_duration(args.budget)
     settings = TrainUntilSettings(**{k: v for k, v in chosen.items() if v is not None})
-    config_fields = {field: getattr(args, field) for _, field, _, _ in CONFIG_OPTIONS}
-    chosen_config = {k: v for k, v in config_fields.items() if v is not None}
+    chosen_config = training_fields(args)
     # steps: a stop rule for validation's sake; each phase sets its own (studies.train_until)
     config = TrainConfig(**chosen_config, steps=settings.phase_steps).validate()
     check_output_dir(args.out, "--out")
+    _check_continued(args.out, chosen_config)
     record = train_until(config, args.out, settings, progress=True)
     final = record["final"]["verification"]
     print(

@@ -33,6 +33,9 @@ import torch
 from reach.atomic import atomic_path
 from reach_envs.fleet import Controller, positions, rollout
 from reach_envs.fleet_scenes import FleetScene
+from safety.fleet import FleetFilter, FleetFilterSettings
+from safety.fleet.graph import components
+from studies.fleet_methods import fleet_value
 
 __all__ = ["FleetEpisode", "InputRecorder", "conflict_trace", "first_collision", "load_episode", "save_collided"]
 
@@ -231,10 +234,6 @@ def conflict_trace(episode: FleetEpisode, seconds: float, every: int) -> list[di
     value. The filter is the study's (:func:`studies.fleet_methods.fleet_value`, with the episode's
     recorded ``hold`` and ``reaction_time``), read at the replayed states. An episode without a
     collision has no trace (``[]``)."""
-    from safety.fleet import FleetFilter, FleetFilterSettings  # lazy: only a trace reads the filter
-    from safety.fleet.graph import components
-    from studies.fleet_methods import fleet_value
-
     hit = first_collision(episode)
     if hit["tick"] is None:
         return []

@@ -94,4 +94,3 @@ def merge_rows(stored: Iterable[dict[str, Any]], new: Sequence[dict[str, Any]], 
     under its table's lock."""
     mine = {r[key]: r for r in new}
     return [mine.pop(r[key], r) for r in stored] + list(mine.values())
-

@@ -137,3 +137,22 @@ def test_cli_trains_until_and_records_the_phases(tmp_path, capsys):
     assert main(["train-until", "--out", str(out), *args, "--samples", "100", "--dt", "0.01"]) == 0
     assert "1 phases, stopped at the budget" in capsys.readouterr().out
     assert [p["steps"] for p in _phases(out)["phases"]] == [20] and not (out / "verify-store").exists()
+
+
+def test_cli_takes_the_recipe_options_of_reach_train_and_refuses_changing_them_on_a_continued_run(
+    tmp_path, capsys
+):
+    out = tmp_path / "run"
+    recipe = ["--system", "air3d", "--width", "16", "--points", "256", "--lr", "3e-4", "--zero-level-fraction", "0.1"]
+    loop = ["--phase-steps", "10", "--max-phases", "1", "--samples", "100", "--dt", "0.01"]
+    assert main(["train-until", "--out", str(out), *recipe, *loop]) == 0
+    stored = Trainer.resume(out, progress=False).config
+    assert stored.lr == 3e-4 and stored.zero_level_fraction == 0.1 and stored.width == 16
+    capsys.readouterr()
+    assert main(["train-until", "--out", str(out), *recipe, *loop]) == 0  # the same recipe continues it
+    changed = [*recipe[:-4], "--lr", "1e-3", "--zero-level-fraction", "0.1"]
+    assert main(["train-until", "--out", str(out), *changed, *loop]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "--lr 0.001" in err and "stored: 0.0003" in err
+    with pytest.raises(SystemExit):  # each phase sets its steps: no --steps
+        main(["train-until", "--out", str(out), "--steps", "5"])
