@@ -93,6 +93,14 @@ def add_parser(sub: Any) -> None:
         "(default: the filter's own)",
     )
     p.add_argument(
+        "--tie-break",
+        choices=["centre", "leximin"],
+        default=None,
+        help="how the fleet filter's greedy policy chooses among held inputs whose least pair value ties: the "
+        "first, all straight (centre), or the one whose next least values are highest (leximin) (default: the "
+        "filter's own)",
+    )
+    p.add_argument(
         "--keep-collisions",
         type=int,
         default=None,
@@ -119,6 +127,7 @@ def run(args: argparse.Namespace) -> int:
         "density": args.density,
         "hold": args.hold,
         "reaction_time": args.reaction_time,
+        "tie_break": args.tie_break,
         "keep_collisions": args.keep_collisions,
     }
     settings = FleetEvalSettings(**{k: v for k, v in chosen.items() if v is not None})

@@ -232,13 +232,15 @@ def conflict_trace(episode: FleetEpisode, seconds: float, every: int) -> list[di
     for it, and the group of cars that active pairs join to it (:func:`safety.fleet.graph.components`
     over the pairs within the threshold plus its band): its cars, its active pairs and their least
     value. The filter is the study's (:func:`studies.fleet_methods.fleet_value`, with the episode's
-    recorded ``hold`` and ``reaction_time``), read at the replayed states. An episode without a
+    recorded ``hold``, ``reaction_time`` and ``tie_break``), read at the replayed states. An episode without a
     collision has no trace (``[]``)."""
     hit = first_collision(episode)
     if hit["tick"] is None:
         return []
     scene, meta = episode.scene, episode.meta
-    options = {k: float(meta[k]) for k in ("hold", "reaction_time") if k in meta}
+    options: dict[str, Any] = {k: float(meta[k]) for k in ("hold", "reaction_time") if k in meta}
+    if "tie_break" in meta:
+        options["tie_break"] = str(meta["tie_break"])
     fv = fleet_value(scene)
     rule = FleetFilter(fv, FleetFilterSettings(dt=scene.dt, **options))
     t = float(max(s.system.horizon for s in fv.solutions))

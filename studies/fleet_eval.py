@@ -114,10 +114,10 @@ class _Keep:
     room: int
 
 
-def filter_options(settings: FleetEvalSettings) -> dict[str, float]:
-    """The fleet filter's ``hold`` and ``reaction_time`` that ``settings`` runs: its own where given,
-    else :class:`~safety.fleet.FleetFilterSettings`' defaults (the values the results record)."""
-    given = {"hold": settings.hold, "reaction_time": settings.reaction_time}
+def filter_options(settings: FleetEvalSettings) -> dict[str, Any]:
+    """The fleet filter's ``hold``, ``reaction_time`` and ``tie_break`` that ``settings`` runs: its own
+    where given, else :class:`~safety.fleet.FleetFilterSettings`' defaults (the values the results record)."""
+    given = {"hold": settings.hold, "reaction_time": settings.reaction_time, "tie_break": settings.tie_break}
     return {name: getattr(FleetFilterSettings, name) if value is None else value for name, value in given.items()}
 
 

@@ -51,9 +51,9 @@ def fleet_value(scene: FleetScene) -> FleetValue:
         return FleetValue(system, solve_pairs(system, progress=False))
 
 
-def make_method(method: str, scene: FleetScene, **fleet_options: float) -> Decide | None:
+def make_method(method: str, scene: FleetScene, **fleet_options: Any) -> Decide | None:
     """``method``'s decision rule for ``scene`` (``None`` for ``"none"``, the nominal input);
-    ``fleet_options`` (``hold``, ``reaction_time``) go to the fleet filter's
+    ``fleet_options`` (``hold``, ``reaction_time``, ``tie_break``) go to the fleet filter's
     :class:`~safety.fleet.FleetFilterSettings`, whose defaults stand for those not given."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")

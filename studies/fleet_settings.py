@@ -42,6 +42,9 @@ class FleetEvalSettings:
     #: (``FleetFilterSettings.reaction_time``; None: the filter's default,
     #: :data:`safety.fleet.filter.REACTION_TIME`, which the results record)
     reaction_time: float | None = None
+    #: how the fleet filter's greedy policy breaks ties (``FleetFilterSettings.tie_break``; None: the
+    #: filter's default, which the results record)
+    tie_break: str | None = None
     #: collided episodes kept per layout, size and method to replay alone (the first ones; 0: none).
     #: A 64-car episode's file is about 2 MB, and an unfiltered fleet collides in nearly every one
     keep_collisions: int = 10
@@ -69,6 +72,8 @@ class FleetEvalSettings:
         FleetScene(layout="random-goals", n_cars=2, density=self.density)  # refused there, naming it
         if self.hold is not None:
             object.__setattr__(self, "hold", positive_finite("FleetEvalSettings: hold", self.hold))
+        if self.tie_break is not None and self.tie_break not in ("centre", "leximin"):
+            raise ValueError(f"FleetEvalSettings: tie_break must be 'centre' or 'leximin', got {self.tie_break!r}")
         if self.reaction_time is not None:
             rt = check_float("FleetEvalSettings: reaction_time", self.reaction_time, low=0.0)
             object.__setattr__(self, "reaction_time", rt)

@@ -111,6 +111,15 @@ def test_the_results_record_the_reaction_time_and_it_reaches_the_filter(tmp_path
     )
     assert built[-1].reaction_time == 1.0
     assert json.loads((tmp_path / "r.json").read_text())["settings"]["reaction_time"] == 1.0
+    # the tie-break likewise: the default recorded, the one given built and recorded
+    assert json.loads((tmp_path / "s.json").read_text())["settings"]["tie_break"] == "centre"
+    run_fleet_eval(
+        FleetEvalSettings(methods=("fleet",), tie_break="leximin", **{**TINY, "timing_ticks": 0}), tmp_path / "t"
+    )
+    assert built[-1].tie_break == "leximin"
+    assert json.loads((tmp_path / "t.json").read_text())["settings"]["tie_break"] == "leximin"
+    with pytest.raises(ValueError, match="tie_break"):
+        FleetEvalSettings(tie_break="random")
 
 
 def test_a_stem_with_a_dot_keeps_it(tmp_path):

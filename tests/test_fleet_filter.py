@@ -504,3 +504,56 @@ def test_the_reaction_time_sets_the_default_threshold_where_it_exceeds_one_step(
     assert bool((one_step < base).all()) and bool((one_step > 0).all())
     given_ = pair_thresholds(fv, FleetFilterSettings(dt=0.05, threshold=0.3, reaction_time=3.0))
     assert bool((given_ == 0.3).all())
+
+
+def test_leximin_breaks_exact_ties_of_the_least_score_by_the_next_least():
+    from safety.fleet.greedy import leximin_best  # lazy: only these tests call the tie-break alone
+
+    # two groups: pairs 0-2 in group 0, pairs 3-4 in group 1; four candidates (rows)
+    scores = torch.tensor(
+        [
+            [0.1, 0.5, 0.9, 0.3, 0.3],  # group 0: (0.1, 0.5, 0.9); group 1: (0.3, 0.3)
+            [0.1, 0.6, 0.2, 0.3, 0.4],  # (0.1, 0.2, 0.6) loses to row 0 at the second; (0.3, 0.4) wins group 1
+            [0.1, 0.6, 0.7, 0.2, 0.9],  # (0.1, 0.6, 0.7): the best of group 0
+            [0.1, 0.6, 0.7, 0.3, 0.4],  # the same as rows 2 and 1: ties go to the first
+        ],
+        dtype=F64,
+    )
+    group = torch.tensor([0, 0, 0, 1, 1])
+    least = torch.full((4, 2), math.inf, dtype=F64).scatter_reduce(1, group.expand(4, -1), scores, reduce="amin")
+    assert leximin_best(scores, group, least).tolist() == [2, 1]
+    assert least.argmax(0).tolist() == [0, 0]  # the centre rule: the first of the tied least
+
+
+def test_the_greedy_leximin_takes_the_held_input_whose_sorted_pair_scores_are_highest(pair):
+    import itertools  # lazy: only this brute force enumerates the candidates
+
+    from safety.fleet.greedy import LEXIMIN_LEVELS  # lazy: as above
+
+    # four cars in one infeasible conflict, where the centre rule keeps all four straight
+    x = torch.tensor([[-0.32, -0.69, 0.29, -0.12, 0.39, 0.23, -0.19, 0.38, -0.99, -1.03, -0.89, -0.37]], dtype=F64)
+    fv = FleetValue(fleet(4, 2.0), pair)
+    nominal = torch.zeros(1, 4, dtype=F64)
+    centre = FleetFilter(fv, FleetFilterSettings(dt=0.05))
+    leximin = FleetFilter(fv, FleetFilterSettings(dt=0.05, tie_break="leximin"))
+    u_centre, info = centre(x, 1.0, nominal)
+    u, _ = leximin(x, 1.0, nominal)
+    assert int(info.infeasible[0]) == 1 and bool(info.intervened.all())
+    c = fv.candidates(x, 1.0, level=centre.level)
+    active = c.value <= centre.level[c.first, c.second]
+    pairs = [(int(i), int(j)) for i, j in zip(c.first[active], c.second[active])]
+
+    def sorted_scores(w: torch.Tensor) -> list[float]:
+        held = [float(_held_score(pair, _rel(x, 4, i, j), torch.stack([w[i], w[j]])[None], 1.0)[0]) for i, j in pairs]
+        return sorted(held)[: LEXIMIN_LEVELS + 2]
+
+    options = [torch.zeros(4, dtype=F64)] + [
+        torch.tensor(s, dtype=F64) * 1.1 for s in itertools.product((-1, 1), repeat=4)
+    ]
+    best = max(sorted_scores(w) for w in options)
+    assert sorted_scores(u[0]) == pytest.approx(best, abs=1e-12)
+    assert torch.equal(u_centre[0], torch.zeros(4, dtype=F64))  # the centre rule: all straight
+    assert sorted_scores(u_centre[0])[0] == pytest.approx(best[0], abs=1e-12)  # ... ties on the least
+    assert sorted_scores(u_centre[0]) < best  # ... and loses on the next
+    with pytest.raises(ValueError, match="tie_break"):
+        FleetFilterSettings(dt=0.05, tie_break="random")

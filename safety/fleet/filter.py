@@ -48,7 +48,7 @@ import torch
 from reach.validation import check_float, positive_finite
 from safety.filters.settings import default_threshold
 from safety.fleet.graph import Conflicts, conflicts
-from safety.fleet.greedy import HOLD, joint_greedy
+from safety.fleet.greedy import HOLD, TIE_BREAKS, joint_greedy
 from safety.fleet.qp import ConflictQP, solve
 from safety.fleet.value import FleetValue, PairCandidates, check_fleet_state, check_present
 
@@ -103,6 +103,10 @@ class FleetFilterSettings:
             least (>= 0; :data:`REACTION_TIME` by default). Longer makes pairs react earlier: fewer
             collisions where many cars converge, fewer cars home (measured: docs/results/fleets.md).
             Unused where ``threshold`` is given.
+        tie_break: how the greedy policy chooses among held inputs whose least pair value ties
+            (:data:`~safety.fleet.greedy.TIE_BREAKS`): ``"centre"`` (default), the first, all
+            straight; ``"leximin"``, the one whose next least pair values are highest
+            (:func:`~safety.fleet.greedy.leximin_best`; measured: docs/results/fleet_collisions.md).
     """
 
     dt: float
@@ -114,11 +118,14 @@ class FleetFilterSettings:
     policy: str = "greedy"
     hold: float = HOLD
     reaction_time: float = REACTION_TIME
+    tie_break: str = "centre"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dt", positive_finite("dt", self.dt))
         object.__setattr__(self, "hold", positive_finite("hold", self.hold))
         object.__setattr__(self, "reaction_time", check_float("reaction_time", self.reaction_time, 0))
+        if self.tie_break not in TIE_BREAKS:
+            raise ValueError(f"tie_break must be one of {TIE_BREAKS}, got {self.tie_break!r}")
         if self.policy not in FLEET_POLICIES:
             raise ValueError(f"policy must be one of {FLEET_POLICIES}, got {self.policy!r}")
         gamma = check_float("gamma", self.gamma, 0)
@@ -373,7 +380,8 @@ class FleetFilter:
             sign, has = fallback_inputs(c, edges, c.value, n, batch)
             if self.settings.policy == "greedy":
                 when = (t, self.settings.hold)
-                joint, decided = joint_greedy(fv, c, edges, when, torch.where(has, sign, 0.0))
+                ties = self.settings.tie_break
+                joint, decided = joint_greedy(fv, c, edges, when, torch.where(has, sign, 0.0), ties)
                 sign, has = torch.where(decided, joint, sign), has | decided
             return sign, has
 

@@ -37,7 +37,13 @@ from reach.systems.arrays import TORCH
 from safety.fleet.graph import components
 from safety.fleet.value import FleetValue, PairCandidates
 
-__all__ = ["MAX_JOINT_CARS", "joint_greedy"]
+__all__ = ["MAX_JOINT_CARS", "TIE_BREAKS", "joint_greedy", "leximin_best"]
+
+#: how the joint greedy breaks ties between candidates of equal least score (FleetFilterSettings.tie_break)
+TIE_BREAKS = ("centre", "leximin")
+
+#: pair scores past the least that a leximin tie-break compares (the least, then up to this many more)
+LEXIMIN_LEVELS = 3
 
 #: the largest conflict (cars) the joint greedy decides: ``2^k + 1`` candidates each
 MAX_JOINT_CARS = 6
@@ -123,12 +129,18 @@ def joint_greedy(
     edges: torch.Tensor,
     when: tuple[float, float],
     gradient_sign: torch.Tensor,
+    ties: str = "centre",
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``(sign (B * N,), decided (B * N,) bool)``: the turn-rate sign each car of the conflicts
     formed by the pairs ``edges`` (indices into ``c``; each conflict given whole) takes (module
     docstring), at time-to-go and hold ``when = (t, hold)``; ``gradient_sign`` ``(B * N,)`` is each
     car's worst-pair ``u*`` sign, the candidate a conflict of more than :data:`MAX_JOINT_CARS` cars
-    weighs beside all-straight, all-left and all-right. ``decided`` marks the cars of the conflicts."""
+    weighs beside all-straight, all-left and all-right. ``decided`` marks the cars of the conflicts.
+    ``ties`` (:data:`TIE_BREAKS`): among candidates whose least pair score ties, ``"centre"`` takes
+    the first (the centre, all straight), ``"leximin"`` the one whose next least score is highest,
+    and so on (:func:`leximin_best`)."""
+    if ties not in TIE_BREAKS:
+        raise ValueError(f"ties must be one of {TIE_BREAKS}, got {ties!r}")
     n = fv.num_cars
     nodes = gradient_sign.numel()
     dev, dtype = c.value.device, c.value.dtype
@@ -171,7 +183,8 @@ def joint_greedy(
     scores = _candidate_scores(table, cand, ends)  # (C, E)
     least = torch.full((count, group.numel()), math.inf, dtype=dtype, device=dev)
     least = least.scatter_reduce(1, gu.expand(count, -1), scores, reduce="amin")
-    best = least.argmax(0)  # (G,): ties go to the first, the centre
+    # (G,): ties go to the first, the centre, or to the candidate whose next least scores are highest
+    best = least.argmax(0) if ties == "centre" else leximin_best(scores, gu, least)
     chosen = cand[torch.arange(group.numel(), device=dev), best]  # (G, k)
     if large.numel():
         chosen = _descend(table, chosen, ends, large)
@@ -237,3 +250,34 @@ def _descend(table: torch.Tensor, chosen: torch.Tensor, ends: Ends, large: torch
         gt = gu[touch]
         now[touch] = torch.where(better[gt], scores[best[gt], torch.arange(gt.numel(), device=dev)], now[touch])
     return chosen
+
+
+def leximin_best(scores: torch.Tensor, group: torch.Tensor, least: torch.Tensor) -> torch.Tensor:
+    """``(G,)`` each group's candidate by leximin: the highest least pair score ``least`` ``(C, G)``;
+    among exact ties, the highest next least, and so on for :data:`LEXIMIN_LEVELS` more scores; then
+    the first. ``scores`` ``(C, E)`` are the candidates' pair scores, ``group`` ``(E,)`` each pair's group.
+
+    Why: a pair whose cars' inputs do not touch the group's least pair scores the same under every
+    sign of those cars, so the least ties across them, and the first candidate (all straight) wins
+    where one of those signs would hold the pair apart. Seen in the fleet study's collisions
+    (docs/results/fleet_collisions.md): a pair held straight while its value fell, inside a conflict
+    whose least pair was another."""
+    count, groups = least.shape
+    edges = scores.shape[1]
+    index = group.expand(count, -1)
+    order = torch.arange(edges, device=scores.device).expand(count, -1)
+    alive = torch.ones(count, groups, dtype=torch.bool, device=scores.device)
+    rest, level = scores, least
+    for _ in range(LEXIMIN_LEVELS + 1):
+        top = torch.where(alive, level, -math.inf).amax(0)
+        alive = alive & (level == top)
+        if not bool((alive.sum(0) > 1).any()):
+            break
+        # set aside each candidate's least pair (the first that reaches it) and read the next least
+        at = rest == level.gather(1, index)
+        first = torch.full((count, groups), edges, dtype=torch.long, device=scores.device)
+        first = first.scatter_reduce(1, index, torch.where(at, order, edges), reduce="amin")
+        drop = torch.zeros_like(at).scatter_(1, first.clamp(max=edges - 1), True) & (first < edges).gather(1, index)
+        rest = torch.where(drop, math.inf, rest)
+        level = torch.full_like(least, math.inf).scatter_reduce(1, index, rest, reduce="amin")
+    return alive.to(torch.long).argmax(0)

@@ -30,7 +30,7 @@ def check_size(network: ValueNetwork, settings: CertifySettings) -> None:
     whose index overflows 64 bits, and a closure cover cut so fine it cannot be held."""
     system = network.system
     n = system.state_dim
-    pieces = settings.disturbance_splits ** system.disturbance_dim
+    pieces = settings.disturbance_splits**system.disturbance_dim
     hidden = sum(layer.out_features for layer in network.layers)
     per_piece = BYTES_PER_PIECE_UNIT * (network.layers[0].in_features + 1) * hidden
     require_memory(
@@ -53,9 +53,6 @@ def check_size(network: ValueNetwork, settings: CertifySettings) -> None:
         cut = (settings.closure_scale / settings.closure_relative_width) ** n
         require_memory(
             int(min(cut * BYTES_PER_CLOSURE_BOX, 2**80)),
-            f"a closure cover cut down to {settings.closure_relative_width:.3g} of the span "
-            f"({cut:.3g} boxes at most)",
+            f"a closure cover cut down to {settings.closure_relative_width:.3g} of the span ({cut:.3g} boxes at most)",
             "give a wider --closure-width or a smaller --closure-scale",
         )
-
-
