@@ -24,11 +24,14 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import inspect
 import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -51,6 +54,18 @@ def _module_at(rev: str, path: str, folder: Path) -> object:
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def _accepting(function: Callable[..., Any]) -> Callable[..., Any]:
+    """``function`` called with only as many positional arguments as it takes: an earlier version may
+    lack a trailing option the caller now passes (its default, as this comparison runs the
+    current defaults)."""
+    count = len(inspect.signature(function).parameters)
+
+    def call(*args: Any) -> Any:
+        return function(*args[:count])
+
+    return call
 
 
 def main() -> None:
@@ -83,7 +98,7 @@ def main() -> None:
             user, names = USERS[path]
             old = _module_at(args.rev, path, Path(tmp))
             owner = sys.modules[user]
-            swaps += [(owner, name, getattr(old, name), getattr(owner, name)) for name in names]
+            swaps += [(owner, name, _accepting(getattr(old, name)), getattr(owner, name)) for name in names]
 
         def use(version: int) -> None:
             for owner, name, *impl in swaps:
@@ -102,7 +117,7 @@ def main() -> None:
             differ += int(not torch.equal(out[0], out[1]))
         use(1)
     print(
-        f"{args.layout}, {args.cars} cars: {len(states)} decisions (every {args.every}th of {args.ticks} steps, seed "
+        f"{args.layout}, {args.cars} cars: {len(states)} decisions (one every {args.every} of {args.ticks} steps, seed "
         f"{args.seed}), batch 1, one torch thread, alternating; modules at {args.rev}: {args.modules}"
     )
     stats = {}
