@@ -94,7 +94,6 @@ def add_parser(sub: Any) -> None:
     )
     p.add_argument(
         "--tie-break",
-        choices=["centre", "leximin"],
         default=None,
         help="how the fleet filter's greedy policy chooses among held inputs whose least pair value ties: the "
         "first, all straight (centre), or the one whose next least values are highest (leximin) (default: the "

@@ -280,16 +280,21 @@ def _resumed_config(args: argparse.Namespace, fields: dict[str, Any]) -> TrainCo
         raise ValueError(f"give --out for a new run or --resume for an old one, not both (--out {args.out})")
     # an option the run cannot change is refused, naming its flag, unless it restates the stored
     # value (``--compile off`` on a run trained with it); checked before the ground truth loads
-    stored, _ = RunDirectory(args.resume).resumed_config({})
-    fixed = sorted(k for k in set(fields) - RESUME_OVERRIDABLE if getattr(stored, k) != fields[k])
-    if fixed:
-        option = {field: flag for flag, field, _, _ in TRAIN_OPTIONS} | {
-            "budget_s": "--budget",
-            "compile": "--compile",
-        }
-        names = ", ".join(f"{option.get(name, name)} (stored: {getattr(stored, name)!r})" for name in fixed)
-        raise ValueError(
-            f"--resume continues {args.resume} with its stored configuration; {names} cannot change "
-            "(start a new run with --out to train with other settings)"
-        )
+    refuse_changes(args.resume, fields, RESUME_OVERRIDABLE, "--resume continues", "start a new run with --out")
     return RunDirectory(args.resume).resumed_config(fields)[0]
+
+
+def refuse_changes(run_dir: str, fields: dict[str, Any], may_change: frozenset[str], what: str, instead: str) -> None:
+    """Refuse, naming each flag with its given and stored values, the ``fields`` (TrainConfig fields
+    from the command line) that differ from the run in ``run_dir``'s stored configuration, but for
+    ``may_change``; a field that restates its stored value is not a change. ``what`` and ``instead``
+    word the error (``"--resume continues"``, ``"start a new run with --out"``)."""
+    stored, _ = RunDirectory(run_dir).resumed_config({})
+    fixed = sorted(k for k in set(fields) - may_change if getattr(stored, k) != fields[k])
+    if fixed:
+        option = {field: flag for flag, field, _, _ in TRAIN_OPTIONS} | {"budget_s": "--budget", "compile": "--compile"}
+        names = ", ".join(f"{option.get(k, k)} {fields[k]!r} (stored: {getattr(stored, k)!r})" for k in fixed)
+        raise ValueError(
+            f"{what} {run_dir} with its stored configuration; {names} cannot change ({instead} to train with "
+            "other settings)"
+        )

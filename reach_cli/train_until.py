@@ -15,7 +15,7 @@ from reach.validation import (
     unit_interval_arg,
 )
 from reach_cli.options import add_subparser, default
-from reach_cli.train import TRAIN_OPTIONS, add_training_options, training_fields
+from reach_cli.train import add_training_options, refuse_changes, training_fields
 from training.config import TrainConfig, parse_duration
 
 #: the options that set TrainUntilSettings' fields: (flag, field, type, help)
@@ -58,20 +58,10 @@ def add_parser(sub: Any) -> None:
 
 def _check_continued(out: str, chosen: dict[str, Any]) -> None:
     """A run directory that holds a run continues it under its stored configuration: a training option
-    that differs from it is refused, naming it, rather than ignored."""
-    from training.run_directory import RunDirectory  # lazy: only a continued run reads its configuration
-
-    if not (Path(out) / "config.json").exists():
-        return
-    stored, _ = RunDirectory(out).resumed_config({})
-    flags = {field: flag for flag, field, _, _ in TRAIN_OPTIONS}
-    differ = sorted(k for k, v in chosen.items() if getattr(stored, k) != v)
-    if differ:
-        names = ", ".join(f"{flags[k]} {chosen[k]!r} (stored: {getattr(stored, k)!r})" for k in differ)
-        raise ValueError(
-            f"{out} continues its run with its stored configuration; {names} cannot change "
-            "(give another --out to train with other settings)"
-        )
+    that differs from it is refused, naming it, rather than ignored (each phase resumes the run with
+    its own steps and nothing else)."""
+    if (Path(out) / "config.json").exists():
+        refuse_changes(out, chosen, frozenset(), "train-until continues", "give another --out")
 
 
 def run(args: argparse.Namespace) -> int:

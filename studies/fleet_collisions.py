@@ -107,7 +107,8 @@ def save_collided(
     x0, goals = start
     written = []
     for index in torch.nonzero(collided).flatten().tolist():
-        out = replay(scene, x0[index], goals[index], recorder.episode(index))
+        inputs = recorder.episode(index)
+        out = replay(scene, x0[index], goals[index], inputs)
         if not bool(out.any_collision[0]):
             raise RuntimeError(f"episode {index} of the batch (seed {meta.get('seed')}) did not collide when replayed")
         info = {**meta, "index": index, "scene": _scene_fields(scene)}
@@ -119,7 +120,7 @@ def save_collided(
                 meta=np.array(json.dumps(info, sort_keys=True)),
                 x0=x0[index].numpy(),
                 goals=goals[index].numpy(),
-                inputs=recorder.episode(index)[: out.steps].numpy(),
+                inputs=inputs[: out.steps].numpy(),
                 states=out.states[:, 0].numpy(),
                 present=out.present[:, 0].numpy(),
                 collided=out.collided[0].numpy(),
@@ -146,18 +147,20 @@ def load_episode(path: str | os.PathLike) -> FleetEpisode:
             raise ValueError(f"{str(path)!r} is not a fleet episode file (not an .npz archive)")
     try:
         with np.load(path, allow_pickle=False) as data:
-            missing = [k for k in ("meta", *ARRAYS) if k not in data.files]
-            if missing:
-                raise ValueError(f"fleet episode file {str(path)!r} lacks {', '.join(missing)}")
-            arrays = {k: np.asarray(data[k]) for k in ARRAYS}
-            meta = json.loads(str(data["meta"]))
-    except (OSError, EOFError, json.JSONDecodeError, ValueError) as err:
-        if isinstance(err, ValueError) and str(err).startswith("fleet episode file"):
-            raise
+            found = {k: np.asarray(data[k]) for k in data.files if k in ("meta", *ARRAYS)}
+    except (OSError, EOFError, ValueError) as err:
         raise ValueError(f"{str(path)!r} is not a fleet episode file ({err})") from None
+    missing = [k for k in ("meta", *ARRAYS) if k not in found]
+    if missing:
+        raise ValueError(f"fleet episode file {str(path)!r} lacks {', '.join(missing)}")
+    arrays = {k: found[k] for k in ARRAYS}
+    try:
+        meta = json.loads(str(found["meta"]))
+    except json.JSONDecodeError as err:
+        raise ValueError(f"fleet episode file {str(path)!r}: its meta is not JSON ({err})") from None
     fields = meta.get("scene") if isinstance(meta, dict) else None
-    if not isinstance(fields, dict):
-        raise ValueError(f"fleet episode file {str(path)!r}: its meta holds no scene")
+    if not isinstance(fields, dict) or not set(fields) <= set(FleetScene.__dataclass_fields__):
+        raise ValueError(f"fleet episode file {str(path)!r}: its meta holds no scene of known fields")
     scene = FleetScene(**{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()})
     _check_shapes(path, scene, arrays)
     return FleetEpisode(scene=scene, meta=meta, **arrays)

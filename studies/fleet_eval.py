@@ -92,7 +92,7 @@ def _rollout(
     x0, goals = scene.sample(episodes, np.random.default_rng(seed))
     recorder = InputRecorder(controller) if keep is not None and keep.room > 0 else None
     outcome = rollout(scene, x0, goals, recorder or controller)
-    if keep is not None and recorder is not None and keep.room > 0:
+    if recorder is not None and keep is not None:
         chosen = outcome.any_collision & (torch.cumsum(outcome.any_collision.long(), 0) <= keep.room)
         meta = {**keep.meta, "seed": seed, "batch_episodes": episodes}
         keep.room -= len(save_collided(scene, (x0, goals), recorder, chosen, keep.folder, meta))

@@ -51,6 +51,7 @@ class FleetEvalSettings:
 
     def __post_init__(self) -> None:
         from reach_envs.fleet_scenes import LAYOUTS, FleetScene  # lazy: the envs stack only once settings are made
+        from safety.fleet.greedy import TIE_BREAKS  # lazy: as above
 
         if self.layouts is None:
             object.__setattr__(self, "layouts", LAYOUTS)
@@ -72,8 +73,8 @@ class FleetEvalSettings:
         FleetScene(layout="random-goals", n_cars=2, density=self.density)  # refused there, naming it
         if self.hold is not None:
             object.__setattr__(self, "hold", positive_finite("FleetEvalSettings: hold", self.hold))
-        if self.tie_break is not None and self.tie_break not in ("centre", "leximin"):
-            raise ValueError(f"FleetEvalSettings: tie_break must be 'centre' or 'leximin', got {self.tie_break!r}")
+        if self.tie_break is not None and self.tie_break not in TIE_BREAKS:
+            raise ValueError(f"FleetEvalSettings: tie_break must be one of {TIE_BREAKS}, got {self.tie_break!r}")
         if self.reaction_time is not None:
             rt = check_float("FleetEvalSettings: reaction_time", self.reaction_time, low=0.0)
             object.__setattr__(self, "reaction_time", rt)

@@ -129,12 +129,16 @@ def test_a_malformed_episode_file_is_refused_in_one_line(tmp_path, capsys):
     nan = states.copy()
     nan[3, 0] = np.nan
     meta["scene"]["n_cars"] = 5
+    odd = json.loads(json.dumps(meta))
+    odd["scene"]["wings"] = 2
     text = tmp_path / "text.npz"
     text.write_text("not an archive")
     cases = {
         "states": _tampered(tmp_path, path, "nan", states=nan),
         "lacks inputs": _tampered(tmp_path, path, "lacks", inputs=None),
         "x0 has shape": _tampered(tmp_path, path, "cars", meta=np.array(json.dumps(meta))),
+        "no scene of known fields": _tampered(tmp_path, path, "odd", meta=np.array(json.dumps(odd))),
+        "meta is not JSON": _tampered(tmp_path, path, "json", meta=np.array("{not json")),
         "not an .npz": text,
         "does not exist": tmp_path / "none.npz",
     }

@@ -75,6 +75,12 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path, capsys):
     assert main(["fleet-eval", "--out", str(tmp_path / "s"), "--reaction-time", "nan"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "reaction_time" in err[0]
+    assert main(["fleet-eval", "--out", str(tmp_path / "s"), "--tie-break", "random"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "tie_break" in err[0] and "leximin" in err[0]
+    assert main(["fleet-eval", "--out", str(tmp_path / "s"), "--keep-collisions", "-1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "keep_collisions" in err[0]
 
 
 def test_the_results_record_the_hold_that_ran_and_a_rerun_of_another_is_refused(tmp_path):
