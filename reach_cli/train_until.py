@@ -9,6 +9,7 @@ from typing import Any
 
 from reach.validation import (
     check_output_dir,
+    nonnegative_float_arg,
     positive_float_arg,
     positive_int_arg,
     seed_arg,
@@ -30,6 +31,13 @@ SETTINGS_OPTIONS = (
     ("--verify-seed", "seed", seed_arg, "the verifications' seed"),
     ("--hard-fraction", "hard_fraction", unit_interval_arg, "share of each step's points near the hard states"),
     ("--dt", "dt", positive_float_arg, "the rollouts' step, in seconds"),
+    (
+        "--refuted-weight",
+        "refuted_weight",
+        nonnegative_float_arg,
+        "weight of the term that keeps the network from claiming success along its failed rollouts (0: off)",
+    ),
+    ("--refuted-margin", "refuted_margin", nonnegative_float_arg, "how far past zero those claims are pushed"),
 )
 
 #: the training options train-until does not take: each phase sets its own steps, and the loop stops

@@ -8,6 +8,12 @@ backup policy for the system's kind (:data:`safety.filters.settings.DEFAULT_POLI
 for avoid problems, ``"gradient"`` for reach kinds). The states it finds wrong (claimed safe, or
 reachable, by ``V`` while their rollout fails) are kept as *hard states*: the next phases replace
 ``hard_fraction`` of every step's points by points near them (:meth:`training.sampling.PointSampler.mix_hard_states`).
+Their rollouts are recorded again, and the points along each before its failure, from which the same
+policy fails too, become the *refuted points*: the next phases add a term that keeps the network
+from claiming success there (``refuted_weight``; :mod:`safety.verification.refuted`,
+:class:`training.loss.RefutedPoints`). Sampling near a wrong state only applies the residual there,
+which a network can meet while still claiming too much (docs/results/training.md, the quadrotor);
+the refuted points say what the claim must be.
 The loop stops when a phase's verification holds (wrong claims at most ``max_wrong_rate`` and a
 scenario set bounded at ``target_eps``), or when the phases or the wall budget run out. Then a final
 verification on states of a seed stream apart from every phase's gives the bound reported.
@@ -17,6 +23,7 @@ Files it adds to the run directory (:mod:`training.run_directory` holds the rest
     RUN/phases.json           the settings, every phase (steps, wall time, what its verification
                               found, hard states added) and the final verification; replaced atomically
     RUN/hard/phase-NNN.pt     the wrong states phase NNN found (read back on resume)
+    RUN/hard/phase-NNN-refuted.pt  the refuted points of their rollouts: {"x": (M, n), "t": (M,)}
 
 Every phase trains without a CUDA graph (the hard states are mixed in outside it), and the run's
 stored configuration says so. Resumable: killed mid-phase, a second call continues the run from its
@@ -39,9 +46,11 @@ from reach.atomic import atomic_path
 from reach.json_files import read_json, strict
 from safety.filters.settings import DEFAULT_POLICIES
 from safety.verification.metrics import KIND_COLUMNS
+from safety.verification.refuted import recorded_refuted_points
 from safety.verification.rollout_store import RolloutStore
 from safety.verification.verify import VerifySettings, sample_states, verify
 from training import TrainConfig, Trainer
+from training.loss import RefutedPoints
 from training.network import NeuralValueFunction
 
 __all__ = ["TrainUntilSettings", "final_seed", "phase_seed", "train_until"]
@@ -94,12 +103,30 @@ class TrainUntilSettings:
     hard_radius: float = 0.05
     #: the most recent hard states kept
     max_hard_states: int = 8192
+    #: the refuted-claims term's weight (0: off): each wrong state's rollout is recorded again, and the
+    #: points along it before its failure, from which the same policy fails, are trained not to be
+    #: claimed (:mod:`safety.verification.refuted`); each step draws ``hard_fraction`` of its point
+    #: count of them
+    refuted_weight: float = 1.0
+    #: how far past the zero level those points' claims are pushed (value units)
+    refuted_margin: float = 0.0
+    #: points taken along each failed rollout
+    refuted_per_trajectory: int = 8
+    #: the most recent refuted points kept
+    max_refuted_points: int = 65536
     #: the rollouts' step (seconds), and their confidence parameter
     dt: float = 0.0025
     beta: float = 1e-16
 
     def __post_init__(self) -> None:
-        for name in ("phase_steps", "max_phases", "samples", "max_hard_states"):
+        for name in (
+            "phase_steps",
+            "max_phases",
+            "samples",
+            "max_hard_states",
+            "refuted_per_trajectory",
+            "max_refuted_points",
+        ):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
@@ -119,6 +146,10 @@ class TrainUntilSettings:
             raise ValueError(f"hard_fraction must lie in [0, 1), got {self.hard_fraction!r}")
         if not (isinstance(self.hard_radius, (int, float)) and 0.0 <= self.hard_radius <= 1.0):
             raise ValueError(f"hard_radius must lie in [0, 1], got {self.hard_radius!r}")
+        for name in ("refuted_weight", "refuted_margin"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value < math.inf:
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
         self.verify_settings(0, "avoid")  # dt and beta, checked where every verification's are
 
     def verify_settings(self, seed: int, kind: str, samples: int | None = None) -> VerifySettings:
@@ -144,9 +175,13 @@ def holds(row: dict[str, Any], settings: TrainUntilSettings) -> bool:
     return row[claim] <= settings.max_wrong_rate and bounded
 
 
-def _verified(trainer: Trainer, vs: VerifySettings, scratch: Path) -> tuple[dict[str, Any], torch.Tensor]:
-    """The verification row of the trainer's network on ``vs.samples`` fresh states, and the states
-    it found wrong (claimed, and failed): the rollouts come back from a store, not simulated twice."""
+def _verified(
+    trainer: Trainer, vs: VerifySettings, scratch: Path, refuted_per_trajectory: int = 0, keep: int = 8192
+) -> tuple[dict[str, Any], torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+    """The verification row of the trainer's network on ``vs.samples`` fresh states, the states it
+    found wrong (claimed, and failed; the rollouts come back from a store, not simulated twice), and
+    with ``refuted_per_trajectory`` the points along the last ``keep`` wrong states' rollouts, recorded
+    again, that refute the claims (:func:`~safety.verification.refuted.recorded_refuted_points`)."""
     vf = NeuralValueFunction(trainer.network.eval())
     states = sample_states(trainer.system, vs.samples, vs.seed)
     # the rollouts go through a store: an interrupted verification resumes, and the samples' outcomes
@@ -160,9 +195,12 @@ def _verified(trainer: Trainer, vs: VerifySettings, scratch: Path) -> tuple[dict
         store.close()
         raise
     store.remove()
+    wrong = states[((result.oriented_value > 0) & result.failed).cpu()]
+    refuted = (torch.zeros(0, states.shape[1]), torch.zeros(0))
+    if refuted_per_trajectory and wrong.shape[0]:
+        refuted = recorded_refuted_points(vf, wrong[-keep:], settings, refuted_per_trajectory, device=trainer.device)
     trainer.network.train()
-    wrong = (result.oriented_value > 0) & result.failed
-    return row, states[wrong.cpu()]
+    return row, wrong, refuted
 
 
 def _write(path: Path, record: dict[str, Any]) -> None:
@@ -174,6 +212,20 @@ def _hard_states(run: Path, phases: int, keep: int) -> torch.Tensor | None:
     parts = [torch.load(run / "hard" / f"phase-{i:03d}.pt", weights_only=True) for i in range(phases)]
     parts = [p for p in parts if p.shape[0]]
     return torch.cat(parts)[-keep:] if parts else None
+
+
+def _refuted(run: Path, phases: int, settings: TrainUntilSettings, system: Any) -> RefutedPoints | None:
+    """The refuted-claims term's points, the last ``max_refuted_points`` of every phase's, or None."""
+    if settings.refuted_weight == 0:
+        return None
+    parts = [torch.load(run / "hard" / f"phase-{i:03d}-refuted.pt", weights_only=True) for i in range(phases)]
+    parts = [p for p in parts if p["x"].shape[0]]
+    if not parts:
+        return None
+    keep = settings.max_refuted_points
+    x, t = torch.cat([p["x"] for p in parts])[-keep:], torch.cat([p["t"] for p in parts])[-keep:]
+    sign = -1.0 if system.problem.reaches else 1.0
+    return RefutedPoints(x, t, sign, float(settings.refuted_margin), float(settings.refuted_weight))
 
 
 def _open(config: TrainConfig, run: Path, steps: int, progress: bool) -> Trainer:
@@ -223,10 +275,15 @@ def train_until(
         trainer = _open(config, run, settings.phase_steps * (index + 1), progress)
         trainer.sampler.hard_states = _hard_states(run, index, settings.max_hard_states)
         trainer.sampler.hard_fraction, trainer.sampler.hard_radius = settings.hard_fraction, settings.hard_radius
+        trainer.sampler.refuted = _refuted(run, index, settings, trainer.system)
         trained = trainer.train()
         vs = settings.verify_settings(phase_seed(settings.seed, index), trainer.system.kind)
-        row, wrong = _verified(trainer, vs, run / "verify-store")
+        per = settings.refuted_per_trajectory if settings.refuted_weight else 0
+        row, wrong, (rx, rt) = _verified(trainer, vs, run / "verify-store", per, settings.max_hard_states)
         (run / "hard").mkdir(exist_ok=True)
+        # the refuted points first: a phase's states file marks the phase's files complete on resume
+        with atomic_path(run / "hard" / f"phase-{index:03d}-refuted.pt") as tmp:
+            torch.save({"x": rx, "t": rt}, tmp)
         with atomic_path(run / "hard" / f"phase-{index:03d}.pt") as tmp:
             torch.save(wrong, tmp)
         record["phases"].append(
@@ -237,6 +294,7 @@ def train_until(
                 "wall_s": time.perf_counter() - start,
                 "seed": vs.seed,
                 "hard_states_added": int(wrong.shape[0]),
+                "refuted_points_added": int(rx.shape[0]),
                 "holds": holds(row, settings),
                 "verification": row,
             }
@@ -245,7 +303,7 @@ def train_until(
     record["stopped"] = "target" if done() else "budget"
     trainer = Trainer.resume(run, progress=False)
     vs = settings.verify_settings(final_seed(settings.seed), trainer.system.kind, settings.final_samples)
-    row, _ = _verified(trainer, vs, run / "verify-store")
+    row, _, _ = _verified(trainer, vs, run / "verify-store")
     record["final"] = {"seed": vs.seed, "steps": trainer.step, "holds": holds(row, settings), "verification": row}
     _write(path, record)
     return record

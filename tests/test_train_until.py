@@ -12,9 +12,13 @@ import pytest
 import torch
 
 from reach_cli import main
+from safety.verification.refuted import refuted_points
+from safety.verification.rollout import RolloutSettings, rollout
 from safety.verification.verify import sample_states
 from studies.train_until import TrainUntilSettings, _verified, final_seed, phase_seed, train_until
 from training import TrainConfig, Trainer, TrainingInterrupted
+from training.loss import RefutedPoints, loss_terms
+from training.network import NeuralValueFunction
 
 CONFIG = TrainConfig(system="air3d", width=16, points=256, log_every=1000, checkpoint_every_s=0.0, seed=0)
 #: small verifications with a coarse step; a target no tiny network meets
@@ -42,15 +46,93 @@ def test_planted_errors_are_found_and_phases_reduce_them(tmp_path):
         trainer.network.output.bias += 0.5
     trainer.run.write_config(trainer.config)
     trainer.checkpointer.save(0, 0.0, None, None)
-    planted, wrong = _verified(trainer, SETTINGS.verify_settings(phase_seed(SETTINGS.seed, 0), "avoid"), tmp_path / "s")
+    vs = SETTINGS.verify_settings(phase_seed(SETTINGS.seed, 0), "avoid")
+    planted, wrong, _ = _verified(trainer, vs, tmp_path / "s")
     assert planted["false_safe_rate"] > 0.05 and wrong.shape[0] == round(planted["false_safe_rate"] * 300)
-    record = train_until(CONFIG, run, replace(SETTINGS, phase_steps=150), progress=False)
+    # the hard states' sampling alone (the refuted points' term has a test of its own, below)
+    record = train_until(CONFIG, run, replace(SETTINGS, phase_steps=150, refuted_weight=0.0), progress=False)
     phases = record["phases"]
     assert [p["phase"] for p in phases] == [0, 1] and record["stopped"] == "budget"
     assert all(p["hard_states_added"] == round(p["verification"]["false_safe_rate"] * 300) for p in phases)
     assert phases[-1]["verification"]["false_safe_rate"] < planted["false_safe_rate"] / 2
     hard = torch.load(run / "hard" / "phase-000.pt")
     assert hard.shape == (phases[0]["hard_states_added"], 3)
+
+
+def _planted(run):
+    """A run whose network claims safe far into the collision set (its output raised by 0.5)."""
+    trainer = Trainer(replace(CONFIG, steps=1), run, progress=False)
+    with torch.no_grad():
+        trainer.network.output.bias += 0.5
+    trainer.run.write_config(trainer.config)
+    trainer.checkpointer.save(0, 0.0, None, None)
+    return trainer
+
+
+def test_refuted_points_lie_on_failed_rollouts_before_their_failure(tmp_path):
+    trainer = _planted(tmp_path / "run")
+    vf = NeuralValueFunction(trainer.network.eval())
+    settings = RolloutSettings(dt=0.01, policy="greedy").for_system(trainer.system)
+    states = sample_states(trainer.system, 400, 5)
+    result = rollout(vf, states, settings, record=True, progress=False)
+    x, t = refuted_points(result, settings, per_trajectory=4)
+    failed = result.failed & (result.decided_time > 0)
+    assert 0 < x.shape[0] <= 4 * int(failed.sum()) and x.shape == (t.shape[0], 3)
+    # the first point of each failed rollout is its start, at the full horizon
+    starts = t == settings.horizon
+    assert int(starts.sum()) == int(failed.sum())
+    assert torch.equal(x[starts], states[failed].to(x.dtype))
+    assert bool(((t > 0) & (t <= settings.horizon)).all())
+    # the defining property: from each point, with its time-to-go, the same policy fails again (a
+    # rollout restarted mid-way rounds its times differently, so a tie may go the other way)
+    again = rollout(vf, x, replace(settings, horizon=None), progress=False, horizon=float(t.max()))
+    fails = [
+        bool(rollout(vf, x[i : i + 1], settings, horizon=float(t[i]), progress=False).failed[0])
+        for i in range(0, x.shape[0], max(1, x.shape[0] // 40))
+    ]
+    assert again.num_states == x.shape[0] and sum(fails) >= 0.95 * len(fails)
+    with pytest.raises(ValueError, match="recorded"):
+        refuted_points(rollout(vf, states[:5], settings, progress=False), settings, 4)
+
+
+def test_the_refuted_term_is_what_the_loss_adds_and_it_lowers_the_claims(tmp_path):
+    trainer = _planted(tmp_path / "run")
+    net = trainer.network
+    x = sample_states(trainer.system, 64, 2)
+    t = torch.rand(64)
+    margin, weight = 0.05, 3.0
+    base, _ = loss_terms(net, x, t, pde=False)
+    total, terms = loss_terms(net, x, t, pde=False, refuted=RefutedPoints(x, t, 1.0, margin, weight))
+    expected = torch.relu(net(x, t) + margin).mean()
+    assert torch.allclose(terms["refuted"], expected) and torch.allclose(total, base + weight * expected)
+    _, reach = loss_terms(net, x, t, pde=False, refuted=RefutedPoints(x, t, -1.0, 0.0, 1.0))
+    assert torch.allclose(reach["refuted"], torch.relu(-net(x, t)).mean())
+    # the sampler draws hard_fraction of a step's points among those the curriculum has reached
+    sampler = trainer.sampler
+    sampler.hard_fraction = 0.25
+    sampler.refuted = RefutedPoints(x, torch.linspace(0, 1, 64), 1.0, 0.0, 1.0)
+    batch = sampler.refuted_batch(0.5)
+    assert batch.x.shape == (64, 3) and bool((batch.t <= 0.5).all())
+    assert sampler.refuted_batch(-1.0) is None
+
+
+def test_a_phase_trained_on_refuted_points_stops_claiming_there(tmp_path):
+    loop = replace(SETTINGS, phase_steps=150, max_phases=2)
+    for weight in (0.0, 10.0):
+        _planted(tmp_path / f"w{weight}")
+        train_until(CONFIG, tmp_path / f"w{weight}", replace(loop, refuted_weight=weight), progress=False)
+    # phase 0 is the same in both runs (no points yet): the points it found, which only the
+    # weighted run records, are where phase 1 trained differently
+    points = torch.load(tmp_path / "w10.0" / "hard" / "phase-000-refuted.pt", weights_only=True)
+    assert points["x"].shape[0] > 0 and points["x"].shape[0] == points["t"].shape[0]
+    assert torch.load(tmp_path / "w0.0" / "hard" / "phase-000-refuted.pt", weights_only=True)["x"].shape[0] == 0
+    claims = {}
+    for weight in (0.0, 10.0):
+        net = Trainer.resume(tmp_path / f"w{weight}", progress=False).network.eval()
+        with torch.no_grad():
+            claims[weight] = float((net(points["x"], points["t"]) > 0).float().mean())
+    # side by side from the same planted network: only the term differs
+    assert claims[10.0] < 0.5 * claims[0.0], claims
 
 
 def test_stops_at_an_easy_target(tmp_path):

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
@@ -132,6 +132,19 @@ class LossWeights:
             check_float(f"{name} weight", getattr(self, name), 0)
 
 
+class RefutedPoints(NamedTuple):
+    """One step's points ``(x (M, n), t (M,))`` from which the network's own policy was seen to fail
+    (:mod:`studies.train_until`), and how the refuted-claims term weighs them: ``sign`` turns ``V``
+    so that ``> 0`` is its claim (``+1`` avoid, ``-1`` reach kinds), ``margin`` how far past the zero
+    level the claim is pushed, ``weight`` the term's weight."""
+
+    x: torch.Tensor
+    t: torch.Tensor
+    sign: float
+    margin: float
+    weight: float
+
+
 @dataclass(frozen=True)
 class LossSettings:
     """What a run's loss is fixed to before its first step, passed whole to :func:`loss_terms`.
@@ -184,6 +197,7 @@ def loss_terms(
     boundary_mask: torch.Tensor | None = None,
     upper_bound: torch.Tensor | None = None,
     lower_bound: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+    refuted: RefutedPoints | None = None,
     settings: LossSettings | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Scalar loss and its terms (``pde``, ``boundary``, ``gradient``, ...) as detached 0-d tensors:
@@ -207,6 +221,13 @@ def loss_terms(
 
     ``lower_bound`` = ``(x, t, J)``: labelled points with a known lower bound ``J`` of the true value
     (:func:`training.policy_lower_bounds.policy_lower_bound`) add ``weights.lower_bound * mean(relu(J - V(x, t)))``.
+
+    ``refuted`` (:class:`RefutedPoints`): points from which the network's own policy failed add
+    ``weight * mean(relu(sign * V(x, t) + margin))``. Not a bound of the true value (another policy may
+    succeed from there) but of what this network may claim: a safety filter acts on the claim with
+    this very policy, so a claim its rollout refutes is the error that matters. It pushes ``V`` to the
+    conservative side, where the residual alone may not: a network can meet the residual with a
+    value that claims too much (docs/results/training.md, the quadrotor).
     """
     if settings is None:
         settings = LossSettings()
@@ -235,6 +256,11 @@ def loss_terms(
         shortfall = torch.relu(floor - network(x_label, t_label)).mean()
         total = total + weights.lower_bound * shortfall
         terms["lower_bound"] = shortfall.detach()
+    if refuted is not None:
+        claim = refuted.sign * network(refuted.x, refuted.t)
+        excess = torch.relu(claim + refuted.margin).mean()
+        total = total + refuted.weight * excess
+        terms["refuted"] = excess.detach()
     if network.parameterisation in LEARNED_BOUNDARY and boundary_mask is not None and boundary_mask.any():
         gap = v[boundary_mask] - network.system.boundary_value(x[boundary_mask])
         boundary = gap.abs().mean() if weights.norm == "l1" else gap.square().mean()

@@ -16,7 +16,7 @@ import torch
 from reach.systems import ControlAffineSystem, MultiVehicle
 from training import pretrained
 from training.config import TrainConfig
-from training.loss import LossSettings, LossWeights, loss_terms, residual_function
+from training.loss import LossSettings, LossWeights, RefutedPoints, loss_terms, residual_function
 from training.network import ValueNetwork
 from training.policy_lower_bounds import check_lower_bound_system
 from training.sampling import Labels
@@ -78,11 +78,17 @@ class Objective(torch.nn.Module):
             check_lower_bound_system(network.system)
 
     def forward(
-        self, x: torch.Tensor, t: torch.Tensor, mask: torch.Tensor | None, pde: bool, labels: Labels | None
+        self,
+        x: torch.Tensor,
+        t: torch.Tensor,
+        mask: torch.Tensor | None,
+        pde: bool,
+        labels: Labels | None,
+        refuted: RefutedPoints | None = None,
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """The loss and its terms (detached 0-d tensors, read back by the caller) at states ``x`` and
         times ``t`` (``mask``: the vanilla boundary points; ``pde``: whether the residual counts yet;
-        ``labels``: the lower-bound term's points, if any)."""
+        ``labels``: the lower-bound term's points, if any; ``refuted``: the refuted-claims term's)."""
         return loss_terms(
             self.network,
             x,
@@ -91,6 +97,7 @@ class Objective(torch.nn.Module):
             boundary_mask=mask,
             upper_bound=None if self.upper_bound is None else self.upper_bound_at(x, t),
             lower_bound=labels,
+            refuted=refuted,
             settings=self.settings,
         )
 

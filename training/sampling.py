@@ -15,6 +15,7 @@ import torch
 
 from reach.systems import ControlAffineSystem
 from training.config import TrainConfig
+from training.loss import RefutedPoints
 from training.network import LEARNED_BOUNDARY, ValueNetwork
 from training.policy_lower_bounds import mpc_lower_bound, policy_lower_bound
 
@@ -82,6 +83,11 @@ class PointSampler:
         self.hard_fraction = 0.0
         #: how near: a uniform offset of up to this share of the box's side, per dimension
         self.hard_radius = 0.05
+        #: every point ``(x, t)`` from which the network's own policy was seen to fail, with the
+        #: refuted-claims term's sign, margin and weight (set by a caller such as studies.train_until,
+        #: never checkpointed): each step draws ``hard_fraction`` of its point count of them
+        #: (:meth:`refuted_batch`)
+        self.refuted: RefutedPoints | None = None
 
     def uniform(self, n: int, tmax: float) -> tuple[torch.Tensor, torch.Tensor]:
         """``n`` states uniform on the training box (:func:`training_box`) and times uniform on
@@ -115,6 +121,22 @@ class PointSampler:
         x = x.clone()
         x[start : start + count] = torch.minimum(torch.maximum(near, self._low), self._low + self._span)
         return x
+
+    def refuted_batch(self, tmax: float) -> RefutedPoints | None:
+        """This step's refuted points: ``hard_fraction`` of the step's point count drawn (with
+        replacement, from the run's generator after the step's other draws) among :attr:`refuted`'s
+        points at times the curriculum has reached (``t <= tmax``); ``None`` without any."""
+        every = self.refuted
+        count = int(self.hard_fraction * (self.config.points // self.world_size))
+        if every is None or count == 0:
+            return None
+        reached = torch.nonzero(every.t <= tmax).squeeze(-1)
+        if reached.numel() == 0:
+            return None
+        draw = torch.randint(reached.numel(), (count,), generator=self.generator, device=self.device)
+        pick = reached.to(self.device)[draw]
+        x, t = every.x.to(self.device), every.t.to(self.device)
+        return every._replace(x=x[pick], t=t[pick])
 
     def draw_shapes(self) -> list[tuple[int, ...]]:
         """The shapes of one step's uniform draws on [0, 1), in the stream's order: the states and the

@@ -252,6 +252,8 @@ class Trainer:
         if self.graphed is None and self._wants_graph:
             self.graphed = GraphedStep(self.sampler, self.objective, self.optimizer)
         if self.graphed is not None:
+            if self.sampler.refuted is not None:
+                raise ValueError("refuted points train without a CUDA graph (set cuda_graph=False)")
             terms = self.graphed(lr, tmax, self.labels)  # updates first, checks after (training.cuda_graph)
             if not math.isfinite(terms["loss"]):
                 raise TrainingDivergedError(self._diverged_message(terms["loss"]))
@@ -259,7 +261,8 @@ class Trainer:
             for group in self.optimizer.param_groups:
                 group["lr"] = lr
             x, t, mask = self._sample(tmax)
-            loss, tensors = self.step_objective(x, t, mask, self.schedule.trains_pde(frac), self.labels)
+            refuted = self.sampler.refuted_batch(tmax)
+            loss, tensors = self.step_objective(x, t, mask, self.schedule.trains_pde(frac), self.labels, refuted)
             terms = self.processes.mean(terms_to_floats(tensors))
             if not math.isfinite(terms["loss"]):
                 raise TrainingDivergedError(self._diverged_message(terms["loss"]))
