@@ -98,6 +98,7 @@ class _CombinedBatch:
     def __init__(self, config: TrainConfig, trainer: Trainer) -> None:
         self.shares = [PointSampler(config, trainer.network, trainer.device, rank, 2) for rank in (0, 1)]
         self.generator = self.shares[0].generator  # what the trainer checkpoints
+        self.refuted = None  # no refuted points (studies.train_until sets them on a real sampler)
 
     def points(self, tmax: float) -> tuple[torch.Tensor, torch.Tensor, None]:
         parts = [share.points(tmax) for share in self.shares]
@@ -106,6 +107,9 @@ class _CombinedBatch:
     def lower_bound_labels(self, tmax: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         parts = [share.lower_bound_labels(tmax) for share in self.shares]
         return tuple(torch.cat(column) for column in zip(*parts))
+
+    def refuted_batch(self, tmax: float) -> None:
+        return None
 
 
 def _spawn_two(ports: list[int], tmp: Path, limit_s: float = 180.0) -> None:
