@@ -35,7 +35,7 @@ SETTINGS_OPTIONS = (
         "--refuted-weight",
         "refuted_weight",
         nonnegative_float_arg,
-        "weight of the term that keeps the network from claiming success along its failed rollouts (0: off)",
+        "weight of the term that keeps the network from claiming success along its failed rollouts",
     ),
     ("--refuted-margin", "refuted_margin", nonnegative_float_arg, "how far past zero those claims are pushed"),
 )

@@ -9,8 +9,8 @@ for avoid problems, ``"gradient"`` for reach kinds). The states it finds wrong (
 reachable, by ``V`` while their rollout fails) are kept as *hard states*: the next phases replace
 ``hard_fraction`` of every step's points by points near them (:meth:`training.sampling.PointSampler.mix_hard_states`).
 Their rollouts are recorded again, and the points along each before its failure, from which the same
-policy fails too, become the *refuted points*: the next phases add a term that keeps the network
-from claiming success there (``refuted_weight``; :mod:`safety.verification.refuted`,
+policy fails too, become the *refuted points*: with ``refuted_weight`` > 0 the next phases add a term
+that keeps the network from claiming success there (:mod:`safety.verification.refuted`,
 :class:`training.loss.RefutedPoints`). Sampling near a wrong state only applies the residual there,
 which a network can meet while still claiming too much (docs/results/training.md, the quadrotor);
 the refuted points say what the claim must be.
@@ -103,11 +103,13 @@ class TrainUntilSettings:
     hard_radius: float = 0.05
     #: the most recent hard states kept
     max_hard_states: int = 8192
-    #: the refuted-claims term's weight (0: off): each wrong state's rollout is recorded again, and the
-    #: points along it before its failure, from which the same policy fails, are trained not to be
-    #: claimed (:mod:`safety.verification.refuted`); each step draws ``hard_fraction`` of its point
-    #: count of them
-    refuted_weight: float = 1.0
+    #: the refuted-claims term's weight (0, the default: off): each wrong state's rollout is recorded
+    #: again, and the points along it before its failure, from which the same policy fails, are
+    #: trained not to be claimed (:mod:`safety.verification.refuted`); each step draws
+    #: ``hard_fraction`` of its point count of them. Off by default: side by side on the quadrotor it
+    #: left the wrong claims on fresh states where the hard states' sampling alone did
+    #: (docs/results/training.md)
+    refuted_weight: float = 0.0
     #: how far past the zero level those points' claims are pushed (value units)
     refuted_margin: float = 0.0
     #: points taken along each failed rollout

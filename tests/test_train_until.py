@@ -17,7 +17,7 @@ from safety.verification.rollout import RolloutSettings, rollout
 from safety.verification.verify import sample_states
 from studies.train_until import TrainUntilSettings, _verified, final_seed, phase_seed, train_until
 from training import TrainConfig, Trainer, TrainingInterrupted
-from training.loss import RefutedPoints, loss_terms
+from training.loss import Anchors, RefutedPoints, loss_terms
 from training.network import NeuralValueFunction
 
 CONFIG = TrainConfig(system="air3d", width=16, points=256, log_every=1000, checkpoint_every_s=0.0, seed=0)
@@ -102,10 +102,10 @@ def test_the_refuted_term_is_what_the_loss_adds_and_it_lowers_the_claims(tmp_pat
     t = torch.rand(64)
     margin, weight = 0.05, 3.0
     base, _ = loss_terms(net, x, t, pde=False)
-    total, terms = loss_terms(net, x, t, pde=False, refuted=RefutedPoints(x, t, 1.0, margin, weight))
+    total, terms = loss_terms(net, x, t, pde=False, anchors=Anchors(refuted=RefutedPoints(x, t, 1.0, margin, weight)))
     expected = torch.relu(net(x, t) + margin).mean()
     assert torch.allclose(terms["refuted"], expected) and torch.allclose(total, base + weight * expected)
-    _, reach = loss_terms(net, x, t, pde=False, refuted=RefutedPoints(x, t, -1.0, 0.0, 1.0))
+    _, reach = loss_terms(net, x, t, pde=False, anchors=Anchors(refuted=RefutedPoints(x, t, -1.0, 0.0, 1.0)))
     assert torch.allclose(reach["refuted"], torch.relu(-net(x, t)).mean())
     # the sampler draws hard_fraction of a step's points among those the curriculum has reached
     sampler = trainer.sampler

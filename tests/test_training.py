@@ -463,7 +463,7 @@ def test_gradient_bound_penalises_only_slopes_above_it(tmp_path):
 def test_upper_bound_term_charges_only_values_above_a_known_bound(tmp_path, pair_grid, air3d_grid):
     """The union-of-pairs penalty: mean(relu(V - bound)) where the bound is known, nothing where it
     is +inf; a 9D run with a pair solution file logs it; misuse is refused before training."""
-    from training.loss import LossSettings, LossWeights, training_loss
+    from training.loss import Anchors, LossSettings, LossWeights, training_loss
 
     torch.manual_seed(0)
     network = ValueNetwork(Air3D(), "ssl", width=32)
@@ -471,12 +471,14 @@ def test_upper_bound_term_charges_only_values_above_a_known_bound(tmp_path, pair
     v = network(x, t).detach()
     bound = torch.where(torch.arange(256) % 2 == 0, v - 0.1, torch.inf)  # half the points: V is 0.1 too high
     weights = LossWeights(upper_bound=3.0)
-    loss, terms = training_loss(network, x, t, pde=False, upper_bound=bound, settings=LossSettings(weights=weights))
+    loss, terms = training_loss(
+        network, x, t, pde=False, anchors=Anchors(upper_bound=bound), settings=LossSettings(weights=weights)
+    )
     assert terms["upper_bound"] == pytest.approx(0.05, rel=1e-4)
     assert float(loss.detach()) == pytest.approx(0.15, rel=1e-4)
     loss.backward()  # the penalty's gradient lowers V at the charged points only
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in network.parameters())
-    _, terms = training_loss(network, x, t, pde=False, upper_bound=v + 0.1)
+    _, terms = training_loss(network, x, t, pde=False, anchors=Anchors(upper_bound=v + 0.1))
     assert terms["upper_bound"] == 0.0
     path = pair_grid.save(tmp_path / "pair.npz")
     config = TrainConfig(system="multivehicle9d", steps=3, upper_bound=str(path), **TINY)
@@ -570,16 +572,16 @@ def test_policy_labels_bound_the_value_from_below(pair_grid):
 def test_lower_bound_term_trains_resumes_exactly_and_refuses_misuse(tmp_path, capsys):
     """A 9D run logs the term; stopped and resumed it ends with the same weights as one run straight
     through (the labels travel in the checkpoint); a system with a disturbance is refused."""
-    from training.loss import training_loss
+    from training.loss import Anchors, training_loss
 
     system = MultiVehicle9D()
     torch.manual_seed(0)
     network = ValueNetwork(system, "ssl", width=16)
     x, t = system.sample_states(64), torch.rand(64)
     v = network(x, t).detach()
-    _, terms = training_loss(network, x, t, pde=False, lower_bound=(x, t, v + 0.2))
+    _, terms = training_loss(network, x, t, pde=False, anchors=Anchors(lower_bound=(x, t, v + 0.2)))
     assert terms["lower_bound"] == pytest.approx(0.2, rel=1e-4)
-    _, terms = training_loss(network, x, t, pde=False, lower_bound=(x, t, v - 0.2))
+    _, terms = training_loss(network, x, t, pde=False, anchors=Anchors(lower_bound=(x, t, v - 0.2)))
     assert terms["lower_bound"] == 0.0
 
     _assert_resumes_like_one_run(tmp_path, lower_bound="policy", lower_bound_points=32)

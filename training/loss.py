@@ -145,6 +145,16 @@ class RefutedPoints(NamedTuple):
     weight: float
 
 
+class Anchors(NamedTuple):
+    """What a step knows of the value beside its residual, each term optional (:func:`loss_terms`
+    says how each counts): ``upper_bound`` per point (``+inf`` where unknown), ``lower_bound``
+    labelled points ``(x, t, J)``, ``refuted`` the refuted-claims term's points."""
+
+    upper_bound: torch.Tensor | None = None
+    lower_bound: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+    refuted: RefutedPoints | None = None
+
+
 @dataclass(frozen=True)
 class LossSettings:
     """What a run's loss is fixed to before its first step, passed whole to :func:`loss_terms`.
@@ -195,9 +205,7 @@ def loss_terms(
     *,
     pde: bool = True,
     boundary_mask: torch.Tensor | None = None,
-    upper_bound: torch.Tensor | None = None,
-    lower_bound: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
-    refuted: RefutedPoints | None = None,
+    anchors: Anchors | None = None,
     settings: LossSettings | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Scalar loss and its terms (``pde``, ``boundary``, ``gradient``, ...) as detached 0-d tensors:
@@ -215,9 +223,10 @@ def loss_terms(
     sliver of the domain, which the mean residual barely sees; the bound removes it (see the README's
     training section for the Air3D case that motivated it).
 
-    ``upper_bound`` (per point, ``+inf`` where unknown) adds ``upper_bound_weight * mean(relu(V -
-    upper_bound))`` over all points: a known upper bound of the true value (the union of pairwise
-    BRTs for a multi-vehicle system), which the residual alone does not enforce.
+    ``anchors`` (:class:`Anchors`) holds the optional terms below. ``upper_bound`` (per point,
+    ``+inf`` where unknown) adds ``upper_bound_weight * mean(relu(V - upper_bound))`` over all
+    points: a known upper bound of the true value (the union of pairwise BRTs for a multi-vehicle
+    system), which the residual alone does not enforce.
 
     ``lower_bound`` = ``(x, t, J)``: labelled points with a known lower bound ``J`` of the true value
     (:func:`training.policy_lower_bounds.policy_lower_bound`) add ``weights.lower_bound * mean(relu(J - V(x, t)))``.
@@ -232,6 +241,7 @@ def loss_terms(
     if settings is None:
         settings = LossSettings()
     residual_fn, gradient_bound, weights = settings.residual_fn, settings.gradient_bound, settings.weights
+    upper_bound, lower_bound, refuted = anchors if anchors is not None else Anchors()
     terms: dict[str, torch.Tensor] = {}
     total = x.new_zeros(())
     if pde:

@@ -16,7 +16,7 @@ import torch
 from reach.systems import ControlAffineSystem, MultiVehicle
 from training import pretrained
 from training.config import TrainConfig
-from training.loss import LossSettings, LossWeights, RefutedPoints, loss_terms, residual_function
+from training.loss import Anchors, LossSettings, LossWeights, RefutedPoints, loss_terms, residual_function
 from training.network import ValueNetwork
 from training.policy_lower_bounds import check_lower_bound_system
 from training.sampling import Labels
@@ -95,9 +95,7 @@ class Objective(torch.nn.Module):
             t,
             pde=pde,
             boundary_mask=mask,
-            upper_bound=None if self.upper_bound is None else self.upper_bound_at(x, t),
-            lower_bound=labels,
-            refuted=refuted,
+            anchors=Anchors(None if self.upper_bound is None else self.upper_bound_at(x, t), labels, refuted),
             settings=self.settings,
         )
 
