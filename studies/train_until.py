@@ -44,6 +44,7 @@ import torch
 
 from reach.atomic import atomic_path
 from reach.json_files import read_json, strict
+from reach.systems import ControlAffineSystem
 from safety.filters.settings import DEFAULT_POLICIES
 from safety.verification.metrics import KIND_COLUMNS
 from safety.verification.refuted import recorded_refuted_points
@@ -216,7 +217,9 @@ def _hard_states(run: Path, phases: int, keep: int) -> torch.Tensor | None:
     return torch.cat(parts)[-keep:] if parts else None
 
 
-def _refuted(run: Path, phases: int, settings: TrainUntilSettings, system: Any) -> RefutedPoints | None:
+def _refuted(
+    run: Path, phases: int, settings: TrainUntilSettings, system: ControlAffineSystem
+) -> RefutedPoints | None:
     """The refuted-claims term's points, the last ``max_refuted_points`` of every phase's, or None."""
     if settings.refuted_weight == 0:
         return None
@@ -283,7 +286,7 @@ def train_until(
         per = settings.refuted_per_trajectory if settings.refuted_weight else 0
         row, wrong, (rx, rt) = _verified(trainer, vs, run / "verify-store", per, settings.max_hard_states)
         (run / "hard").mkdir(exist_ok=True)
-        # the refuted points first: a phase's states file marks the phase's files complete on resume
+        # both files before the record names the phase: a resumed run reads them, or reruns the phase
         with atomic_path(run / "hard" / f"phase-{index:03d}-refuted.pt") as tmp:
             torch.save({"x": rx, "t": rt}, tmp)
         with atomic_path(run / "hard" / f"phase-{index:03d}.pt") as tmp:

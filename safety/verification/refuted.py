@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import torch
 
+from reach.value_function import ValueFunction
 from safety.verification.rollout import RolloutResult, RolloutSettings, rollout
 
 __all__ = ["recorded_refuted_points", "refuted_points"]
@@ -54,7 +55,7 @@ def refuted_points(
 
 
 def recorded_refuted_points(
-    value_function: object,
+    value_function: ValueFunction,
     states: torch.Tensor,
     settings: RolloutSettings,
     per_trajectory: int,
