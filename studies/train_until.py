@@ -256,11 +256,12 @@ def train_until(
     wanted = strict(asdict(settings))
     if path.exists():
         record = read_json(path, "train-until record")
-        if record.get("settings") != wanted:
+        if recorded_settings(record.get("settings")) != wanted:
             raise ValueError(
                 f"{str(path)!r} was written with other settings {record.get('settings')}; "
                 "use another run directory or the same settings"
             )
+        record["settings"] = wanted
     else:
         record = {"settings": wanted, "phases": [], "final": None, "stopped": None}
     if record["final"] is not None:
@@ -312,6 +313,16 @@ def train_until(
     record["final"] = {"seed": vs.seed, "steps": trainer.step, "holds": holds(row, settings), "verification": row}
     _write(path, record)
     return record
+
+
+def recorded_settings(stored: object) -> object:
+    """A record's settings with every field it does not hold at its default: a field added to
+    :class:`TrainUntilSettings` after the record was written defaults to the loop's behaviour before
+    it existed (each new field must), so an older run continues under the same settings."""
+    if not isinstance(stored, dict):
+        return stored
+    defaults = strict(asdict(TrainUntilSettings()))
+    return {**{k: v for k, v in defaults.items() if k not in stored}, **stored}
 
 
 def settings_fields() -> tuple[str, ...]:

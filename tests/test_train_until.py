@@ -172,6 +172,19 @@ def test_resumes_after_an_interruption_without_repeating_a_phase(tmp_path):
         train_until(CONFIG, run, replace(SETTINGS, samples=301), progress=False)
 
 
+def test_a_record_written_before_a_setting_existed_continues_at_its_default(tmp_path):
+    run = tmp_path / "run"
+    train_until(CONFIG, run, SETTINGS, progress=False, stop_after_phases=1)
+    record = _phases(run)
+    for name in ("refuted_weight", "refuted_margin", "refuted_per_trajectory", "max_refuted_points"):
+        del record["settings"][name]  # as an older loop wrote it
+    (run / "phases.json").write_text(json.dumps(record))
+    with pytest.raises(ValueError, match="other settings"):  # the new setting away from its default
+        train_until(CONFIG, run, replace(SETTINGS, refuted_weight=1.0), progress=False)
+    done = train_until(CONFIG, run, SETTINGS, progress=False)
+    assert [p["steps"] for p in done["phases"]] == [40, 80] and done["settings"]["refuted_weight"] == 0.0
+
+
 def test_resumes_after_sigint_in_the_middle_of_a_phase(tmp_path, monkeypatch):
     run = tmp_path / "run"
     optimise = Trainer._optimise
