@@ -63,7 +63,6 @@ def main() -> None:
     parser.add_argument("--time", type=float, default=None, help="time-to-go (default: the horizon)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    torch.manual_seed(args.seed)
     rows = {m: terms(m, args.samples, args.time, args.seed) for m in args.models}
     names = list(next(iter(rows.values())))
     print(f"{args.samples} uniform states (seed {args.seed}), time-to-go {args.time or 'the horizon'}")

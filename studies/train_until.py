@@ -179,7 +179,11 @@ def holds(row: dict[str, Any], settings: TrainUntilSettings) -> bool:
 
 
 def _verified(
-    trainer: Trainer, vs: VerifySettings, scratch: Path, refuted_per_trajectory: int = 0, keep: int = 8192
+    trainer: Trainer,
+    vs: VerifySettings,
+    scratch: Path,
+    refuted_per_trajectory: int = 0,
+    keep: int = TrainUntilSettings.max_hard_states,
 ) -> tuple[dict[str, Any], torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
     """The verification row of the trainer's network on ``vs.samples`` fresh states, the states it
     found wrong (claimed, and failed; the rollouts come back from a store, not simulated twice), and

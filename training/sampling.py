@@ -76,18 +76,37 @@ class PointSampler:
         self.generator.manual_seed(self.seed)
         box = torch.tensor(training_box(network.system), dtype=torch.float32, device=device)
         self._low, self._span = box[:, 0], box[:, 1] - box[:, 0]
-        #: states where the network was found wrong (set by a caller such as studies.train_until, never
-        #: checkpointed: the caller keeps them): with :attr:`hard_fraction` > 0 each step replaces that
-        #: share of its uniform points by points near them (:meth:`mix_hard_states`)
-        self.hard_states: torch.Tensor | None = None
+        self._hard_states: torch.Tensor | None = None
+        self._refuted: RefutedPoints | None = None
         self.hard_fraction = 0.0
         #: how near: a uniform offset of up to this share of the box's side, per dimension
         self.hard_radius = 0.05
-        #: every point ``(x, t)`` from which the network's own policy was seen to fail, with the
-        #: refuted-claims term's sign, margin and weight (set by a caller such as studies.train_until,
-        #: never checkpointed): each step draws ``hard_fraction`` of its point count of them
-        #: (:meth:`refuted_batch`)
-        self.refuted: RefutedPoints | None = None
+
+    @property
+    def hard_states(self) -> torch.Tensor | None:
+        """States where the network was found wrong (set by a caller such as studies.train_until, never
+        checkpointed: the caller keeps them; held on the sampler's device, moved once when set): with
+        :attr:`hard_fraction` > 0 each step replaces that share of its uniform points by points near
+        them (:meth:`mix_hard_states`)."""
+        return self._hard_states
+
+    @hard_states.setter
+    def hard_states(self, states: torch.Tensor | None) -> None:
+        self._hard_states = None if states is None else states.to(self.device, torch.float32)
+
+    @property
+    def refuted(self) -> RefutedPoints | None:
+        """Every point ``(x, t)`` from which the network's own policy was seen to fail, with the
+        refuted-claims term's sign, margin and weight (set by a caller such as studies.train_until,
+        never checkpointed; held on the sampler's device, moved once when set): each step draws
+        ``hard_fraction`` of its point count of them (:meth:`refuted_batch`)."""
+        return self._refuted
+
+    @refuted.setter
+    def refuted(self, points: RefutedPoints | None) -> None:
+        if points is not None:
+            points = points._replace(x=points.x.to(self.device), t=points.t.to(self.device))
+        self._refuted = points
 
     def uniform(self, n: int, tmax: float) -> tuple[torch.Tensor, torch.Tensor]:
         """``n`` states uniform on the training box (:func:`training_box`) and times uniform on
@@ -117,7 +136,7 @@ class PointSampler:
         count = min(count, x.shape[0] - start)
         pick = torch.randint(hard.shape[0], (count,), generator=g, device=self.device)
         offset = (torch.rand((count, x.shape[1]), generator=g, device=self.device) * 2 - 1) * self.hard_radius
-        near = hard.to(self.device, x.dtype)[pick] + offset * self._span
+        near = hard.to(x.dtype)[pick] + offset * self._span
         x = x.clone()
         x[start : start + count] = torch.minimum(torch.maximum(near, self._low), self._low + self._span)
         return x
@@ -133,10 +152,8 @@ class PointSampler:
         reached = torch.nonzero(every.t <= tmax).squeeze(-1)
         if reached.numel() == 0:
             return None
-        draw = torch.randint(reached.numel(), (count,), generator=self.generator, device=self.device)
-        pick = reached.to(self.device)[draw]
-        x, t = every.x.to(self.device), every.t.to(self.device)
-        return every._replace(x=x[pick], t=t[pick])
+        pick = reached[torch.randint(reached.numel(), (count,), generator=self.generator, device=self.device)]
+        return every._replace(x=every.x[pick], t=every.t[pick])
 
     def draw_shapes(self) -> list[tuple[int, ...]]:
         """The shapes of one step's uniform draws on [0, 1), in the stream's order: the states and the
