@@ -32,7 +32,9 @@ def _phases(run):
 
 
 def test_settings_refuse_bad_values_naming_them():
-    for name, value in [("phase_steps", 0), ("target_eps", 1.5), ("hard_fraction", 1.0), ("samples", True)]:
+    bad = [("phase_steps", 0), ("target_eps", 1.5), ("hard_fraction", 1.0), ("samples", True)]
+    bad += [("refuted_weight", -1.0), ("refuted_margin", float("nan")), ("refuted_per_trajectory", 0)]
+    for name, value in bad:
         with pytest.raises(ValueError, match=name):
             replace(SETTINGS, **{name: value})
     with pytest.raises(ValueError, match="dt"):
@@ -93,6 +95,8 @@ def test_refuted_points_lie_on_failed_rollouts_before_their_failure(tmp_path):
     assert again.num_states == x.shape[0] and sum(fails) >= 0.95 * len(fails)
     with pytest.raises(ValueError, match="recorded"):
         refuted_points(rollout(vf, states[:5], settings, progress=False), settings, 4)
+    with pytest.raises(ValueError, match="per_trajectory"):
+        refuted_points(result, settings, 0)
 
 
 def test_the_refuted_term_is_what_the_loss_adds_and_it_lowers_the_claims(tmp_path):
@@ -219,11 +223,12 @@ def test_final_bound_uses_states_no_phase_drew(tmp_path):
 
 
 def test_cli_bad_input_is_one_line_exit_2(capsys):
-    with pytest.raises(SystemExit) as exit_info:
-        main(["train-until", "--out", "unused", "--target-eps", "-1"])
-    assert exit_info.value.code == 2
-    err = capsys.readouterr().err.strip()
-    assert "\n" not in err and "--target-eps" in err
+    for flag, value in [("--target-eps", "-1"), ("--refuted-weight", "-1"), ("--refuted-margin", "nan")]:
+        with pytest.raises(SystemExit) as exit_info:
+            main(["train-until", "--out", "unused", flag, value])
+        assert exit_info.value.code == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and flag in err
 
 
 def test_cli_trains_until_and_records_the_phases(tmp_path, capsys):
