@@ -6,7 +6,7 @@ Run on a quiet machine (the budget is wall time)::
 
 For each seed it trains both recipes for the same wall-clock budget, one after the other, with the
 same threads (``reach train --system air3d --budget 3m`` for the defaults, the same with
-:data:`training.recipes.AIR3D_FAST`'s settings for the fast one), then scores each final network
+:data:`training.recipes.CPU_3D`'s settings for the fast one), then scores each final network
 against the 101^3 grid at t = 1.0 (solved into ``--gt`` if missing): volume IoU of the BRT and value
 MSE over all grid nodes, the metrics DeepReach published (IoU 0.957, MSE 1.8e-4; our goal IoU >= 0.96
 and MSE <= 1.8e-4). The table gives each run's steps and its training seconds (compilation included,
@@ -26,10 +26,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from reach_cli import main as reach_main
 from reach_cli.train import train_flags
 from training.config import parse_duration
-from training.recipes import AIR3D_FAST
+from training.recipes import CPU_3D
 
 #: what each row trains besides ``--system air3d --budget B --seed S``
-RECIPES = {"defaults": {}, "fast (AIR3D_FAST)": AIR3D_FAST}
+RECIPES = {"defaults": {}, "fast (CPU_3D)": CPU_3D}
 GOAL = {"iou_volume": 0.96, "mse_volume": 1.8e-4}
 
 

@@ -76,7 +76,7 @@ def run_demo(
     from studies.filter_tables import filter_table
     from studies.plots import plot_brt_slices
     from training import TrainConfig, Trainer
-    from training.recipes import AIR3D_FAST
+    from training.recipes import CPU_3D
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -91,10 +91,10 @@ def run_demo(
     gt = GridSolution.load(gt_path, outside="clamp")
 
     run = out / "air3d-ssssl"
-    config = TrainConfig(system="air3d", layout="ssssl", budget_s=budget_s, seed=seed, **AIR3D_FAST)
+    config = TrainConfig(system="air3d", layout="ssssl", budget_s=budget_s, seed=seed, **CPU_3D)
     trainer = Trainer.open(config, run, progress=progress)  # an interrupted demo continues its run
     if trainer.needs_training():
-        log(f"[2/5] training layout ssssl for {trainer.config.budget_s:.0f} s (the AIR3D_FAST recipe)")
+        log(f"[2/5] training layout ssssl for {trainer.config.budget_s:.0f} s (the CPU_3D recipe)")
         trainer.train()
     network = load_value_function(run).value_function
 
@@ -130,7 +130,7 @@ def run_demo(
     text = f"""# reach demo: Air3D
 
 Ground truth: {grid}^3 grid, horizon 1.1. Trained network: layout ssssl, width 128, {budget_s:.0f} s
-of `reach train` defaults with {trainer.config.points} points a step (`training.recipes.AIR3D_FAST`; run
+of `reach train` defaults with {trainer.config.points} points a step (`training.recipes.CPU_3D`; run
 directory `{run.name}`). Total wall time {time.perf_counter() - start:.0f} s.
 
 ## Verification ({samples} rollouts per value function, Euler dt 0.0025, worst-case pursuer)
