@@ -12,10 +12,10 @@ from typing import Any
 
 __all__ = ["CPU_3D"]
 
-#: 3D systems on a CPU budget of minutes: the defaults at a quarter of the points per step, so that a CPU takes about
-#: 3.5x as many (smaller) steps in the same time and each still sees the whole curriculum. Measured on Air3D in
-#: three minutes (issue 45, ``benchmarks/air3d_three_minutes.py``) and on reach-avoid cars in ten (issue 63: the
-#: built-in car, and one written as a user would, ``benchmarks/user_car_ten_minutes.py``); results on
+#: 3D systems on a CPU budget of minutes: the defaults at a quarter of the points per step, so that a CPU takes
+#: 3.5-5x as many (smaller) steps in the same time and each still sees the whole curriculum. Measured on Air3D in
+#: three minutes (issue 45, ``benchmarks/air3d_three_minutes.py``), and in ten on Dubins3D, the built-in
+#: reach-avoid car and one written as a user would (issue 63, ``benchmarks/user_car_ten_minutes.py``); results on
 #: docs/results/training.md, *Air3D in three minutes* and *A reach-avoid car of one's own in ten minutes*.
 #: ``reach demo`` trains with it. The defaults keep 8,192 points, with which every card past three dimensions and
 #: every GPU recipe was measured.
