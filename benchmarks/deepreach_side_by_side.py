@@ -20,8 +20,9 @@ Issue 63, item 4. For each system, on the CPU, one after the other:
      one raises.
 
    The harness kills it ``--budget`` after its script starts and takes that last state.
-   ``--deepreach-arg KEY=VALUE`` passes any other option of the release (say ``num_epochs=600``, a
-   curriculum that ends inside the budget), and the output lists each.
+   ``--deepreach-arg KEY=VALUE`` passes any other option of the release (say ``counter_end=15``, a
+   curriculum that ends inside the budget while training goes on at the full horizon), and the output
+   lists each.
 2. ``training.deepreach.load_deepreach`` imports that state (the release's ``diff_model``); its
    boundary error ``|V(x, 0) - l(x)|`` and its largest gap to DeepReach's own value of the same file
    (its ``io_to_value``, run in a process of its own, the ``_deepreach-values`` entry) are printed, and
