@@ -370,7 +370,8 @@ def compare(name: str, checkout: Path, commit: str, args: argparse.Namespace) ->
     meta = {"deepreach_commit": commit, "updates": theirs["updates_in_checkpoint"]}
     theirs["boundary_error"], net = import_deepreach(theirs["checkpoint"], system, target, meta, layout)
     theirs["import_max_abs_gap"] = import_gap(net, checkout, theirs["checkpoint"], problem, out / "deepreach")
-    print(f"[{name}] reach train, {args.budget_s:g} s", flush=True)
+    what = "the shipped model (its card's budget)" if args.ours == "pretrained" else f"reach train, {args.budget_s:g} s"
+    print(f"[{name}] ours: {what}", flush=True)
     source, our_run = ours(name, out, args)
     table = out / "scores.csv"
     print(f"[{name}] reach evaluate, both models on the same states", flush=True)
