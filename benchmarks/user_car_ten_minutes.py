@@ -36,6 +36,7 @@ sys.path.insert(0, str(HERE.parent / "examples"))  # the tutorial's ``my_systems
 
 from reach.systems import Box, ControlAffineSystem  # noqa: E402
 from reach_cli import main as reach_main  # noqa: E402
+from reach_cli.sweep import parse_train_options  # noqa: E402
 from reach_cli.train import train_flags  # noqa: E402
 
 GOAL_IOU = 0.97
@@ -112,16 +113,6 @@ def _score(run: Path, gt: Path) -> dict:
     return evaluator(NeuralValueFunction(load_network(run / "checkpoint.pt")))
 
 
-def _recipe(items: list[str]) -> dict:
-    fields = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise SystemExit(f"--recipe takes FIELD=VALUE, got {item!r}")
-        fields[key] = value
-    return fields
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--budget", default="10m")
@@ -137,7 +128,10 @@ def main() -> int:
     parser.add_argument("--gt", default="runs/user-car/gt101.npz", help="ground-truth cache (101^3)")
     parser.add_argument("--out", required=True, help="the run's folder")
     args = parser.parse_args()
-    fields = _recipe(args.recipe)
+    try:
+        fields = parse_train_options(args.recipe, "--recipe")
+    except ValueError as err:
+        raise SystemExit(str(err)) from err
     # a system named by a file is imported only when named on purpose: the grid and the checkpoint name it too
     if ":" in args.system:
         importlib.import_module(args.system.partition(":")[0])

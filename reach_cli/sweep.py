@@ -102,13 +102,14 @@ def parse_seeds(text: str) -> list[int]:
     return list(range(count))
 
 
-def parse_train_options(items: Sequence[str]) -> dict[str, object]:
-    """``KEY=VALUE`` training options; values are read as JSON where they parse, else as strings."""
+def parse_train_options(items: Sequence[str], option: str = "--train") -> dict[str, object]:
+    """``KEY=VALUE`` training options; values are read as JSON where they parse, else as strings. An
+    item without a key or ``=`` raises ``ValueError`` naming ``option``, the flag that gave it."""
     options: dict[str, object] = {}
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key:
-            raise ValueError(f"--train expects KEY=VALUE, got {item!r}")
+            raise ValueError(f"{option} expects KEY=VALUE, got {item!r}")
         try:
             options[key.replace("-", "_")] = json.loads(value)
         except json.JSONDecodeError:

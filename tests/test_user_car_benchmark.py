@@ -48,7 +48,7 @@ def test_the_benchmark_trains_and_scores_against_a_grid(tmp_path):
                           cwd=ROOT, env=env)  # fmt: skip
     assert done.returncode == 0, done.stderr
     score = json.loads((run / "score.json").read_text())
-    assert score["steps"] == 5 and score["recipe"] == {"points": "256"}
+    assert score["steps"] == 5 and score["recipe"] == {"points": 256}
     assert 0 <= score["iou_volume"] <= 1 and score["mse_volume"] > 0
     assert "volume IoU" in done.stdout
 
@@ -60,5 +60,5 @@ def test_a_recipe_without_a_value_stops_in_one_line(tmp_path):
         text=True,
         cwd=ROOT,
     )
-    assert done.returncode != 0 and "--recipe takes FIELD=VALUE, got 'points'" in done.stderr
+    assert done.returncode != 0 and "--recipe expects KEY=VALUE, got 'points'" in done.stderr
     assert "Traceback" not in done.stderr and not (tmp_path / "r").exists()
