@@ -1,0 +1,74 @@
+"""benchmarks/rocket_exact_reach.py: the reach rocket's exact reach set, checked against simulated
+thrust (every state some simulated input lands from is in the set; a constant world-frame thrust at
+the set's rim lands) and against the zone itself."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from reach.systems import RocketLanding
+
+
+@pytest.fixture()
+def exact(monkeypatch):
+    from pathlib import Path
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import rocket_exact_reach
+
+    return rocket_exact_reach.exactly_reachable
+
+
+def _lands(system: RocketLanding, x: torch.Tensor, world_thrust: torch.Tensor, dt: float = 0.001) -> torch.Tensor:
+    """Simulate the system's own dynamics with a body-frame input that holds ``world_thrust`` (N, k, 2)
+    in the world frame (a new one each ``1 / k`` of the horizon); whether the zone is met."""
+    x = x.double().clone()
+    landed = torch.zeros(x.shape[0], dtype=torch.bool)
+    steps = round(system.horizon / dt)
+    for k in range(steps + 1):
+        margin = torch.maximum(x[:, 0].abs() - system.landing_half_width, x[:, 1] - system.landing_height)
+        landed |= margin <= 0
+        a = world_thrust[:, min(k * world_thrust.shape[1] // steps, world_thrust.shape[1] - 1)]
+        c, s = torch.cos(x[:, 2]), torch.sin(x[:, 2])
+        u = torch.stack([c * a[:, 0] + s * a[:, 1], -s * a[:, 0] + c * a[:, 1]], -1)  # R(th)^T a
+        x = x + dt * system.dynamics(x, u)
+    return landed
+
+
+def test_every_landing_input_starts_inside_the_exact_set(exact):
+    system = RocketLanding()
+    g = torch.Generator().manual_seed(0)
+    x = system.sample_states(400, generator=g, dtype=torch.float64)
+    angles = torch.rand((400, 4), generator=g, dtype=torch.float64) * 2 * math.pi
+    thrust = system.thrust * torch.stack([torch.cos(angles), torch.sin(angles)], -1)
+    landed = _lands(system, x, thrust)
+    assert int(landed.sum()) > 20  # the check has cases
+    assert bool(exact(system, x)[landed].all())
+
+
+def test_the_exact_sets_states_land_under_a_constant_thrust_at_its_rim(exact):
+    """From each state the set holds, aim at the zone point the reachable disc first touches: a
+    constant world-frame thrust of full size towards it lands."""
+    system = RocketLanding()
+    x = system.sample_states(2000, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    inside = exact(system, x, 400)
+    x = x[inside][:200]
+    t = torch.linspace(0.0, system.horizon, 401, dtype=torch.float64)[:, None]
+    cx, cy = x[:, 0] + x[:, 3] * t, x[:, 1] + x[:, 4] * t - 0.5 * system.gravity * t**2
+    nearest_x = cx.clamp(-system.landing_half_width, system.landing_half_width)
+    nearest_y = cy.clamp(max=system.landing_height)
+    gap = torch.hypot(nearest_x - cx, nearest_y - cy) - 0.5 * system.thrust * t**2
+    first = (gap <= 0).double().argmax(0)  # the first time the disc meets the zone
+    pick = torch.arange(len(x))
+    aim = torch.stack([nearest_x[first, pick] - cx[first, pick], nearest_y[first, pick] - cy[first, pick]], -1)
+    direction = aim / aim.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    assert bool(_lands(system, x, (system.thrust * direction)[:, None, :], dt=0.0005).all())
+
+
+def test_the_zone_is_reachable_and_a_rocket_far_off_flying_away_is_not(exact):
+    system = RocketLanding()
+    x = torch.tensor([[0.0, 15.0, 0.0, 0.0, 0.0, 0.0], [150.0, 150.0, 0.0, 200.0, 200.0, 0.0]])
+    assert exact(system, x).tolist() == [True, False]
