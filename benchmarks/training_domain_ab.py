@@ -13,7 +13,8 @@ stopped when the command is repeated. ``score`` rolls every value function out f
 ``--samples`` uniform states of the domain (``--seed 0``: the model cards' states) under its own
 policy with the cards' protocol, and prints its wrong claims and, for the first 2,000 wrong claims'
 trajectories, the share that left the domain, through which faces, and the share that left the
-system's training box as well. The rockets (docs/results/training.md, "The rockets' training box")::
+wider box as well (``--box`` and ``--widen`` as for ``train``; default: the system's training box).
+The rockets (docs/results/training.md, "The rockets' training box")::
 
     python benchmarks/training_domain_ab.py train --system reachavoidrocketlanding --box domain \\
         --steps 10000 --threads 1 --out runs/ra-rocket-domain/box
@@ -21,7 +22,8 @@ system's training box as well. The rockets (docs/results/training.md, "The rocke
         --widen y=0:150 --widen vy=-343.43:200 --widen w=-85:85 \\
         --steps 10000 --threads 1 --out runs/ra-rocket-domain/training-domain
     python benchmarks/training_domain_ab.py score runs/ra-rocket-domain/box \\
-        runs/ra-rocket-domain/training-domain --samples 100000
+        runs/ra-rocket-domain/training-domain --samples 100000 --box domain \\
+        --widen y=0:150 --widen vy=-343.43:200 --widen w=-85:85
 
 Two runs train side by side on two cores with ``--threads 1`` each; they are compared by steps, not
 by wall time.
@@ -88,7 +90,14 @@ def train(system_name: str, base: str, steps: int, threads: int, out: Path, wide
     print(f"{out}: points from {box}, {summary.get('steps', steps)} steps, {wall:.0f} s")
 
 
-def score(sources: list[str], samples: int, seed: int, threads: int) -> None:
+def score(
+    sources: list[str],
+    samples: int,
+    seed: int,
+    threads: int,
+    base: str = "training-domain",
+    widen: list[str] | None = None,
+) -> None:
     """Wrong claims of every source on the same states, and where the wrong claims' trajectories went."""
     from safety.value_loading import load_value_function  # lazy: heavy imports after parsing
     from safety.verification.rollout import rollout
@@ -96,7 +105,7 @@ def score(sources: list[str], samples: int, seed: int, threads: int) -> None:
 
     torch.set_num_threads(threads)
     print(
-        "| value function | claims % | wrong claims % | wrong claims leaving the domain | ... the training box "
+        "| value function | claims % | wrong claims % | wrong claims leaving the domain | ... the wider box "
         "| through (share of them, >= 0.05) |"
     )
     print("|---|---:|---:|---:|---:|---|")
@@ -121,7 +130,7 @@ def score(sources: list[str], samples: int, seed: int, threads: int) -> None:
                 if share >= 0.05:
                     faces.append(f"{name} {side} {float(bound[j]):g}: {share:.2f}")
         leaving = float((below | above).any(1).double().mean()) if len(path[0]) else float("nan")
-        wide = torch.tensor(system.training_domain(), dtype=path.dtype)
+        wide = torch.tensor(widened_box(system, base, widen or []), dtype=path.dtype)
         beyond = ((path < wide[:, 0]) | (path > wide[:, 1])).any(0).any(1)
         leaving_wide = float(beyond.double().mean()) if len(path[0]) else float("nan")
         print(
@@ -145,6 +154,8 @@ def main() -> None:
     s.add_argument("--samples", type=int, default=100_000)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--threads", type=int, default=2)
+    s.add_argument("--box", choices=("domain", "training-domain"), default="training-domain", help="the wider box")
+    s.add_argument("--widen", action="append", default=[], metavar="NAME=LOW:HIGH", help="one state's range")
     args = parser.parse_args()
     if args.command == "train":
         if args.steps < 1:
@@ -153,7 +164,7 @@ def main() -> None:
     else:
         if args.samples < 1:
             parser.error(f"--samples must be at least 1, got {args.samples}")
-        score(args.sources, args.samples, args.seed, args.threads)
+        score(args.sources, args.samples, args.seed, args.threads, args.box, args.widen)
 
 
 if __name__ == "__main__":

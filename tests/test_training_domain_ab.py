@@ -59,9 +59,10 @@ def test_a_malformed_widening_is_refused(ab, item, match):
 
 def test_the_score_lists_wrong_claims_and_their_exits(ab, tmp_path, capsys):
     ab.train("reachavoidrocketlanding", "domain", 2, 1, tmp_path / "box")
-    ab.score([str(tmp_path / "box")], samples=300, seed=0, threads=1)
+    ab.score([str(tmp_path / "box")], samples=300, seed=0, threads=1, base="domain", widen=WIDE)
     rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith(f"| {tmp_path}")]
     assert len(rows) == 1
     cells = [c.strip() for c in rows[0].strip("|").split("|")]
     claims, wrong = float(cells[1]), float(cells[2])
     assert 0 <= wrong <= claims <= 100 and cells[3].endswith(f"of {min(2000, round(3 * wrong))}")
+    assert 0 <= float(cells[4]) <= float(cells[3].split()[0])  # the wider box holds the domain
