@@ -31,6 +31,7 @@ sys.path.insert(0, str(HERE.parent))
 import torch  # noqa: E402
 
 from reach.systems import RocketLanding  # noqa: E402
+from reach.validation import positive_int_arg  # noqa: E402
 
 
 def exactly_reachable(system: RocketLanding, x: torch.Tensor, time_steps: int = 4000) -> torch.Tensor:
@@ -50,14 +51,11 @@ def exactly_reachable(system: RocketLanding, x: torch.Tensor, time_steps: int = 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("sources", nargs="+", help="value functions of rocketlanding (run dirs, pretrained:NAME)")
-    parser.add_argument("--samples", type=int, default=20_000)
+    parser.add_argument("--samples", type=positive_int_arg, default=20_000)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--time-steps", type=int, default=4000)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--time-steps", type=positive_int_arg, default=4000)
+    parser.add_argument("--threads", type=positive_int_arg, default=2)
     args = parser.parse_args()
-    for name, value in (("--samples", args.samples), ("--time-steps", args.time_steps)):
-        if value < 1:
-            parser.error(f"{name} must be at least 1, got {value}")
     from safety.value_loading import load_value_function  # lazy: heavy imports after parsing
     from safety.verification.rollout import rollout
     from safety.verification.verify import sample_states

@@ -41,6 +41,7 @@ sys.path.insert(0, str(HERE.parent))
 import torch  # noqa: E402
 
 from reach.systems import ControlAffineSystem, make_system  # noqa: E402
+from reach.validation import positive_int_arg  # noqa: E402
 
 #: trajectories recorded per value function to find where its wrong claims go (record keeps every state)
 RECORDED = 2000
@@ -104,13 +105,18 @@ def score(
     from safety.verification.verify import sample_states
 
     torch.set_num_threads(threads)
+    value_functions = []  # every source loaded and checked before any rollout
+    for source in sources:
+        try:
+            value_functions.append((source, load_value_function(source).value_function))
+        except ValueError as error:
+            raise SystemExit(f"training_domain_ab: {error}") from None
     print(
         "| value function | claims % | wrong claims % | wrong claims leaving the domain | ... the wider box "
         "| through (share of them, >= 0.05) |"
     )
     print("|---|---:|---:|---:|---:|---|")
-    for source in sources:
-        vf = load_value_function(source).value_function
+    for source, vf in value_functions:
         system = vf.system
         x = sample_states(system, samples, seed)
         result = rollout(vf, x, progress=False)
@@ -146,24 +152,20 @@ def main() -> None:
     t.add_argument("--system", required=True)
     t.add_argument("--box", choices=("domain", "training-domain"), default="domain", help="the box to start from")
     t.add_argument("--widen", action="append", default=[], metavar="NAME=LOW:HIGH", help="one state's range")
-    t.add_argument("--steps", type=int, required=True)
-    t.add_argument("--threads", type=int, default=1)
+    t.add_argument("--steps", type=positive_int_arg, required=True)
+    t.add_argument("--threads", type=positive_int_arg, default=1)
     t.add_argument("--out", type=Path, required=True)
     s = sub.add_parser("score", help="wrong claims and where their trajectories went")
     s.add_argument("sources", nargs="+", help="run directories, checkpoints or pretrained:NAME")
-    s.add_argument("--samples", type=int, default=100_000)
+    s.add_argument("--samples", type=positive_int_arg, default=100_000)
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--threads", type=int, default=2)
+    s.add_argument("--threads", type=positive_int_arg, default=2)
     s.add_argument("--box", choices=("domain", "training-domain"), default="training-domain", help="the wider box")
     s.add_argument("--widen", action="append", default=[], metavar="NAME=LOW:HIGH", help="one state's range")
     args = parser.parse_args()
     if args.command == "train":
-        if args.steps < 1:
-            parser.error(f"--steps must be at least 1, got {args.steps}")
         train(args.system, args.box, args.steps, args.threads, args.out, args.widen)
     else:
-        if args.samples < 1:
-            parser.error(f"--samples must be at least 1, got {args.samples}")
         score(args.sources, args.samples, args.seed, args.threads, args.box, args.widen)
 
 

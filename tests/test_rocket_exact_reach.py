@@ -72,3 +72,22 @@ def test_the_zone_is_reachable_and_a_rocket_far_off_flying_away_is_not(exact):
     system = RocketLanding()
     x = torch.tensor([[0.0, 15.0, 0.0, 0.0, 0.0, 0.0], [150.0, 150.0, 0.0, 200.0, 200.0, 0.0]])
     assert exact(system, x).tolist() == [True, False]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["pretrained:rocketlanding", "--time-steps", "0"], "argument --time-steps: must be >= 1, got 0"),
+        (["pretrained:air3d"], "not a reach problem (rocketlanding): their values do not compare"),
+    ],
+)
+def test_bad_arguments_stop_in_one_line_before_any_rollout(args, message):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "rocket_exact_reach.py"
+    done = subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True, timeout=120)
+    assert done.returncode != 0 and "Traceback" not in done.stderr
+    assert done.stderr.strip().splitlines()[-1].endswith(message)
+    assert "uniform states" not in done.stdout  # nothing was sampled or rolled out

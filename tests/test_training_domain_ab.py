@@ -66,3 +66,30 @@ def test_the_score_lists_wrong_claims_and_their_exits(ab, tmp_path, capsys):
     claims, wrong = float(cells[1]), float(cells[2])
     assert 0 <= wrong <= claims <= 100 and cells[3].endswith(f"of {min(2000, round(3 * wrong))}")
     assert 0 <= float(cells[4]) <= float(cells[3].split()[0])  # the wider box holds the domain
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (
+            ["train", "--system", "rocketlanding", "--steps", "0", "--out", "OUT"],
+            "argument --steps: must be >= 1, got 0",
+        ),
+        (["score", "pretrained:rocketlanding", "--samples", "-5"], "argument --samples: must be >= 1, got -5"),
+        (
+            ["score", "pretrained:rocketlanding", "no-such-run"],
+            "training_domain_ab: no-such-run: no such file or directory",
+        ),
+    ],
+)
+def test_bad_arguments_stop_in_one_line_before_any_work(args, message, tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "training_domain_ab.py"
+    args = [str(tmp_path / "out") if a == "OUT" else a for a in args]
+    done = subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True, timeout=120)
+    assert done.returncode != 0 and "Traceback" not in done.stderr
+    assert done.stderr.strip().splitlines()[-1].endswith(message)
+    assert not (tmp_path / "out").exists()
