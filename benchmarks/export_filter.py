@@ -5,6 +5,7 @@ Two studies, one command each (docs/results/export.md holds their tables):
     python benchmarks/export_filter.py equivalence --states 100000 [--engine native]
     python benchmarks/export_filter.py latency --calls 3000
     python benchmarks/export_filter.py graph
+    python benchmarks/export_filter.py export-time air3d quadrotor [--no-onnx-optimizer]
 
 For each system (Air3D's shipped network, the shipped 9D network, a user's system from
 ``examples/my_systems.py`` trained for a few hundred steps here) and each filter kind (each with its
@@ -30,6 +31,13 @@ kept, states intervened on); then states per second at batch 1024. Run it on a q
 nothing else may run beside it.
 
 ``--engine native`` makes ``equivalence`` compare the native engine with the torch filter.
+
+``export-time`` times ``export_filter("pretrained:NAME", ...)`` with its defaults, self-check
+included, for each shipped model named, one after the other in one process (the first pays
+torch's and ONNX's imports), and prints the file's size and the runtime's time per decision of 256
+states (20 calls after one warm-up). ``--no-onnx-optimizer`` exports with torch's ONNX optimizer
+off (``torch.onnx.export(..., optimize=False)``), to see what that pass costs and what it buys.
+Run it on a quiet machine.
 """
 
 from __future__ import annotations
@@ -279,6 +287,36 @@ def graph(args: argparse.Namespace) -> None:
         print(f"| {name} | {alone} | {with_gradient} | {' | '.join(map(str, nodes))} |", flush=True)
 
 
+def export_time(args: argparse.Namespace) -> None:
+    """Wall time of each shipped model's export with its defaults, the file's size and the runtime's
+    time per batch of 256 decisions."""
+    import functools
+    import tempfile
+
+    if args.no_onnx_optimizer:  # the only way in: export_filter keeps torch's ONNX optimizer on
+        torch.onnx.export = functools.partial(torch.onnx.export, optimize=False)
+    print("| model | export (s) | file (MB) | runtime per 256 decisions (ms) |")
+    print("|---|---:|---:|---:|")
+    with tempfile.TemporaryDirectory() as scratch:
+        for name in args.names:
+            start = time.perf_counter()
+            result = export_filter(f"pretrained:{name}", Path(scratch) / f"{name}.onnx")
+            seconds = time.perf_counter() - start
+            runtime = Filter.load(result.path)
+            meta = runtime.metadata
+            low, high = np.array(meta.domain).T
+            x = np.random.default_rng(args.seed).uniform(low, high, (256, meta.state_dim)).astype(np.float32)
+            u = np.zeros((256, meta.control_dim), np.float32)
+            t = 0.5 * sum(meta.time_range)
+            runtime(x, u, t)
+            start = time.perf_counter()
+            for _ in range(20):
+                runtime(x, u, t)
+            per_call = (time.perf_counter() - start) / 20
+            size = result.path.stat().st_size / 1e6
+            print(f"| {name} | {seconds:.1f} | {size:.2f} | {1e3 * per_call:.2f} |", flush=True)
+
+
 def main() -> None:
     warnings.filterwarnings("ignore")
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -307,8 +345,18 @@ def main() -> None:
             p.add_argument(
                 "--prepare", action="store_true", help="export (or reuse) and compile the filters, time nothing"
             )
+    p = sub.add_parser("export-time", help="time each shipped model's export with its defaults")
+    from training.pretrained import card, names
+
+    networks = [n for n in names() if card(n).format == "network"]
+    p.add_argument(
+        "names", nargs="+", choices=networks, metavar="NAME", help=f"shipped networks: {', '.join(networks)}"
+    )
+    p.add_argument("--no-onnx-optimizer", action="store_true", help="export with torch's ONNX optimizer off")
+    p.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    {"equivalence": equivalence, "latency": latency, "graph": graph}[args.study](args)
+    studies = {"equivalence": equivalence, "latency": latency, "graph": graph, "export-time": export_time}
+    studies[args.study](args)
 
 
 if __name__ == "__main__":
