@@ -16,12 +16,17 @@ claim itself is wrong) and **policy errors** (it can: the value's gradient polic
 also prints the claims' sign errors against the exact set both ways, and checks the exact set
 against the rollouts (a rollout that reached the zone from outside the exact set would be a bug)::
 
-    python benchmarks/rocket_exact_reach.py pretrained:rocketlanding --samples 20000
+    python benchmarks/rocket_exact_reach.py exact pretrained:rocketlanding --samples 20000
+
+``exact`` names :class:`ExactRocketValue`, the value function in closed form, as a source of its own:
+its row is what any value function scores under the same protocol at best (its claims are the
+exact set's, so its wrong claims are the protocol's policy errors).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -31,7 +36,7 @@ sys.path.insert(0, str(HERE.parent))
 import torch  # noqa: E402
 
 from reach.systems import RocketLanding  # noqa: E402
-from reach.validation import positive_int_arg  # noqa: E402
+from reach.validation import is_positive_finite, positive_int_arg  # noqa: E402
 
 
 def exactly_reachable(system: RocketLanding, x: torch.Tensor, time_steps: int = 4000) -> torch.Tensor:
@@ -48,14 +53,88 @@ def exactly_reachable(system: RocketLanding, x: torch.Tensor, time_steps: int = 
     return (gap <= radius).any(0)
 
 
+def disc_box_margin(a: torch.Tensor, b: torch.Tensor, radius: torch.Tensor) -> torch.Tensor:
+    """The least ``m = max(|x| - 20, y - 20)`` over a disc of positions, given ``a = |cx| - 20`` and
+    ``b = cy - 20`` of its centre and its ``radius``: the least ``k`` whose box ``{|x| <= 20 + k,
+    y <= 20 + k}`` the disc meets, i.e. ``hypot((a - k)+, (b - k)+) = radius``. One side binds when
+    ``|a - b| >= radius`` (``k = max(a, b) - radius``), else both (the quadratic's lower root). The
+    margin is never below -20 (``|x| - 20`` at ``x = 0``), where the boxes start."""
+    one_side = (a - b).abs() >= radius
+    # the root only where both sides bind: elsewhere its argument may be <= 0, whose sqrt has no finite
+    # gradient, and torch.where passes a NaN gradient of the branch it drops
+    root = torch.sqrt(torch.where(one_side, torch.ones_like(radius), 2 * radius**2 - (a - b) ** 2))
+    both = 0.5 * ((a + b) - root)
+    return torch.where(one_side, torch.maximum(a, b) - radius, both).clamp_min(-20.0)
+
+
+class ExactRocketValue:
+    """The reach rocket's value function in closed form, a :class:`~reach.value_function.ValueFunction`.
+
+    ``V(x, t) = min over s in [0, t] of l*(s)``, where ``l*(s)`` is the least target margin over the
+    disc of positions reachable at ``s`` (:func:`disc_box_margin`, then the card's scaling: ``/150``
+    outside the zone, ``/10`` inside). The minimum over inputs and the one over times commute, and
+    each disc point is reached by a constant world-frame thrust, so this is the reach value itself,
+    up to the minimum over ``s`` being taken on ``time_steps + 1`` times from 0 to ``t``. Its
+    gradient (autograd through the minimum: the envelope theorem) is zero in ``th`` and ``w``; the
+    system's ``u*`` then thrusts along ``-dV/dv``, turned into the body frame."""
+
+    def __init__(self, system: RocketLanding, time_steps: int = 400) -> None:
+        self.system = system
+        self.time_steps = time_steps
+        self.time_range = (0.0, float(system.horizon))
+
+    def value(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        system = self.system
+        t = torch.as_tensor(t, dtype=x.dtype, device=x.device).expand(x.shape[:-1])
+        s = t[..., None] * torch.linspace(0.0, 1.0, self.time_steps + 1, dtype=x.dtype, device=x.device)
+        centre_x = x[..., 0:1] + x[..., 3:4] * s
+        centre_y = x[..., 1:2] + x[..., 4:5] * s - 0.5 * system.gravity * s**2
+        m = disc_box_margin(
+            centre_x.abs() - system.landing_half_width, centre_y - system.landing_height, 0.5 * system.thrust * s**2
+        ).amin(-1)
+        return torch.where(m >= 0, m / 150.0, m / 10.0)
+
+    def value_and_gradient(self, x: torch.Tensor, t: float | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        with torch.enable_grad():
+            y = x.detach().requires_grad_(True)
+            v = self.value(y, t)
+            (g,) = torch.autograd.grad(v.sum(), y)
+        return v.detach(), g
+
+    def gradient(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
+        return self.value_and_gradient(x, t)[1]
+
+
+def closest_approach(system: RocketLanding, result: object) -> torch.Tensor:
+    """Per recorded rollout, the least unscaled target margin ``max(|x| - 20, y - 20)`` along it (m):
+    how far a failed rollout stayed from the zone. Steps after a rollout ended are NaN and skipped."""
+    states = result.trajectories.double()  # (steps + 1, N, 6)
+    margin = torch.maximum(states[..., 0].abs() - system.landing_half_width, states[..., 1] - system.landing_height)
+    return torch.nan_to_num(margin, nan=math.inf).amin(0)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("sources", nargs="+", help="value functions of rocketlanding (run dirs, pretrained:NAME)")
+    parser.add_argument(
+        "sources",
+        nargs="*",
+        help="value functions of rocketlanding (run dirs, pretrained:NAME); 'exact': ExactRocketValue",
+    )
     parser.add_argument("--samples", type=positive_int_arg, default=20_000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--time-steps", type=positive_int_arg, default=4000)
+    parser.add_argument(
+        "--value-times", type=positive_int_arg, default=400, help="times in [0, t] the closed form minimises over"
+    )
+    parser.add_argument(
+        "--dt", type=float, default=None, help="the rollouts' step (default: the cards' protocol, 0.0025 s)"
+    )
     parser.add_argument("--threads", type=positive_int_arg, default=2)
     args = parser.parse_args()
+    if not args.sources:
+        parser.error("name at least one value function (a run, pretrained:NAME, or exact)")
+    if args.dt is not None and not is_positive_finite(args.dt):
+        parser.error(f"argument --dt: must be a finite number > 0, got {args.dt!r}")
     from safety.value_loading import load_value_function  # lazy: heavy imports after parsing
     from safety.verification.rollout import rollout
     from safety.verification.verify import sample_states
@@ -64,6 +143,11 @@ def main() -> None:
     system = RocketLanding()
     value_functions = []  # every source loaded and checked before any rollout
     for source in args.sources:
+        if source == "exact":
+            value_functions.append(
+                (f"exact (closed form, {args.value_times} times)", ExactRocketValue(system, args.value_times))
+            )
+            continue
         try:
             value_functions.append((source, load_value_function(source, system=system).value_function))
         except ValueError as error:
@@ -77,14 +161,25 @@ def main() -> None:
         "| unclaimed, reachable % | rollouts reaching from outside the exact set |"
     )
     print("|---|---:|---:|---:|---:|---:|---:|")
+    step = {} if args.dt is None else {"dt": args.dt}
+    misses = []
     for source, vf in value_functions:
-        result = rollout(vf, x, progress=False)
+        result = rollout(vf, x, progress=False, **step)
         claims = result.oriented_value > 0
         wrong = claims & result.failed
         share = lambda mask: f"{100 * float(mask.double().mean()):.3f}"  # noqa: E731
         print(
             f"| {source} | {share(claims)} | {share(wrong)} | {share(wrong & ~truth)} | {share(wrong & truth)} | "
             f"{share(~claims & truth)} | {int((~result.failed & ~truth).sum())} |"
+        )
+        if bool(wrong.any()):  # again, recorded: how close the failed rollouts came
+            recorded = rollout(vf, x[wrong][:100_000], record=True, progress=False, **step)
+            misses.append((source, closest_approach(system, recorded)))
+    for source, miss in misses:
+        near = int((miss <= 1).sum())
+        print(
+            f"{source}: its {len(miss)} wrong claims' closest approach to the zone (m, unscaled margin): "
+            f"median {float(miss.median()):.3g}, largest {float(miss.max()):.3g}; within 1 m: {near}"
         )
 
 

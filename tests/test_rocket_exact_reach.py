@@ -74,9 +74,75 @@ def test_the_zone_is_reachable_and_a_rocket_far_off_flying_away_is_not(exact):
     assert exact(system, x).tolist() == [True, False]
 
 
+@pytest.fixture()
+def module(exact):
+    import rocket_exact_reach
+
+    return rocket_exact_reach
+
+
+def test_the_closed_form_disc_margin_is_the_least_margin_over_the_disc(module):
+    """Against the margin sampled over each disc's area (polar grid): never above it, and within the
+    grid's spacing of it; centres inside, beside and above the zone, small and large discs."""
+    g = torch.Generator().manual_seed(2)
+    centre = torch.rand(200, 2, generator=g, dtype=torch.float64) * 200 - 100
+    radius = torch.rand(200, generator=g, dtype=torch.float64) * 60
+    r, a = torch.meshgrid(
+        torch.linspace(0, 1, 121, dtype=torch.float64), torch.linspace(0, 2 * math.pi, 361, dtype=torch.float64),
+        indexing="ij",
+    )  # fmt: skip
+    px = centre[:, 0, None, None] + radius[:, None, None] * r * torch.cos(a)
+    py = centre[:, 1, None, None] + radius[:, None, None] * r * torch.sin(a)
+    sampled = torch.maximum(px.abs() - 20, py - 20).flatten(1).amin(-1)
+    closed = module.disc_box_margin(centre[:, 0].abs() - 20, centre[:, 1] - 20, radius)
+    assert bool((closed <= sampled + 1e-9).all())
+    spacing = radius * max(1 / 120, 2 * math.pi / 360)
+    assert bool((sampled - closed <= spacing + 1e-9).all())
+    assert float(closed.min()) == -20.0  # some disc holds (0, y <= 0): the margin's floor
+
+
+def test_the_closed_form_value_is_the_exact_set_and_starts_at_the_margin(module):
+    system = RocketLanding()
+    x = system.sample_states(3000, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    vf = module.ExactRocketValue(system, 400)
+    assert torch.equal(vf.value(x, 0.0), system.target_margin(x))
+    claims = vf.value(x, system.horizon) <= 0
+    assert torch.equal(claims, module.exactly_reachable(system, x, 400)) and 0.2 < float(claims.double().mean()) < 0.6
+    v, grad = vf.value_and_gradient(x, torch.full((3000,), system.horizon, dtype=torch.float64))
+    assert torch.equal(v, vf.value(x, system.horizon)) and bool(torch.isfinite(grad).all())
+    assert bool((grad[:, [2, 5]] == 0).all())  # neither heading nor turn rate changes what can land
+    # at t = 0 the disc is a point: the gradient is the margin's, finite (the root's branch is not taken)
+    assert bool(torch.isfinite(vf.gradient(x, 0.0)).all())
+
+
+def test_the_closed_forms_gradient_policy_lands_from_what_it_claims(module):
+    """The value's own policy (u* from its gradient, the system's, as the cards roll out) lands from
+    each of 60 claimed states at a fine step: the closed form steers, not only classifies."""
+    from safety.verification.rollout import rollout
+
+    system = RocketLanding()
+    x = system.sample_states(400, generator=torch.Generator().manual_seed(4))
+    vf = module.ExactRocketValue(system, 200)
+    claimed = x[vf.value(x, system.horizon) <= 0][:60]
+    assert len(claimed) == 60
+    assert not bool(rollout(vf, claimed, dt=0.0005, progress=False).failed.any())
+
+
+def test_the_closest_approach_skips_the_steps_after_a_rollout_ended(module):
+    from types import SimpleNamespace
+
+    states = torch.zeros(3, 2, 6)
+    states[:, 0, :2] = torch.tensor([[50.0, 60.0], [30.0, 25.0], [math.nan, math.nan]])  # 30 m, then 10 m, ended
+    states[:, 1, :2] = torch.tensor([[0.0, 10.0], [0.0, 30.0], [0.0, 20.5]])  # inside (-10), 10 m, 0.5 m
+    miss = module.closest_approach(RocketLanding(), SimpleNamespace(trajectories=states))
+    assert miss.tolist() == [10.0, -10.0]
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
+        ([], "name at least one value function (a run, pretrained:NAME, or exact)"),
+        (["exact", "--dt", "0"], "argument --dt: must be a finite number > 0, got 0.0"),
         (["pretrained:rocketlanding", "--time-steps", "0"], "argument --time-steps: must be >= 1, got 0"),
         (["pretrained:air3d"], "not a reach problem (rocketlanding): their values do not compare"),
     ],
