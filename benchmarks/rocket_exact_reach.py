@@ -19,8 +19,8 @@ against the rollouts (a rollout that reached the zone from outside the exact set
     python benchmarks/rocket_exact_reach.py exact pretrained:rocketlanding --samples 20000
 
 ``exact`` names :class:`ExactRocketValue`, the value function in closed form, as a source of its own:
-its row is what any value function scores under the same protocol at best (its claims are the
-exact set's, so its wrong claims are the protocol's policy errors).
+its row is what an accurate value scores under the same protocol (its claims are the exact set's,
+so its wrong claims are the protocol's policy errors; a value claiming less can score fewer).
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ import torch  # noqa: E402
 
 from reach.systems import RocketLanding  # noqa: E402
 from reach.validation import is_positive_finite, positive_int_arg  # noqa: E402
+from reach.value_function import check_time  # noqa: E402
 
 
 def exactly_reachable(system: RocketLanding, x: torch.Tensor, time_steps: int = 4000) -> torch.Tensor:
@@ -85,6 +86,7 @@ class ExactRocketValue:
 
     def value(self, x: torch.Tensor, t: float | torch.Tensor) -> torch.Tensor:
         system = self.system
+        check_time(t, *self.time_range)  # as a network refuses times it was not trained on
         t = torch.as_tensor(t, dtype=x.dtype, device=x.device).expand(x.shape[:-1])
         s = t[..., None] * torch.linspace(0.0, 1.0, self.time_steps + 1, dtype=x.dtype, device=x.device)
         centre_x = x[..., 0:1] + x[..., 3:4] * s
@@ -107,7 +109,8 @@ class ExactRocketValue:
 
 def closest_approach(system: RocketLanding, result: object) -> torch.Tensor:
     """Per recorded rollout, the least unscaled target margin ``max(|x| - 20, y - 20)`` along it (m):
-    how far a failed rollout stayed from the zone. Steps after a rollout ended are NaN and skipped."""
+    how far a failed rollout stayed from the zone. A rollout keeps its last state once decided; steps
+    where a state is not finite (a NaN from the value's gradient) are skipped."""
     states = result.trajectories.double()  # (steps + 1, N, 6)
     margin = torch.maximum(states[..., 0].abs() - system.landing_half_width, states[..., 1] - system.landing_height)
     return torch.nan_to_num(margin, nan=math.inf).amin(0)

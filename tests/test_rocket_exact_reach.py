@@ -111,6 +111,8 @@ def test_the_closed_form_value_is_the_exact_set_and_starts_at_the_margin(module)
     v, grad = vf.value_and_gradient(x, torch.full((3000,), system.horizon, dtype=torch.float64))
     assert torch.equal(v, vf.value(x, system.horizon)) and bool(torch.isfinite(grad).all())
     assert bool((grad[:, [2, 5]] == 0).all())  # neither heading nor turn rate changes what can land
+    with pytest.raises(ValueError, match=r"time-to-go t = 1.5 lies outside \[0, 1\]"):
+        vf.value(x, 1.5)
     # at t = 0 the disc is a point: the gradient is the margin's, finite (the root's branch is not taken)
     assert bool(torch.isfinite(vf.gradient(x, 0.0)).all())
 
@@ -128,11 +130,11 @@ def test_the_closed_forms_gradient_policy_lands_from_what_it_claims(module):
     assert not bool(rollout(vf, claimed, dt=0.0005, progress=False).failed.any())
 
 
-def test_the_closest_approach_skips_the_steps_after_a_rollout_ended(module):
+def test_the_closest_approach_skips_non_finite_steps(module):
     from types import SimpleNamespace
 
     states = torch.zeros(3, 2, 6)
-    states[:, 0, :2] = torch.tensor([[50.0, 60.0], [30.0, 25.0], [math.nan, math.nan]])  # 30 m, then 10 m, ended
+    states[:, 0, :2] = torch.tensor([[50.0, 60.0], [30.0, 25.0], [math.nan, math.nan]])  # 30 m, then 10 m, then NaN
     states[:, 1, :2] = torch.tensor([[0.0, 10.0], [0.0, 30.0], [0.0, 20.5]])  # inside (-10), 10 m, 0.5 m
     miss = module.closest_approach(RocketLanding(), SimpleNamespace(trajectories=states))
     assert miss.tolist() == [10.0, -10.0]
