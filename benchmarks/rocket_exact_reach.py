@@ -36,8 +36,18 @@ sys.path.insert(0, str(HERE.parent))
 import torch  # noqa: E402
 
 from reach.systems import RocketLanding  # noqa: E402
-from reach.validation import is_positive_finite, positive_int_arg  # noqa: E402
+from reach.validation import positive_float_arg, positive_int_arg  # noqa: E402
 from reach.value_function import check_time  # noqa: E402
+
+
+def reachable_disc(
+    system: RocketLanding, x: torch.Tensor, s: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The disc of positions reachable from states ``x`` ``(..., 6)`` after times ``s`` (broadcast
+    against the batch): its centre's ``x`` and ``y`` (the unthrusted fall) and its radius."""
+    centre_x = x[..., 0] + x[..., 3] * s
+    centre_y = x[..., 1] + x[..., 4] * s - 0.5 * system.gravity * s**2
+    return centre_x, centre_y, 0.5 * system.thrust * s**2
 
 
 def exactly_reachable(system: RocketLanding, x: torch.Tensor, time_steps: int = 4000) -> torch.Tensor:
@@ -45,9 +55,7 @@ def exactly_reachable(system: RocketLanding, x: torch.Tensor, time_steps: int = 
     ``time_steps + 1`` times in ``[0, T]``): the reachable disc of positions meets the zone."""
     x = x.double()
     t = torch.linspace(0.0, system.horizon, time_steps + 1, dtype=torch.float64)[:, None]
-    centre_x = x[:, 0] + x[:, 3] * t
-    centre_y = x[:, 1] + x[:, 4] * t - 0.5 * system.gravity * t**2
-    radius = 0.5 * system.thrust * t**2
+    centre_x, centre_y, radius = reachable_disc(system, x, t)
     gap = torch.hypot(
         (centre_x.abs() - system.landing_half_width).clamp_min(0.0), (centre_y - system.landing_height).clamp_min(0.0)
     )
@@ -89,11 +97,10 @@ class ExactRocketValue:
         check_time(t, *self.time_range)  # as a network refuses times it was not trained on
         t = torch.as_tensor(t, dtype=x.dtype, device=x.device).expand(x.shape[:-1])
         s = t[..., None] * torch.linspace(0.0, 1.0, self.time_steps + 1, dtype=x.dtype, device=x.device)
-        centre_x = x[..., 0:1] + x[..., 3:4] * s
-        centre_y = x[..., 1:2] + x[..., 4:5] * s - 0.5 * system.gravity * s**2
-        m = disc_box_margin(
-            centre_x.abs() - system.landing_half_width, centre_y - system.landing_height, 0.5 * system.thrust * s**2
-        ).amin(-1)
+        centre_x, centre_y, radius = reachable_disc(system, x[..., None, :], s)
+        m = disc_box_margin(centre_x.abs() - system.landing_half_width, centre_y - system.landing_height, radius).amin(
+            -1
+        )
         return torch.where(m >= 0, m / 150.0, m / 10.0)
 
     def value_and_gradient(self, x: torch.Tensor, t: float | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -130,14 +137,15 @@ def main() -> None:
         "--value-times", type=positive_int_arg, default=400, help="times in [0, t] the closed form minimises over"
     )
     parser.add_argument(
-        "--dt", type=float, default=None, help="the rollouts' step (default: the cards' protocol, 0.0025 s)"
+        "--dt",
+        type=positive_float_arg,
+        default=None,
+        help="the rollouts' step (default: the cards' protocol, 0.0025 s)",
     )
     parser.add_argument("--threads", type=positive_int_arg, default=2)
     args = parser.parse_args()
     if not args.sources:
         parser.error("name at least one value function (a run, pretrained:NAME, or exact)")
-    if args.dt is not None and not is_positive_finite(args.dt):
-        parser.error(f"argument --dt: must be a finite number > 0, got {args.dt!r}")
     from safety.value_loading import load_value_function  # lazy: heavy imports after parsing
     from safety.verification.rollout import rollout
     from safety.verification.verify import sample_states

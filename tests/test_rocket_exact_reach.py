@@ -144,7 +144,7 @@ def test_the_closest_approach_skips_non_finite_steps(module):
     ("args", "message"),
     [
         ([], "name at least one value function (a run, pretrained:NAME, or exact)"),
-        (["exact", "--dt", "0"], "argument --dt: must be a finite number > 0, got 0.0"),
+        (["exact", "--dt", "0"], "argument --dt: must be > 0, got 0.0"),
         (["pretrained:rocketlanding", "--time-steps", "0"], "argument --time-steps: must be >= 1, got 0"),
         (["pretrained:air3d"], "not a reach problem (rocketlanding): their values do not compare"),
     ],
