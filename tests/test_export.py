@@ -421,3 +421,15 @@ def test_the_documented_install_line_runs_both_engines_in_a_fresh_venv(exported,
     assert done.returncode == 0, done.stderr
     engine, intervened, value = done.stdout.split()
     assert engine == "native" and intervened == "True" and float(value) < 0
+
+
+def test_the_export_time_benchmark_refuses_a_model_it_cannot_export_in_one_line():
+    """``benchmarks/export_filter.py export-time`` takes shipped networks only: a grid model stops in
+    argparse's one line, before any export or table."""
+    script = ROOT / "benchmarks" / "export_filter.py"
+    done = subprocess.run(
+        [sys.executable, str(script), "export-time", "relativepair"], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert "argument NAME: invalid choice: 'relativepair'" in done.stderr.strip().splitlines()[-1]
+    assert "| model |" not in done.stdout
