@@ -7,8 +7,8 @@ Grid models (``relativepair``) are not exported: the export takes networks and m
 not a grid's interpolation (``tests/test_export.py`` checks the refusal). Slow (an export each):
 CI runs it in a step of its own, for the models that export in under a minute on 2 cores (every
 kind, box and disc inputs, 3D to 10D). The others (Air3D, whose export ``tests/test_export.py``
-checks too, the car fleets and the quadrotor: 2 to 13 minutes each, about 35 together) are
-``release`` checks: ``python -m pytest -m release``."""
+checks too, the car fleets and the quadrotor: 2 to 12 minutes each) are ``release`` checks:
+``python -m pytest -m release``."""
 
 from __future__ import annotations
 
@@ -25,8 +25,9 @@ from training.pretrained import card, names  # noqa: E402
 
 NETWORKS = [name for name in names() if card(name).format == "network"]
 
-#: exports of 2 to 13 minutes each on 2 cores (measured 2026-11-29: air3d 1.9, multivehicle6d 2.2,
-#: multivehicle9d 4.2, multivehicle12d 6.4, multivehicle15d 10, quadrotor 12.8), run with -m release
+#: exports of 2 to 12 minutes each on 2 cores (measured 2026-11-29, docs/results/benchmarks.md: air3d 1.8,
+#: multivehicle6d 2.2, multivehicle9d 4.2, multivehicle12d 6.4, multivehicle15d 10.1, quadrotor 12.4);
+#: run with -m release
 RELEASE_ONLY = {"air3d", "multivehicle6d", "multivehicle9d", "multivehicle12d", "multivehicle15d", "quadrotor"}
 
 
