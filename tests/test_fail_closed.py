@@ -169,6 +169,50 @@ def test_a_rollout_refuses_a_disturbance_outside_its_bounds():
             rollout(vf, x, dt=0.05, progress=False, disturbance=lambda s, t, v=value: torch.full((len(s), 2), v))
 
 
+class _PoisonedAt:
+    """A value function that returns NaN (value or gradient) at the states whose x lies above ``at``
+    and is the wrapped one elsewhere: a bug in a user's value function, where it cannot be trusted."""
+
+    def __init__(self, inner, part: str, at: float) -> None:
+        self.inner, self.part, self.at = inner, part, at
+        self.system = inner.system
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def _poison(self, out: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        return torch.where((x[:, 0] > self.at).reshape(-1, *([1] * (out.ndim - 1))), math.nan, out)
+
+    def value(self, x, t):
+        out = self.inner.value(x, t)
+        return self._poison(out, x) if self.part == "value" else out
+
+    def gradient(self, x, t):
+        out = self.inner.gradient(x, t)
+        return self._poison(out, x) if self.part == "gradient" else out
+
+
+@pytest.mark.parametrize("part", ["value", "gradient"])
+def test_a_rollout_refuses_a_value_function_that_returns_nan_naming_the_state(part):
+    """A NaN gradient used to pick an arbitrary input (the value's policy is undefined there) and an
+    avoid rollout then counted the state safe; a NaN value made the claim read "unsafe". Both now stop
+    the rollout, naming the state's position in the batch."""
+    from reach.systems import Air3D
+    from safety import rollout
+    from training import NeuralValueFunction, ValueNetwork
+
+    torch.manual_seed(0)
+    vf = NeuralValueFunction(ValueNetwork(Air3D(), "ssssl", width=8))
+    x = torch.tensor([[-0.5, 0.1, 0.0], [0.5, 0.2, 1.0], [1.5, -0.3, 2.0]])
+    clean = rollout(vf, x, dt=0.05, progress=False)
+    assert clean.num_states == 3  # the same states roll out where the value is finite
+    poisoned = _PoisonedAt(vf, part, at=1.0)  # only the third state (x = 1.5) is poisoned
+    what = "value" if part == "value" else "gradient"
+    with pytest.raises(ValueError, match=f"value function's {what} is not finite for state 2 at time-to-go"):
+        rollout(poisoned, x, dt=0.05, progress=False)
+    assert rollout(poisoned, x[:2], dt=0.05, progress=False).num_states == 2  # the others roll out as before
+
+
 @pytest.fixture(scope="module")
 def air3d_vf():
     from reach.systems import Air3D

@@ -33,6 +33,10 @@ It simulates only what is still undecided:
   (:meth:`~reach.systems.base.ControlAffineSystem.margin_floor` of the constraint margin), so the
   violations counted are those a full simulation finds.
 
+A value function that returns NaN or inf (its value at a start, its gradient along the way) or a
+state that turns non-finite stops the rollout with a ``ValueError`` naming the state: a NaN gradient
+would still pick some input, not the value's policy, and a NaN state never meets the failure set.
+
 States go through in chunks (bounded memory), the network runs without an autograd graph (one
 fused value-and-gradient pass per state and step, see ``ValueNetwork.value_and_gradient``), and a
 progress bar counts chunk-steps.
@@ -244,6 +248,22 @@ def check_admissible(d: Any, system: ControlAffineSystem) -> Any:
     return d
 
 
+def refuse_non_finite(values: torch.Tensor, index: torch.Tensor, what: str, time_to_go: float) -> None:
+    """Raise ``ValueError`` naming the first state whose row of ``values`` holds NaN or inf.
+
+    A rollout cannot judge a value function where it is not finite: a NaN gradient still picks some
+    input (an arbitrary one, not the value's policy), and a state that turned NaN never meets the
+    failure set, so an avoid rollout would count it safe. ``index`` holds the states' positions in
+    the caller's batch."""
+    bad = ~torch.isfinite(values.reshape(values.shape[0], -1)).all(dim=-1)
+    if bool(bad.any()):
+        first = int(bad.nonzero()[0, 0])
+        raise ValueError(
+            f"rollout: {what} is not finite for state {int(index[first])} at time-to-go {time_to_go:g}; "
+            "a rollout refuses a value function it cannot trust rather than judging another policy"
+        )
+
+
 def rollout(
     value_function: ValueFunction,
     states: torch.Tensor,
@@ -300,11 +320,16 @@ def rollout(
 
     hold = None if settings.control_period is None else round(settings.control_period / dt)
 
-    def step(x: torch.Tensor, t: float, held: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
-        """The next states, and the inputs applied: ``held`` where given, else the policy's now."""
+    def step(
+        x: torch.Tensor, t: float, held: torch.Tensor | None, idx: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The next states, and the inputs applied: ``held`` where given, else the policy's now. A
+        non-finite gradient, input or next state is refused (:func:`refuse_non_finite`)."""
         # the gradient where u* or d* needs it: networks fuse it with the value; grids interpolate it alone
         wants_p = (greedy is None and held is None) or (disturbance == "optimal" and use_disturbance)
         p = value_function.gradient(x, t) if wants_p else None
+        if p is not None:
+            refuse_non_finite(p, idx, "the value function's gradient", t)
         if not use_disturbance:
             d = None
         elif disturbance == "optimal":
@@ -314,10 +339,13 @@ def rollout(
         u = held
         if u is None:
             u = system.optimal_control(x, p) if greedy is None else greedy.control(x, t, d)
+            refuse_non_finite(u, idx, "the policy's input", t)
         cols = TORCH.unbind(x)
         uc = system.input_columns(u, system.control_bounds, "u")
         dc = system.input_columns(d, system.disturbance_bounds, "d")
-        return TORCH.stack(advance(cols, uc, dc), like=cols[0]), u  # integrates and wraps headings
+        x_next = TORCH.stack(advance(cols, uc, dc), like=cols[0])  # integrates and wraps headings
+        refuse_non_finite(x_next, idx, "the next state", t)
+        return x_next, u
 
     n = states.shape[0]
     initial_value = torch.empty(n, dtype=dtype)
@@ -366,8 +394,10 @@ def rollout(
         for lo in chunks:
             hi = min(lo + chunk_size, n)
             x = states[lo:hi].to(device=device, dtype=dtype)
-            initial_value[lo:hi] = value_function.value(x, horizon).to(dtype).cpu()
             idx = torch.arange(lo, hi, device=device)
+            v0 = value_function.value(x, horizon)
+            refuse_non_finite(v0, idx, "the value function's value", horizon)
+            initial_value[lo:hi] = v0.to(dtype).cpu()
             hit0, in_target = outcomes(x)
             done0 = hit0 if in_target is None else hit0 | in_target
             if record:
@@ -381,7 +411,7 @@ def rollout(
                     bar.update(n_steps - k)
                     break
                 t_go = max(horizon - k * dt, 0.0)
-                x, u = step(x, t_go, None if hold is None or k % hold == 0 else held)
+                x, u = step(x, t_go, None if hold is None or k % hold == 0 else held, idx)
                 held = None if hold is None else u
                 state_steps += int(idx.numel())
                 elapsed = min((k + 1) * dt, horizon)
