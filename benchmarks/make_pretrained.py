@@ -33,6 +33,14 @@ Two steps, each rerunnable:
            --label "capped by the pairwise union" --command "reach evaluate ..." --commit 4e724e9 \
            --hardware "2 CPU cores (shared VM), torch 2.13.0+cpu"
 
+4. ``adopt`` takes the card's main evaluation from a ``reach evaluate`` run of the same network
+   scored elsewhere (its run directory on a GPU, where the card's 1M fresh states take a minute
+   instead of hours), from that run's JSON, once the evaluated checkpoint is shown to hold the
+   shipped network parameter for parameter::
+
+       python benchmarks/make_pretrained.py adopt multivehicle15d eval.json --checkpoint runs/w256 \
+           --command "reach evaluate runs/w256 ... --device cuda" --hardware "one NVIDIA H200 ..."
+
 The test suite (``tests/test_pretrained.py``) reloads every shipped model and checks its card's
 rates on a fresh small sample.
 """
@@ -47,6 +55,9 @@ import shlex
 import sys
 import tempfile
 from pathlib import Path
+from typing import Any
+
+import torch
 
 from reach.atomic import atomic_path
 from reach.validation import device_arg, positive_int_arg
@@ -235,11 +246,7 @@ def card_metrics(row: dict) -> dict:
 
 def record(args: argparse.Namespace) -> int:
     card = pretrained.card(args.name)
-    try:
-        data = json.loads(Path(args.results).read_text())
-        settings, rows = data["settings"], data["results"]
-    except (OSError, ValueError, KeyError, TypeError) as err:
-        raise SystemExit(f"{args.results}: not the JSON of a reach evaluate run ({type(err).__name__}: {err})") from err
+    settings, rows = _evaluation_json(args.results)
     from safety.value_loading import member_sources
 
     shipped = pretrained.PREFIX + args.name
@@ -267,6 +274,59 @@ def record(args: argparse.Namespace) -> int:
     }
     others = [e for e in card.also_evaluated if e.get("label") != args.label]
     write_card(dataclasses.replace(card, also_evaluated=(*others, entry)))
+    print(pretrained.card(args.name).describe())
+    return 0
+
+
+def _evaluation_json(path: str) -> tuple[dict, list[dict]]:
+    """The settings and rows of a ``reach evaluate`` JSON; anything else stops in one line."""
+    try:
+        data = json.loads(Path(path).read_text())
+        return data["settings"], data["results"]
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise SystemExit(f"{path}: not the JSON of a reach evaluate run ({type(err).__name__}: {err})") from err
+
+
+def same_network(a: Any, b: Any) -> bool:
+    """Whether two value networks have the same architecture and every parameter equal, bit for bit."""
+    sa, sb = a.state_dict(), b.state_dict()
+    return sa.keys() == sb.keys() and all(
+        sa[k].shape == sb[k].shape and sa[k].dtype == sb[k].dtype and torch.equal(sa[k], sb[k]) for k in sa
+    )
+
+
+def adopt(args: argparse.Namespace) -> int:
+    from safety.value_loading import resolve_checkpoint
+
+    card = pretrained.card(args.name)
+    settings, rows = _evaluation_json(args.results)
+    rows = [r for r in rows if args.source is None or r.get("source") == args.source]
+    if len(rows) != 1 or rows[0].get("error"):
+        found = [(r.get("source"), r.get("error")) for r in rows]
+        raise SystemExit(f"{args.results}: expected one scored row (--source picks one), found {found}")
+    row = rows[0]
+    source = resolve_checkpoint(args.checkpoint)
+    evaluated = network_from_payload(source, read_checkpoint(source))
+    target = pretrained.DIRECTORY / f"{args.name}.pt"
+    shipped = network_from_payload(target, read_checkpoint(target))
+    if not same_network(evaluated, shipped):
+        raise SystemExit(f"{args.checkpoint}: its network is not the shipped {args.name}'s; score the shipped file")
+    fingerprint = row.get("fingerprint") or {}
+    if fingerprint.get("size") not in (None, source.stat().st_size):
+        raise SystemExit(
+            f"{args.results}: it scored a file of {fingerprint['size']} bytes, {source} has {source.stat().st_size}"
+        )
+    evaluation = {
+        "command": args.command,
+        "samples": settings["samples"],
+        "scenario_samples": settings.get("scenario_samples"),
+        "robust_samples": settings.get("robust_samples"),
+        "seed": settings["seed"],
+        "hardware": args.hardware,
+        "wall_time_s": row.get("wall_time"),
+        "metrics": card_metrics(row),
+    }
+    write_card(dataclasses.replace(card, evaluation=evaluation))
     print(pretrained.card(args.name).describe())
     return 0
 
@@ -319,6 +379,14 @@ def main() -> int:
     r.add_argument("--commit", required=True)
     r.add_argument("--hardware", required=True)
     r.set_defaults(func=record)
+    a = sub.add_parser("adopt", help="the card's evaluation from a reach evaluate run of the same network")
+    a.add_argument("name")
+    a.add_argument("results", help="the .json that reach evaluate --out wrote beside its CSV")
+    a.add_argument("--checkpoint", required=True, help="the run directory or checkpoint that run scored")
+    a.add_argument("--source", default=None, help="which row, where the run scored several sources")
+    a.add_argument("--command", required=True, help="the reach evaluate command, as it was run")
+    a.add_argument("--hardware", required=True)
+    a.set_defaults(func=adopt)
     args = parser.parse_args()
     return int(args.func(args))
 

@@ -228,6 +228,54 @@ def test_maintainers_record_another_evaluation_in_a_card(tmp_path, monkeypatch) 
     assert refused.value.code == 2
 
 
+def test_maintainers_adopt_an_evaluation_of_the_same_network_scored_elsewhere(tmp_path, monkeypatch) -> None:
+    """``benchmarks/make_pretrained.py adopt`` makes a ``reach evaluate`` run of the shipped network,
+    scored from another file (a run directory on a GPU), the card's main evaluation: its sample sizes,
+    the command given and the row's metrics. A checkpoint whose network differs from the shipped one
+    by a single parameter is refused, and the card is left as it was."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    import torch
+
+    from training.checkpoint import network_from_payload, read_checkpoint, save_checkpoint
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "make_pretrained.py"
+    spec = importlib.util.spec_from_file_location("make_pretrained", script)
+    make_pretrained = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(make_pretrained)
+    for f in pretrained.DIRECTORY.glob("air3d.*"):
+        shutil.copy(f, tmp_path / f.name)
+    monkeypatch.setattr(pretrained, "DIRECTORY", tmp_path)
+    run = tmp_path / "run"  # the same network in another file, as a run directory would hold it
+    run.mkdir()
+    shutil.copy(tmp_path / "air3d.pt", run / "checkpoint.pt")
+    out = tmp_path / "elsewhere.csv"
+    counts = ["--samples", "200", "--scenario-samples", "300", "--robust-samples", "0", "--seed", "3"]
+    assert main(["evaluate", str(run / "checkpoint.pt"), *counts, "--out", str(out)]) == 0
+    row = json.loads(out.with_suffix(".json").read_text())["results"][0]
+    adopt = ["make_pretrained.py", "adopt", "air3d", str(out.with_suffix(".json"))]
+    adopt += ["--command", "reach evaluate RUN ...", "--hardware", "test"]
+    before = pretrained.card("air3d").evaluation
+    payload = read_checkpoint(run / "checkpoint.pt")
+    other = network_from_payload(run / "checkpoint.pt", payload)
+    with torch.no_grad():
+        next(other.parameters()).view(-1)[0] += 1e-6
+    save_checkpoint(tmp_path / "other.pt", other, metadata={})
+    monkeypatch.setattr(sys, "argv", [*adopt, "--checkpoint", str(tmp_path / "other.pt")])
+    with pytest.raises(SystemExit, match=r"other.pt: its network is not the shipped air3d's"):
+        make_pretrained.main()
+    assert pretrained.card("air3d").evaluation == before
+    monkeypatch.setattr(sys, "argv", [*adopt, "--checkpoint", str(run)])
+    assert make_pretrained.main() == 0
+    evaluation = pretrained.card("air3d").evaluation
+    assert (evaluation["samples"], evaluation["scenario_samples"], evaluation["seed"]) == (200, 300, 3)
+    assert evaluation["command"] == "reach evaluate RUN ..." and evaluation["hardware"] == "test"
+    assert evaluation["metrics"]["false_safe_rate"] == row["false_safe_rate"]
+    assert evaluation["metrics"]["scenario_volume"] == row["scenario_volume"]
+
+
 def test_every_card_carries_a_verdict_computed_from_its_figures():
     """The verdict is recomputed from the card's figures, never read: change a figure and it follows."""
     import dataclasses
