@@ -288,11 +288,32 @@ def _evaluation_json(path: str) -> tuple[dict, list[dict]]:
 
 
 def same_network(a: Any, b: Any) -> bool:
-    """Whether two value networks have the same architecture and every parameter equal, bit for bit."""
+    """Whether two value networks compute the same function: the same system (with its parameters),
+    layout, parameterisation, frequency and input encoding, and every parameter equal, bit for bit."""
+    described = ("layout", "width", "parameterisation", "w0", "encoding")
+    if a.system.reference() != b.system.reference() or any(getattr(a, k) != getattr(b, k) for k in described):
+        return False
     sa, sb = a.state_dict(), b.state_dict()
     return sa.keys() == sb.keys() and all(
         sa[k].shape == sb[k].shape and sa[k].dtype == sb[k].dtype and torch.equal(sa[k], sb[k]) for k in sa
     )
+
+
+#: the settings of the cards' protocol that an adopted evaluation must share (the sample sizes, seed
+#: and batch size may differ; they are recorded)
+PROTOCOL = ("beta", "dt", "integrator", "horizon", "matmul_precision", "target_eps", "policy", "control_period")
+
+
+def check_protocol(settings: dict, where: str) -> None:
+    """Refuse, naming the setting, an evaluation whose rollouts or bounds differ from the cards' protocol
+    (:class:`~safety.verification.verify.VerifySettings`' defaults), so an adopted row means the same
+    as one ``evaluate`` writes."""
+    from safety.verification.verify import VerifySettings
+
+    protocol = dataclasses.asdict(VerifySettings())
+    for key in PROTOCOL:
+        if settings.get(key, protocol[key]) != protocol[key]:
+            raise SystemExit(f"{where}: {key} is {settings[key]!r}; the cards' protocol has {protocol[key]!r}")
 
 
 def adopt(args: argparse.Namespace) -> int:
@@ -305,6 +326,7 @@ def adopt(args: argparse.Namespace) -> int:
         found = [(r.get("source"), r.get("error")) for r in rows]
         raise SystemExit(f"{args.results}: expected one scored row (--source picks one), found {found}")
     row = rows[0]
+    check_protocol(settings, args.results)
     source = resolve_checkpoint(args.checkpoint)
     evaluated = network_from_payload(source, read_checkpoint(source))
     target = pretrained.DIRECTORY / f"{args.name}.pt"

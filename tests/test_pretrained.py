@@ -232,7 +232,8 @@ def test_maintainers_adopt_an_evaluation_of_the_same_network_scored_elsewhere(tm
     """``benchmarks/make_pretrained.py adopt`` makes a ``reach evaluate`` run of the shipped network,
     scored from another file (a run directory on a GPU), the card's main evaluation: its sample sizes,
     the command given and the row's metrics. A checkpoint whose network differs from the shipped one
-    by a single parameter is refused, and the card is left as it was."""
+    by a single parameter, or a run under another policy than the cards' protocol, is refused, and
+    the card is left as it was."""
     import importlib.util
     import sys
     from pathlib import Path
@@ -265,6 +266,13 @@ def test_maintainers_adopt_an_evaluation_of_the_same_network_scored_elsewhere(tm
     save_checkpoint(tmp_path / "other.pt", other, metadata={})
     monkeypatch.setattr(sys, "argv", [*adopt, "--checkpoint", str(tmp_path / "other.pt")])
     with pytest.raises(SystemExit, match=r"other.pt: its network is not the shipped air3d's"):
+        make_pretrained.main()
+    assert pretrained.card("air3d").evaluation == before
+    greedy = json.loads(out.with_suffix(".json").read_text())
+    greedy["settings"]["policy"] = "greedy"  # another policy's rollouts are not the card's protocol
+    (tmp_path / "greedy.json").write_text(json.dumps(greedy))
+    monkeypatch.setattr(sys, "argv", [*adopt[:3], str(tmp_path / "greedy.json"), *adopt[4:], "--checkpoint", str(run)])
+    with pytest.raises(SystemExit, match=r"greedy.json: policy is 'greedy'; the cards' protocol has 'gradient'"):
         make_pretrained.main()
     assert pretrained.card("air3d").evaluation == before
     monkeypatch.setattr(sys, "argv", [*adopt, "--checkpoint", str(run)])
