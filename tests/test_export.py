@@ -167,6 +167,50 @@ def test_the_exporter_refuses_what_it_cannot_export(air3d, air3d_grid, tmp_path)
     assert not list(tmp_path.glob("*.onnx"))
 
 
+class _RecordingBar:
+    """Stands in for tqdm: keeps the stage names the export shows, and how it was built."""
+
+    made: list[dict] = []
+
+    def __init__(self, **kwargs) -> None:
+        self.stages: list[str] = []
+        _RecordingBar.made.append({"kwargs": kwargs, "stages": self.stages})
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+    def set_description_str(self, text: str) -> None:
+        self.stages.append(text)
+
+    def update(self, n: int = 1) -> None:
+        pass
+
+
+def test_the_export_names_its_stage_on_a_progress_bar(air3d, tmp_path, monkeypatch):
+    """A large network's conversion takes minutes (the quadrotor's 12 on 2 cores): the bar names each
+    stage as it starts. Here the converter breaks: the bar had reached it, and no file is left."""
+    import safety.filters.export as export
+
+    def broken(graph, example, path):
+        raise RuntimeError("the converter broke")
+
+    _RecordingBar.made.clear()
+    monkeypatch.setattr(export, "tqdm", _RecordingBar)
+    monkeypatch.setattr(export, "_convert", broken)
+    out = tmp_path / "f.onnx"
+    with pytest.raises(RuntimeError, match="the converter broke"):
+        export_filter(air3d, out, FilterSettings("switch"), dt=DT)
+    (bar,) = _RecordingBar.made
+    assert bar["stages"] == [f"export: {stage}" for stage in export.EXPORT_STAGES[:2]] and bar["kwargs"]["total"] == 3
+    assert "disable" not in bar["kwargs"] and not out.exists()  # TQDM_DISABLE still decides, as everywhere
+    with pytest.raises(RuntimeError, match="the converter broke"):
+        export_filter(air3d, out, FilterSettings("switch"), dt=DT, check_states=0, progress=False)
+    assert _RecordingBar.made[1]["kwargs"]["disable"] is True and _RecordingBar.made[1]["kwargs"]["total"] == 2
+
+
 def test_the_runtime_refuses_a_file_that_is_not_an_exported_filter(tmp_path):
     with pytest.raises(ValueError, match="no such file"):
         Filter.load(tmp_path / "missing.onnx")

@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from tqdm.auto import tqdm
 
 from reach.atomic import atomic_path
 from reach.systems.base import ControlAffineSystem
@@ -256,8 +257,17 @@ def example_batch(system: ControlAffineSystem) -> int:
     return batch
 
 
-def _trace_and_convert(filt: SafetyFilter, path: str) -> None:
-    """Trace the decision with symbolic batch size and write it as ONNX to ``path``."""
+#: what the export's progress bar names at each stage; the conversion takes nearly all of the time
+#: (torch's ONNX exporter: 10 s to 12 minutes on 2 cores for the shipped networks, docs/results/benchmarks.md)
+EXPORT_STAGES = (
+    "tracing the filter",
+    "converting to ONNX (torch's exporter: seconds to minutes)",
+    "checking the file against the torch filter",
+)
+
+
+def _trace(filt: SafetyFilter) -> tuple[Any, tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """The decision traced with symbolic batch size into ATen operations, and the example it saw."""
     from torch.fx.experimental.proxy_tensor import make_fx  # lazy: tracing machinery, export only
 
     example = _example(filt, example_batch(filt.system))
@@ -265,6 +275,11 @@ def _trace_and_convert(filt: SafetyFilter, path: str) -> None:
         _decision(filt), tracing_mode="symbolic", decomposition_table=_DECOMPOSITIONS, _allow_non_fake_inputs=True
     )(*example)
     graph.eval()  # a traced graph starts in training mode, which the exporter warns of (it has no such layers)
+    return graph, example
+
+
+def _convert(graph: Any, example: tuple[torch.Tensor, torch.Tensor, torch.Tensor], path: str) -> None:
+    """Write the traced decision ``graph`` as ONNX to ``path``, its batch dimension free."""
     batch = torch.export.Dim("batch")
     torch.onnx.export(
         graph,
@@ -311,6 +326,7 @@ def export_filter(
     integrator: str = "rk4",
     system: ControlAffineSystem | None = None,
     check_states: int = CHECK_STATES,
+    progress: bool = True,
     **options: Any,
 ) -> ExportedFilter:
     """Write the safety filter of ``source`` with ``settings`` to the ONNX file ``out``.
@@ -326,6 +342,8 @@ def export_filter(
         integrator: how the lookahead and the greedy backup predict (``"rk4"`` or ``"euler"``).
         system: the system the filter serves (default: the value function's).
         check_states: states sampled for the self-check against the eager filter (0: none).
+        progress: show a progress bar over the export's stages (:data:`EXPORT_STAGES`), with the
+            time spent; the conversion can take minutes for a large network.
 
     Everything is checked before the trace (the output path, the value function, the settings).
     Returns an :class:`ExportedFilter`.
@@ -347,22 +365,38 @@ def export_filter(
 
     from reach_runtime.digest import seal  # lazy: the runtime's package loads ONNX Runtime (the export extra)
 
-    with tempfile.TemporaryDirectory() as scratch:
+    stages = EXPORT_STAGES if check_states else EXPORT_STAGES[:-1]
+    with (
+        tqdm(  # stages of very different lengths: the time spent, no rate or estimate
+            total=len(stages),
+            desc="export",
+            bar_format="{desc} [{elapsed}, {n_fmt} of {total_fmt} stages done]",
+            **({} if progress else {"disable": True}),
+        ) as bar,
+        tempfile.TemporaryDirectory() as scratch,
+    ):
+        bar.set_description_str(f"export: {stages[0]}")
+        graph, example = _trace(filt)
+        bar.update(1)
+        bar.set_description_str(f"export: {stages[1]}")
         raw = os.path.join(scratch, "graph.onnx")
-        _trace_and_convert(filt, raw)
+        _convert(graph, example, raw)
         model = onnx.load(raw)
-    _check_free_batch(model)
-    for key, value in metadata.items():
-        entry = model.metadata_props.add()
-        entry.key, entry.value = f"reach.{key}", json.dumps(value)
-    model.doc_string = f"reach safety filter ({settings.kind}) of {metadata['system_name']} from {label}"
-    with atomic_path(out_path) as tmp:
-        Path(tmp).write_bytes(seal(model.SerializeToString(), str(out_path)))
-    checked, differing = 0, 0
-    if check_states:
-        try:
-            checked, differing = _self_check(filt, out_path, check_states)
-        except BaseException:
-            out_path.unlink(missing_ok=True)
-            raise
+        bar.update(1)
+        _check_free_batch(model)
+        for key, value in metadata.items():
+            entry = model.metadata_props.add()
+            entry.key, entry.value = f"reach.{key}", json.dumps(value)
+        model.doc_string = f"reach safety filter ({settings.kind}) of {metadata['system_name']} from {label}"
+        with atomic_path(out_path) as tmp:
+            Path(tmp).write_bytes(seal(model.SerializeToString(), str(out_path)))
+        checked, differing = 0, 0
+        if check_states:
+            bar.set_description_str(f"export: {stages[2]}")
+            try:
+                checked, differing = _self_check(filt, out_path, check_states)
+            except BaseException:
+                out_path.unlink(missing_ok=True)
+                raise
+            bar.update(1)
     return ExportedFilter(out_path, metadata, checked, differing)
