@@ -196,7 +196,7 @@ class _PoisonedAt:
 def test_a_rollout_refuses_a_value_function_that_returns_nan_naming_the_state(part):
     """A NaN gradient used to pick an arbitrary input (the value's policy is undefined there) and an
     avoid rollout then counted the state safe; a NaN value made the claim read "unsafe". Both now stop
-    the rollout, naming the state's position in the batch."""
+    the rollout, naming the state and its row in the batch."""
     from reach.systems import Air3D
     from safety import rollout
     from training import NeuralValueFunction, ValueNetwork
@@ -208,7 +208,8 @@ def test_a_rollout_refuses_a_value_function_that_returns_nan_naming_the_state(pa
     assert clean.num_states == 3  # the same states roll out where the value is finite
     poisoned = _PoisonedAt(vf, part, at=1.0)  # only the third state (x = 1.5) is poisoned
     what = "value" if part == "value" else "gradient"
-    with pytest.raises(ValueError, match=f"value function's {what} is not finite for state 2 at time-to-go"):
+    named = rf"value function's {what} is not finite at the state \[1\.5, -0\.3, 2\.0\] \(row 2 of"
+    with pytest.raises(ValueError, match=named):
         rollout(poisoned, x, dt=0.05, progress=False)
     assert rollout(poisoned, x[:2], dt=0.05, progress=False).num_states == 2  # the others roll out as before
 

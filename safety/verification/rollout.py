@@ -34,7 +34,7 @@ It simulates only what is still undecided:
   violations counted are those a full simulation finds.
 
 A value function that returns NaN or inf (its value at a start, its gradient along the way) or a
-state that turns non-finite stops the rollout with a ``ValueError`` naming the state: a NaN gradient
+state that turns non-finite stops the rollout with a ``ValueError`` naming the state and its row: a NaN gradient
 would still pick some input, not the value's policy, and a NaN state never meets the failure set.
 
 States go through in chunks (bounded memory), the network runs without an autograd graph (one
@@ -248,19 +248,24 @@ def check_admissible(d: Any, system: ControlAffineSystem) -> Any:
     return d
 
 
-def refuse_non_finite(values: torch.Tensor, index: torch.Tensor, what: str, time_to_go: float) -> None:
-    """Raise ``ValueError`` naming the first state whose row of ``values`` holds NaN or inf.
+def refuse_non_finite(
+    values: torch.Tensor, states: torch.Tensor, index: torch.Tensor, what: str, time_to_go: float
+) -> None:
+    """Raise ``ValueError`` naming the first state whose row of ``values`` holds NaN or inf: the state
+    itself (``states``, the rows ``values`` were computed at) and its row in the rollout's batch
+    (``index``), which a caller that splits its states into blocks numbers from each block's start.
 
     A rollout cannot judge a value function where it is not finite: a NaN gradient still picks some
     input (an arbitrary one, not the value's policy), and a state that turned NaN never meets the
-    failure set, so an avoid rollout would count it safe. ``index`` holds the states' positions in
-    the caller's batch."""
+    failure set, so an avoid rollout would count it safe."""
     bad = ~torch.isfinite(values.reshape(values.shape[0], -1)).all(dim=-1)
     if bool(bad.any()):
         first = int(bad.nonzero()[0, 0])
+        state = [float(f"{v:.6g}") for v in states[first].tolist()]
         raise ValueError(
-            f"rollout: {what} is not finite for state {int(index[first])} at time-to-go {time_to_go:g}; "
-            "a rollout refuses a value function it cannot trust rather than judging another policy"
+            f"rollout: {what} is not finite at the state {state} (row {int(index[first])} of the batch) at "
+            f"time-to-go {time_to_go:g}; a rollout refuses a value function it cannot trust rather than "
+            "judging another policy"
         )
 
 
@@ -329,7 +334,7 @@ def rollout(
         wants_p = (greedy is None and held is None) or (disturbance == "optimal" and use_disturbance)
         p = value_function.gradient(x, t) if wants_p else None
         if p is not None:
-            refuse_non_finite(p, idx, "the value function's gradient", t)
+            refuse_non_finite(p, x, idx, "the value function's gradient", t)
         if not use_disturbance:
             d = None
         elif disturbance == "optimal":
@@ -339,12 +344,12 @@ def rollout(
         u = held
         if u is None:
             u = system.optimal_control(x, p) if greedy is None else greedy.control(x, t, d)
-            refuse_non_finite(u, idx, "the policy's input", t)
+            refuse_non_finite(u, x, idx, "the policy's input", t)
         cols = TORCH.unbind(x)
         uc = system.input_columns(u, system.control_bounds, "u")
         dc = system.input_columns(d, system.disturbance_bounds, "d")
         x_next = TORCH.stack(advance(cols, uc, dc), like=cols[0])  # integrates and wraps headings
-        refuse_non_finite(x_next, idx, "the next state", t)
+        refuse_non_finite(x_next, x, idx, "the next state from", t)
         return x_next, u
 
     n = states.shape[0]
@@ -396,7 +401,7 @@ def rollout(
             x = states[lo:hi].to(device=device, dtype=dtype)
             idx = torch.arange(lo, hi, device=device)
             v0 = value_function.value(x, horizon)
-            refuse_non_finite(v0, idx, "the value function's value", horizon)
+            refuse_non_finite(v0, x, idx, "the value function's value", horizon)
             initial_value[lo:hi] = v0.to(dtype).cpu()
             hit0, in_target = outcomes(x)
             done0 = hit0 if in_target is None else hit0 | in_target
