@@ -378,3 +378,48 @@ def test_certify_study_explains_how_the_closure_lost_the_set(tmp_path: Path, cap
     kept = [float(r.split("/")[2]) for r in rounds if r]
     assert all(a >= b for a, b in itertools.pairwise(kept))
     assert (tmp_path / "level-0.1.npz").exists()
+
+
+@pytest.mark.slow  # about 40 s: two tiny trainings and their scoring, on the CPU
+def test_gpu_width_points_script_trains_scores_and_reports_on_a_cpu(tmp_path: Path):
+    """``benchmarks/gpu_width_points.sh`` (run on a lent GPU, never by CI) trains each WIDTHxPOINTS
+    variant for the wall budget, scores it, and packs the runs; ``width_points_report.py`` reads the
+    unpacked runs back into one row each. Smoke size, on the CPU, for Air3D (no pair grid)."""
+    import tarfile
+
+    out, work = tmp_path / "out", tmp_path / "work"
+    env = {
+        **os.environ,
+        "OUT": str(out),
+        "WORK": str(work),
+        "DEVICE": "cpu",
+        "SYSTEM": "air3d",
+        "BUDGET": "3",
+        "SAMPLES": "200",
+        "SCENARIO": "300",
+        "VARIANTS": "16x256 32x512",
+        "PY": sys.executable,
+        "OMP_NUM_THREADS": "1",
+    }
+    done = subprocess.run(["bash", "benchmarks/gpu_width_points.sh"], cwd=ROOT, env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    summary = (out / "summary.txt").read_text()
+    assert "16x256: exit 0" in summary and "32x512: exit 0" in summary and "| w32-p512 |" in summary
+    unpacked = tmp_path / "unpacked"
+    with tarfile.open(out / "runs.tgz.00") as tgz:
+        tgz.extractall(unpacked, filter="data")
+    report = subprocess.run(
+        [sys.executable, "benchmarks/width_points_report.py", str(unpacked), "--json", str(tmp_path / "r.json")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+    )
+    assert report.returncode == 0, report.stderr
+    rows = json.loads((tmp_path / "r.json").read_text())["runs"]
+    assert [(r["width"], r["points"], r["budget_s"]) for r in rows] == [(16, 256, 3.0), (32, 512, 3.0)]
+    assert all(r["steps"] > 0 and r["evaluation"]["samples"] == 200 for r in rows)
+    assert "| 16 | 256 | 3 |" in report.stdout
+    empty = subprocess.run(
+        [sys.executable, "benchmarks/width_points_report.py", str(tmp_path)], cwd=ROOT, capture_output=True, text=True
+    )
+    assert empty.returncode != 0 and "no run directories (w*-p*)" in empty.stderr
