@@ -423,3 +423,22 @@ def test_gpu_width_points_script_trains_scores_and_reports_on_a_cpu(tmp_path: Pa
         [sys.executable, "benchmarks/width_points_report.py", str(tmp_path)], cwd=ROOT, capture_output=True, text=True
     )
     assert empty.returncode != 0 and "no run directories (w*-p*)" in empty.stderr
+
+
+def test_narrowpassage_share_bounds_what_can_succeed(capsys):
+    """``benchmarks/narrowpassage_share.py``: the share within reach grows with the horizon and never
+    exceeds the share that starts clear; a horizon of 0 is refused by the parser."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("narrowpassage_share", ROOT / "benchmarks" / "narrowpassage_share.py")
+    share = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(share)
+    rows = share.shares(20_000, [0.5, 1.0, 8.0], seed=1, chunk=7_000)
+    reach = [r["goal_within_reach"] for r in rows]
+    clear = 1 - rows[0]["violation_at_start"]
+    assert 0 < reach[0] < reach[1] < reach[2] <= clear and rows[0]["target_at_start"] <= reach[0]
+    assert share.main(["--samples", "2000", "--horizons", "1"]) == 0
+    assert "| 1 |" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        share.main(["--horizons", "0,1"])
+    assert "--horizons must be positive" in capsys.readouterr().err

@@ -412,3 +412,51 @@ def test_target_floor_bounds_the_target_margin_and_is_tight(system, integrator):
             far = floors[steps] > 0
             looser = floors[steps] + 0.1 * rate * steps * dt
             assert far.float().mean() > 0.3 and ((lowest < looser - 1e-9) & far).float().mean() > 0.3
+
+
+@pytest.mark.parametrize("integrator", ["euler", "rk4"])
+@pytest.mark.parametrize("avoid_only", [False, True], ids=["reach-avoid", "avoid"])
+def test_narrow_passage_floors_bound_its_margins_and_are_tight(avoid_only, integrator):
+    """No inputs (random bang-bang throttle and steering, held over Euler or RK4 steps, speed limits
+    as the stepper keeps them) bring NarrowPassage's target margin or its clearance below the floors
+    it declares within their time; both cars driving straight at their goals at full throttle come
+    within 10 % of the target floor's drop where the goal stays out of reach."""
+    from reach.systems.deepreach_catalogue import NarrowPassage
+
+    system = NarrowPassage(avoid_only=avoid_only)
+    dt, steps = 0.01, 40
+    gen = torch.Generator().manual_seed(3)
+    x0 = system.sample_states(3000, generator=gen, dtype=torch.float64)
+    advance = make_stepper(system, dt, integrator, TORCH)
+    for policy in ("random", "straight in"):
+        x = x0.clone()
+        if policy == "straight in":  # each car faces its goal, wheels straight, speed in [0.001, 4]
+            for o, (gx, gy) in zip((0, 5), system.goals):
+                x[:, o + 2] = torch.atan2(gy - x[:, o + 1], gx - x[:, o])
+                x[:, o + 3] = x[:, o + 3].clamp(0.001, 4.0)
+                x[:, o + 4] = 0.0
+        floors = {k: (system.target_floor(x, k * dt), system.margin_floor(x, k * dt)) for k in (steps // 2, steps)}
+        lowest_clearance = system.failure_margin(x)
+        lowest_target = None if avoid_only else system.target_margin(x)
+        for k in range(1, steps + 1):
+            if policy == "random":
+                u = torch.randint(-1, 2, (len(x), 4), generator=gen).to(x.dtype)
+            else:  # full throttle (a = 2), no steering (psi = 0: the centre of its box)
+                u = torch.tensor([1.0, 0.0, 1.0, 0.0], dtype=x.dtype).expand(len(x), 4)
+            uc = system.input_columns(u, system.control_bounds, "u")
+            x = TORCH.stack(advance(TORCH.unbind(x), uc, None), like=x[:, 0])
+            if not avoid_only:
+                lowest_target = torch.minimum(lowest_target, system.target_margin(x))
+            lowest_clearance = torch.minimum(lowest_clearance, system.failure_margin(x))
+            if k in floors:
+                target_floor, clearance_floor = floors[k]
+                assert (lowest_clearance >= clearance_floor - 1e-9).all(), (policy, k)
+                assert avoid_only == (target_floor is None)
+                if target_floor is not None:
+                    assert (lowest_target >= target_floor - 1e-9).all(), (policy, k)
+        if policy == "straight in" and not avoid_only:
+            start = system.target_floor(x0, 0.0)
+            final = floors[steps][0]
+            far = final > 0
+            drop_floor, drop = (start - final)[far], (start - lowest_target)[far]
+            assert far.float().mean() > 0.3 and (drop >= 0.9 * drop_floor).float().mean() > 0.9

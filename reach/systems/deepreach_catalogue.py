@@ -168,6 +168,47 @@ class NarrowPassage(ControlAffineSystem):
     def failure_margin_columns(self, x: Sequence[Column], xp: Backend) -> Column:
         return self._clearance(x, xp)  # reach-avoid: the constraint margin, as the base class's default
 
+    def travel_bound(self, x: torch.Tensor, time: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """How far each car can move within ``time`` seconds from states ``x`` ``(..., 10)``, under any
+        admissible inputs: ``|v| time + time^2``.
+
+        Why: a car's speed changes at ``a`` in [-4, 2], and an input may not push it past its limits
+        (it starts at most at ``|v|`` and may fall toward 0.001 or below only by its own start), so
+        ``|v(s)| <= |v(0)| + 2 s`` and the path is at most ``|v| t + t^2`` long. Held over Euler steps,
+        step ``j`` moves the car by ``dt |v_j|`` with ``|v_j| <= |v(0)| + 2 j dt``; an RK4 step by ``dt``
+        times a weighted mean of its stages' speeds (positive weights summing to one, stages at most
+        ``dt`` later), each at most ``|v(0)| + 2 (j + 1) dt``: summed over the steps, at most the same
+        bound. A step that would overshoot a speed limit stops at it, which only shortens the path."""
+        t = float(time)
+        return x[..., 3].abs() * t + t * t, x[..., 8].abs() * t + t * t
+
+    def target_floor(self, x: torch.Tensor, time: float) -> torch.Tensor | None:
+        """``max_i(d_i - L - s_i)`` (reach-avoid): the target margin is the larger of the two cars'
+        distances to their goals, less ``L``, and car ``i`` moves no farther than ``s_i``
+        (:meth:`travel_bound`), so neither distance can fall by more. ``None`` with ``avoid_only``."""
+        if self.avoid_only:
+            return None
+        s1, s2 = self.travel_bound(x, time)
+        (g1x, g1y), (g2x, g2y) = self.goals
+        d1 = torch.hypot(x[..., 0] - g1x, x[..., 1] - g1y) - self.L - s1
+        d2 = torch.hypot(x[..., 5] - g2x, x[..., 6] - g2y) - self.L - s2
+        return torch.maximum(d1, d2)
+
+    def margin_floor(self, x: torch.Tensor, time: float) -> torch.Tensor | None:
+        """``g`` with each clearance lowered by how far the cars can move (:meth:`travel_bound`): a
+        car's clearance to a curb or to the stranded car by its own ``s_i``, the cars' distance by
+        ``s_1 + s_2``; ``avoid_fn_weight`` scales the least of them, as it scales ``g``. A lower bound
+        of the constraint margin (the failure margin with ``avoid_only``) under any inputs."""
+        s1, s2 = self.travel_bound(x, time)
+        low, high = self.curbs
+        sx, sy = self.stranded_car
+        margin = torch.hypot(x[..., 0] - x[..., 5], x[..., 1] - x[..., 6]) - self.L - (s1 + s2)
+        for (px, py), s in (((x[..., 0], x[..., 1]), s1), ((x[..., 5], x[..., 6]), s2)):
+            margin = torch.minimum(margin, py - low - 0.5 * self.L - s)
+            margin = torch.minimum(margin, high - py - 0.5 * self.L - s)
+            margin = torch.minimum(margin, torch.hypot(px - sx, py - sy) - self.L - s)
+        return self.avoid_fn_weight * margin
+
     def _clearance(self, x: Sequence[Column], xp: Backend) -> Column:
         """``g``: the weighted least clearance of the two cars (see the class docstring)."""
         low, high = self.curbs
