@@ -26,12 +26,13 @@ DEVICE=${DEVICE:-cuda}
 PAIRWISE=${PAIRWISE:-runs/pair_gt.npz}
 PY=${PY:-python3}
 WORK=${WORK:-/tmp/width-points}
+EXTRA=${EXTRA:-} # more reach train options for every variant, e.g. "--tf32" (word-split)
 export PYTHONPATH=$PWD TQDM_DISABLE=1 PYTHONUNBUFFERED=1 MPLBACKEND=Agg
 mkdir -p "$OUT" "$WORK"
 {
     nvidia-smi --query-gpu=name,driver_version --format=csv,noheader 2>/dev/null || echo "no nvidia-smi"
     $PY -c "import torch, sys; print('torch', torch.__version__, 'python', sys.version.split()[0])"
-    echo "cores $(nproc); budget ${BUDGET}s a variant; $SYSTEM; $(date -u +%FT%TZ)"
+    echo "cores $(nproc); budget ${BUDGET}s a variant; $SYSTEM; options: ${EXTRA:-none}; $(date -u +%FT%TZ)"
 } | tee "$OUT/summary.txt"
 # the N-car fleets train under the union of pairwise BRTs and are scored against it; other systems have no pair grid
 pairwise=()
@@ -49,7 +50,7 @@ for variant in $VARIANTS; do
     rm -rf "$run"
     start=$(date +%s)
     timeout -k 20 $((BUDGET + 60)) $PY -m reach train --system "$SYSTEM" --width "$width" --points "$points" \
-        --budget "${BUDGET}s" "${upper[@]}" --compile off --seed 0 --device "$DEVICE" \
+        --budget "${BUDGET}s" "${upper[@]}" --compile off --seed 0 --device "$DEVICE" $EXTRA \
         --out "$run" >"$WORK/train-w$width-p$points.log" 2>&1
     rc=$?
     [ "$rc" = 0 ] || tail -5 "$WORK/train-w$width-p$points.log" >>"$OUT/summary.txt"

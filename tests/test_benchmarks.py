@@ -398,6 +398,7 @@ def test_gpu_width_points_script_trains_scores_and_reports_on_a_cpu(tmp_path: Pa
         "SAMPLES": "200",
         "SCENARIO": "300",
         "VARIANTS": "16x256 32x512",
+        "EXTRA": "--lr 0.0002 --gradient-bound off",
         "PY": sys.executable,
         "OMP_NUM_THREADS": "1",
     }
@@ -418,6 +419,8 @@ def test_gpu_width_points_script_trains_scores_and_reports_on_a_cpu(tmp_path: Pa
     rows = json.loads((tmp_path / "r.json").read_text())["runs"]
     assert [(r["width"], r["points"], r["budget_s"]) for r in rows] == [(16, 256, 3.0), (32, 512, 3.0)]
     assert all(r["steps"] > 0 and r["evaluation"]["samples"] == 200 for r in rows)
+    config = json.loads((unpacked / "w16-p256" / "checkpoint.json").read_text())["config"]
+    assert config["lr"] == 0.0002 and config["gradient_bound"] is None  # EXTRA reached every variant
     assert "| 16 | 256 | 3 |" in report.stdout
     empty = subprocess.run(
         [sys.executable, "benchmarks/width_points_report.py", str(tmp_path)], cwd=ROOT, capture_output=True, text=True
