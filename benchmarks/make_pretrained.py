@@ -262,20 +262,30 @@ def record(args: argparse.Namespace) -> int:
         "source": row["source"],
         "kind": row.get("kind"),
         "policy": settings.get("policy", "gradient"),
-        "command": args.command,
-        "commit": args.commit,
-        "samples": settings["samples"],
-        "scenario_samples": settings.get("scenario_samples"),
-        "robust_samples": settings.get("robust_samples"),
-        "seed": settings["seed"],
-        "hardware": args.hardware,
-        "wall_time_s": row.get("wall_time"),
-        "metrics": card_metrics(row),
+        **evaluation_entry(settings, row, args.command, args.hardware, commit=args.commit),
     }
     others = [e for e in card.also_evaluated if e.get("label") != args.label]
     write_card(dataclasses.replace(card, also_evaluated=(*others, entry)))
     print(pretrained.card(args.name).describe())
     return 0
+
+
+def evaluation_entry(
+    settings: dict, row: dict, command: str, hardware: str, commit: str | None = None
+) -> dict[str, Any]:
+    """What a card keeps of one ``reach evaluate`` row (its JSON's ``settings`` and the row): the
+    command (and the commit, where given), sample sizes, seed, hardware, wall time and metrics."""
+    return {
+        "command": command,
+        **({} if commit is None else {"commit": commit}),
+        "samples": settings["samples"],
+        "scenario_samples": settings.get("scenario_samples"),
+        "robust_samples": settings.get("robust_samples"),
+        "seed": settings["seed"],
+        "hardware": hardware,
+        "wall_time_s": row.get("wall_time"),
+        "metrics": card_metrics(row),
+    }
 
 
 def _evaluation_json(path: str) -> tuple[dict, list[dict]]:
@@ -338,16 +348,7 @@ def adopt(args: argparse.Namespace) -> int:
         raise SystemExit(
             f"{args.results}: it scored a file of {fingerprint['size']} bytes, {source} has {source.stat().st_size}"
         )
-    evaluation = {
-        "command": args.command,
-        "samples": settings["samples"],
-        "scenario_samples": settings.get("scenario_samples"),
-        "robust_samples": settings.get("robust_samples"),
-        "seed": settings["seed"],
-        "hardware": args.hardware,
-        "wall_time_s": row.get("wall_time"),
-        "metrics": card_metrics(row),
-    }
+    evaluation = evaluation_entry(settings, row, args.command, args.hardware)
     write_card(dataclasses.replace(card, evaluation=evaluation))
     print(pretrained.card(args.name).describe())
     return 0

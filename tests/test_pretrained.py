@@ -185,22 +185,30 @@ def test_starts_outside_the_learned_brt_come_from_the_scene() -> None:
         outside_states(vf, 5, 50.0, seed=0, scene=scene, max_draws_per_episode=2)
 
 
-def test_maintainers_record_another_evaluation_in_a_card(tmp_path, monkeypatch) -> None:
-    """``benchmarks/make_pretrained.py record`` files a ``reach evaluate`` run of the shipped file
-    (here under the greedy policy) in the card's ``also_evaluated``: its source, policy, sample sizes
-    and metrics from the run's JSON. Recording the same label again replaces it; a run that did not
-    score the shipped model is refused by name."""
+@pytest.fixture
+def make_pretrained(tmp_path, monkeypatch):
+    """``benchmarks/make_pretrained.py`` as a module, writing the shipped Air3D files' copies in
+    ``tmp_path`` (the package's own cards are left alone)."""
     import importlib.util
-    import sys
     from pathlib import Path
 
     script = Path(__file__).resolve().parents[1] / "benchmarks" / "make_pretrained.py"
     spec = importlib.util.spec_from_file_location("make_pretrained", script)
-    make_pretrained = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(make_pretrained)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
     for f in pretrained.DIRECTORY.glob("air3d.*"):
         shutil.copy(f, tmp_path / f.name)
     monkeypatch.setattr(pretrained, "DIRECTORY", tmp_path)
+    return module
+
+
+def test_maintainers_record_another_evaluation_in_a_card(tmp_path, monkeypatch, make_pretrained) -> None:
+    """``benchmarks/make_pretrained.py record`` files a ``reach evaluate`` run of the shipped file
+    (here under the greedy policy) in the card's ``also_evaluated``: its source, policy, sample sizes
+    and metrics from the run's JSON. Recording the same label again replaces it; a run that did not
+    score the shipped model is refused by name."""
+    import sys
+
     out = tmp_path / "greedy.csv"
     counts = ["--samples", "200", "--scenario-samples", "0", "--robust-samples", "0"]
     assert main(["evaluate", "pretrained:air3d", "--policy", "greedy", *counts, "--out", str(out)]) == 0
@@ -228,27 +236,20 @@ def test_maintainers_record_another_evaluation_in_a_card(tmp_path, monkeypatch) 
     assert refused.value.code == 2
 
 
-def test_maintainers_adopt_an_evaluation_of_the_same_network_scored_elsewhere(tmp_path, monkeypatch) -> None:
+def test_maintainers_adopt_an_evaluation_of_the_same_network_scored_elsewhere(
+    tmp_path, monkeypatch, make_pretrained
+) -> None:
     """``benchmarks/make_pretrained.py adopt`` makes a ``reach evaluate`` run of the shipped network,
     scored from another file (a run directory on a GPU), the card's main evaluation: its sample sizes,
     the command given and the row's metrics. A checkpoint whose network differs from the shipped one
     by a single parameter, or a run under another policy than the cards' protocol, is refused, and
     the card is left as it was."""
-    import importlib.util
     import sys
-    from pathlib import Path
 
     import torch
 
     from training.checkpoint import network_from_payload, read_checkpoint, save_checkpoint
 
-    script = Path(__file__).resolve().parents[1] / "benchmarks" / "make_pretrained.py"
-    spec = importlib.util.spec_from_file_location("make_pretrained", script)
-    make_pretrained = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(make_pretrained)
-    for f in pretrained.DIRECTORY.glob("air3d.*"):
-        shutil.copy(f, tmp_path / f.name)
-    monkeypatch.setattr(pretrained, "DIRECTORY", tmp_path)
     run = tmp_path / "run"  # the same network in another file, as a run directory would hold it
     run.mkdir()
     shutil.copy(tmp_path / "air3d.pt", run / "checkpoint.pt")

@@ -199,25 +199,22 @@ class NarrowPassage(ControlAffineSystem):
         car's clearance to a curb or to the stranded car by its own ``s_i``, the cars' distance by
         ``s_1 + s_2``; ``avoid_fn_weight`` scales the least of them, as it scales ``g``. A lower bound
         of the constraint margin (the failure margin with ``avoid_only``) under any inputs."""
-        s1, s2 = self.travel_bound(x, time)
-        low, high = self.curbs
-        sx, sy = self.stranded_car
-        margin = torch.hypot(x[..., 0] - x[..., 5], x[..., 1] - x[..., 6]) - self.L - (s1 + s2)
-        for (px, py), s in (((x[..., 0], x[..., 1]), s1), ((x[..., 5], x[..., 6]), s2)):
-            margin = torch.minimum(margin, py - low - 0.5 * self.L - s)
-            margin = torch.minimum(margin, high - py - 0.5 * self.L - s)
-            margin = torch.minimum(margin, torch.hypot(px - sx, py - sy) - self.L - s)
-        return self.avoid_fn_weight * margin
+        return self._clearance(TORCH.unbind(x), TORCH, self.travel_bound(x, time))
 
-    def _clearance(self, x: Sequence[Column], xp: Backend) -> Column:
-        """``g``: the weighted least clearance of the two cars (see the class docstring)."""
+    def _clearance(
+        self, x: Sequence[Column], xp: Backend, travel: tuple[Column | float, Column | float] = (0.0, 0.0)
+    ) -> Column:
+        """``g``: the weighted least clearance of the two cars (see the class docstring), each car's
+        clearances lowered by how far it may still move (``travel``, per car; none by default) and the
+        cars' distance by both."""
         low, high = self.curbs
         sx, sy = self.stranded_car
-        margin = xp.hypot(x[0] - x[5], x[1] - x[6]) - self.L
-        for px, py in ((x[0], x[1]), (x[5], x[6])):
-            margin = xp.minimum(margin, py - low - 0.5 * self.L)
-            margin = xp.minimum(margin, high - py - 0.5 * self.L)
-            margin = xp.minimum(margin, xp.hypot(px - sx, py - sy) - self.L)
+        s1, s2 = travel
+        margin = xp.hypot(x[0] - x[5], x[1] - x[6]) - self.L - (s1 + s2)
+        for px, py, s in ((x[0], x[1], s1), (x[5], x[6], s2)):
+            margin = xp.minimum(margin, py - low - 0.5 * self.L - s)
+            margin = xp.minimum(margin, high - py - 0.5 * self.L - s)
+            margin = xp.minimum(margin, xp.hypot(px - sx, py - sy) - self.L - s)
         return self.avoid_fn_weight * margin
 
 
