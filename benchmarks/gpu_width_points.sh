@@ -28,6 +28,13 @@ PY=${PY:-python3}
 WORK=${WORK:-/tmp/width-points}
 EXTRA=${EXTRA:-} # more reach train options for every variant, e.g. "--tf32" (word-split)
 export PYTHONPATH=$PWD TQDM_DISABLE=1 PYTHONUNBUFFERED=1 MPLBACKEND=Agg
+# refused before any training (a lease's minutes are spent on a bad variant otherwise)
+[[ "$BUDGET" =~ ^[1-9][0-9]*$ ]] || { echo "gpu_width_points.sh: BUDGET must be whole seconds > 0, got '$BUDGET'" >&2; exit 2; }
+[ -n "${VARIANTS// /}" ] || { echo "gpu_width_points.sh: VARIANTS is empty" >&2; exit 2; }
+for variant in $VARIANTS; do
+    [[ "$variant" =~ ^[1-9][0-9]*x[1-9][0-9]*$ ]] ||
+        { echo "gpu_width_points.sh: a variant is WIDTHxPOINTS (e.g. 256x32768), got '$variant'" >&2; exit 2; }
+done
 mkdir -p "$OUT" "$WORK"
 {
     nvidia-smi --query-gpu=name,driver_version --format=csv,noheader 2>/dev/null || echo "no nvidia-smi"

@@ -402,6 +402,11 @@ def test_gpu_width_points_script_trains_scores_and_reports_on_a_cpu(tmp_path: Pa
         "PY": sys.executable,
         "OMP_NUM_THREADS": "1",
     }
+    for name, bad, shown in (("VARIANTS", "16x256 256x", "got '256x'"), ("BUDGET", "0", "got '0'")):
+        refused = subprocess.run(
+            ["bash", "benchmarks/gpu_width_points.sh"], cwd=ROOT, env={**env, name: bad}, capture_output=True, text=True
+        )
+        assert refused.returncode == 2 and shown in refused.stderr and not out.exists()  # before any work
     done = subprocess.run(["bash", "benchmarks/gpu_width_points.sh"], cwd=ROOT, env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     summary = (out / "summary.txt").read_text()
